@@ -1,0 +1,40 @@
+# sorolearn: learned-environment RL for pneumatic soft arms. `make help` lists the targets.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+EXTRAS ?= dev
+
+.DEFAULT_GOAL := help
+.PHONY: help setup setup-ros run quick test test-all lint bench clean
+
+help: ## list the targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-10s %s\n", $$1, $$2}'
+
+setup: ## create the virtual environment and install the project (editable) with test tools
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --upgrade pip
+	$(BIN)/python -m pip install -e ".[$(EXTRAS)]"
+
+setup-ros: ## like setup, plus the ROS 2 wheels (robot=ros2, the digital twin, rosbag tests)
+	$(MAKE) setup EXTRAS=dev,ros
+
+run: ## run the whole pipeline on the simulated arm (the embedded default)
+	$(BIN)/python -m pipeline
+
+quick: ## the whole pipeline shrunk to CI size
+	$(BIN)/python -m pipeline experiment=quick
+
+test: ## the fast test suite (what CI runs)
+	$(BIN)/python -m pytest -m "not slow" -n 2
+
+test-all: ## every test, slow ones included
+	$(BIN)/python -m pytest -n 2
+
+lint: ## ruff
+	$(BIN)/ruff check .
+
+bench: ## benchmarks: print side-by-side tables (ratios)
+	$(BIN)/python -m bench
+
+clean: ## remove run outputs (artifacts included)
+	rm -rf outputs multirun

@@ -1,0 +1,136 @@
+"""Leave-one-run-out evaluation of the learned dynamics on the real runs.
+
+For every selected fold the held-out run is predicted open loop over its whole length from its
+first observed pose; the two baselines are computed the same way. One JSON line per fold is
+appended to ``--out`` and a table is printed at the end.
+
+Example (one CPU core)::
+
+    XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \\
+    taskset -c 1 .venv/bin/python experiments/model_search.py \\
+        --data-dir ../shared/data/sorolex --hz 10 --window 128 --hidden 64 --steps 2000 \\
+        --folds all --out outputs/model_search/default.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from experiments.model_data import load_runs  # noqa: E402
+from pipeline import train_model  # noqa: E402
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data-dir", default="/work/shared/data/sorolex")
+    parser.add_argument("--hz", type=float, default=10.0, help="model rate")
+    parser.add_argument("--window", type=int, default=128)
+    parser.add_argument("--stride", type=int, default=1)
+    parser.add_argument("--order", default="permuted", choices=["permuted", "sequential"])
+    parser.add_argument("--hidden", type=int, default=64)
+    parser.add_argument("--layers", type=int, default=1)
+    parser.add_argument("--head", default="", help="comma-separated widths, e.g. 64,64")
+    parser.add_argument("--condition", type=int, default=1, help="condition_on_initial_pose")
+    parser.add_argument("--displacement", type=int, default=1, help="predict_displacement")
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--lr", type=float, default=3e-3)
+    parser.add_argument("--schedule", default="cosine", choices=["constant", "cosine"])
+    parser.add_argument("--warmup", type=int, default=100)
+    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--folds", default="all", help="'all' or comma-separated run indices")
+    parser.add_argument("--lags", type=int, default=20, help="linear baseline lags (model steps)")
+    parser.add_argument("--tag", default="")
+    parser.add_argument("--out", default="outputs/model_search/results.jsonl")
+    parser.add_argument("--progress", type=int, default=0)
+    return parser.parse_args(argv)
+
+
+def model_config(args: argparse.Namespace) -> dict:
+    return {
+        "hidden": args.hidden,
+        "layers": args.layers,
+        "head": [int(w) for w in args.head.split(",") if w],
+        "condition_on_initial_pose": bool(args.condition),
+        "predict_displacement": bool(args.displacement),
+        "batch_size": args.batch,
+        "learning_rate": args.lr,
+        "lr_schedule": args.schedule,
+        "warmup_steps": args.warmup,
+        "num_steps": args.steps,
+        "eval_every": args.steps,
+        "checkpoint_every": args.steps,
+        "seed": args.seed,
+    }
+
+
+def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
+    test_run = runs[held_out]
+    train_runs = [run for i, run in enumerate(runs) if i != held_out]
+    started = time.perf_counter()
+    params, _, _ = train_model.fit(
+        train_runs,
+        model_config(args),
+        window=args.window,
+        stride=args.stride,
+        order=args.order,
+        progress=bool(args.progress),
+    )
+    train_seconds = time.perf_counter() - started
+    model = train_model.evaluate_open_loop(params, test_run)
+    mean_baseline = train_model.baseline_mean_position(train_runs, test_run)
+    linear_baseline = train_model.baseline_linear_lagged(train_runs, test_run, args.lags)
+    return {
+        "tag": args.tag,
+        "held_out": test_run["run_id"],
+        "mean_mm": model["mean_mm"],
+        "p95_mm": model["p95_mm"],
+        "train_s": train_seconds,
+        "baseline_mean_mm": mean_baseline["mean_mm"],
+        "baseline_mean_p95_mm": mean_baseline["p95_mm"],
+        "baseline_linear_mm": linear_baseline["mean_mm"],
+        "baseline_linear_p95_mm": linear_baseline["p95_mm"],
+        "hz": args.hz,
+        "window": args.window,
+        "order": args.order,
+        **model_config(args),
+    }
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    runs = load_runs(args.data_dir, args.hz)
+    folds = range(len(runs)) if args.folds == "all" else [int(i) for i in args.folds.split(",")]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for held_out in folds:
+        row = run_fold(runs, held_out, args)
+        rows.append(row)
+        with open(out, "a") as file:
+            file.write(json.dumps(row) + "\n")
+        print(
+            f"{row['held_out']}: model {row['mean_mm']:.2f}/{row['p95_mm']:.2f} mm  "
+            f"linear {row['baseline_linear_mm']:.2f}  mean {row['baseline_mean_mm']:.2f}  "
+            f"({row['train_s']:.0f} s)",
+            flush=True,
+        )
+    table = pd.DataFrame(rows)[
+        ["held_out", "mean_mm", "p95_mm", "baseline_linear_mm", "baseline_mean_mm", "train_s"]
+    ]
+    print(table.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    print(f"average over folds: model {np.mean(table.mean_mm):.2f} mm mean, "
+          f"{np.mean(table.p95_mm):.2f} mm p95")
+
+
+if __name__ == "__main__":
+    main()

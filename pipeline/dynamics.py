@@ -1,0 +1,287 @@
+"""Learned forward dynamics of the arm: an LSTM from chamber pressures to marker position.
+
+Units outside this module are physical: pressures in kPa, positions in metres. Standardization
+happens inside, with the statistics of the training runs stored in :class:`Normalizer` next to the
+network weights (both live in :class:`DynamicsParams`, one pytree).
+
+Time indices. At model step ``t`` the network consumes the held pressure ``p_t`` and emits the
+position ``x_t`` observed at the same grid time::
+
+    carry_0          = init_carry(params, x_0_observed)
+    carry_{t+1}, x_t = step(params, carry_t, p_t)          t = 0 .. T-1
+
+so ``predict_sequence(params, p[0:T], x_0_observed)[t] == x_t`` depends on ``p_0 .. p_t`` and the
+observed initial pose only (open loop).
+
+Initial pose. Rest poses differ by a few mm between runs. Two switches let the model use the pose
+observed at reset (both are measured in ``experiments/MODEL_RESULTS.md``):
+
+* ``predict_displacement``: the network predicts ``x_t - x_0_observed`` and the observed pose is
+  added back, so a run-to-run offset of the rest pose passes straight through.
+* ``condition_on_initial_pose``: the initial LSTM carry is a dense map of the standardized
+  observed pose (otherwise it is zero).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import chex
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+NUM_CHAMBERS = 3
+POSITION_DIM = 3
+_MIN_STD = 1.0e-6  # floor of every standard deviation, so a constant channel cannot divide by 0
+
+
+# ---------------------------------------------------------------------------------------------
+# configuration and parameters
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DynamicsConfig:
+    """Architecture of the network (hashable: it is static data of :class:`DynamicsParams`)."""
+
+    hidden: int = 128
+    layers: int = 1
+    head: tuple[int, ...] = ()
+    condition_on_initial_pose: bool = True
+    predict_displacement: bool = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "head", tuple(int(width) for width in self.head))
+
+
+@struct.dataclass
+class Normalizer:
+    """Per-axis statistics of the training runs; every field has shape [3].
+
+    ``target_*`` standardize what the network outputs: ``x_t - x_0`` with ``predict_displacement``
+    and ``x_t`` otherwise. ``pose_*`` standardize the observed initial pose fed to the carry.
+    """
+
+    pressure_mean: jax.Array
+    pressure_std: jax.Array
+    pose_mean: jax.Array
+    pose_std: jax.Array
+    target_mean: jax.Array
+    target_std: jax.Array
+
+
+@struct.dataclass
+class DynamicsParams:
+    """Everything needed to run the model: flax variables, normalizer, static architecture."""
+
+    network: Any  # flax variables, {"params": ...}
+    normalizer: Normalizer
+    config: DynamicsConfig = struct.field(pytree_node=False)
+
+
+class DynamicsCarry(NamedTuple):
+    """Recurrent state between model steps.
+
+    lstm: one ``(c, h)`` pair of [hidden] arrays per layer.
+    initial_pose: [3] metres, the observed pose at reset (added back to predicted displacements).
+    """
+
+    lstm: tuple[tuple[jax.Array, jax.Array], ...]
+    initial_pose: jax.Array
+
+
+# ---------------------------------------------------------------------------------------------
+# network
+# ---------------------------------------------------------------------------------------------
+class LSTMDynamicsNet(nn.Module):
+    """Stacked LSTM + MLP head, one unbatched time step per call (vmap for batches)."""
+
+    hidden: int
+    layers: int
+    head: tuple[int, ...]
+    condition_on_initial_pose: bool
+
+    def setup(self):
+        self.cells = [
+            nn.OptimizedLSTMCell(self.hidden, name=f"lstm_{i}") for i in range(self.layers)
+        ]
+        if self.condition_on_initial_pose:
+            # Small init: the conditioned carry starts near the zero carry of the plain model.
+            self.carry_encoder = nn.Dense(
+                2 * self.hidden * self.layers,
+                kernel_init=nn.initializers.normal(0.1),
+                name="carry_encoder",
+            )
+        self.head_layers = [nn.Dense(width, name=f"head_{i}") for i, width in enumerate(self.head)]
+        self.readout = nn.Dense(POSITION_DIM, name="readout")
+
+    def initial_carry(self, pose_normalized: jax.Array):
+        """[3] standardized observed pose -> tuple of ``(c, h)`` per layer."""
+        if not self.condition_on_initial_pose:
+            zeros = jnp.zeros((self.hidden,), pose_normalized.dtype)
+            return tuple((zeros, zeros) for _ in range(self.layers))
+        encoded = self.carry_encoder(pose_normalized).reshape(self.layers, 2, self.hidden)
+        return tuple((encoded[i, 0], jnp.tanh(encoded[i, 1])) for i in range(self.layers))
+
+    def __call__(self, carry, pressure_normalized: jax.Array):
+        """One step: ``(carry_t, [3] standardized p_t) -> (carry_{t+1}, [3] standardized y_t)``."""
+        features = pressure_normalized
+        next_carry = []
+        for cell, layer_carry in zip(self.cells, carry):
+            layer_carry, features = cell(layer_carry, features)
+            next_carry.append(layer_carry)
+        for dense in self.head_layers:
+            features = nn.relu(dense(features))
+        return tuple(next_carry), self.readout(features)
+
+    def initialize(self, pose_normalized: jax.Array, pressure_normalized: jax.Array):
+        """Touches every submodule once; only used by ``init``."""
+        return self(self.initial_carry(pose_normalized), pressure_normalized)
+
+
+def make_network(config: DynamicsConfig) -> LSTMDynamicsNet:
+    return LSTMDynamicsNet(
+        hidden=config.hidden,
+        layers=config.layers,
+        head=config.head,
+        condition_on_initial_pose=config.condition_on_initial_pose,
+    )
+
+
+def init_network(key: jax.Array, config: DynamicsConfig) -> Any:
+    """Fresh flax variables for ``config``."""
+    zeros = jnp.zeros((NUM_CHAMBERS,), jnp.float32)
+    return make_network(config).init(key, zeros, zeros, method=LSTMDynamicsNet.initialize)
+
+
+# ---------------------------------------------------------------------------------------------
+# normalization
+# ---------------------------------------------------------------------------------------------
+def fit_normalizer(runs: Sequence[dict], predict_displacement: bool) -> Normalizer:
+    """Statistics over all steps of ``runs`` (dicts with "p" [T, 3] kPa and "pos" [T, 3] m).
+
+    The displacement target of a run is taken from its own first pose, as at evaluation; the
+    training windows use their own first pose, whose spread is similar.
+    """
+    pressures = np.concatenate([np.asarray(run["p"], np.float64) for run in runs])
+    positions = np.concatenate([np.asarray(run["pos"], np.float64) for run in runs])
+    if predict_displacement:
+        targets = np.concatenate(
+            [np.asarray(run["pos"], np.float64) - np.asarray(run["pos"][0], np.float64)
+             for run in runs]
+        )
+    else:
+        targets = positions
+
+    def stats(values):
+        return (
+            jnp.asarray(values.mean(axis=0), jnp.float32),
+            jnp.asarray(np.maximum(values.std(axis=0), _MIN_STD), jnp.float32),
+        )
+
+    pressure_mean, pressure_std = stats(pressures)
+    pose_mean, pose_std = stats(positions)
+    target_mean, target_std = stats(targets)
+    return Normalizer(pressure_mean, pressure_std, pose_mean, pose_std, target_mean, target_std)
+
+
+def normalize_pressure(normalizer: Normalizer, pressure: jax.Array) -> jax.Array:
+    return (pressure - normalizer.pressure_mean) / normalizer.pressure_std
+
+
+def normalize_pose(normalizer: Normalizer, pose: jax.Array) -> jax.Array:
+    return (pose - normalizer.pose_mean) / normalizer.pose_std
+
+
+def normalize_target(
+    params: DynamicsParams, position: jax.Array, initial_pose: jax.Array
+) -> jax.Array:
+    """[..., 3] positions (m) -> standardized network targets, given the [3] initial pose."""
+    normalizer = params.normalizer
+    if params.config.predict_displacement:
+        position = position - initial_pose
+    return (position - normalizer.target_mean) / normalizer.target_std
+
+
+def denormalize_target(
+    params: DynamicsParams, output: jax.Array, initial_pose: jax.Array
+) -> jax.Array:
+    """Inverse of :func:`normalize_target`: standardized outputs -> positions (m)."""
+    normalizer = params.normalizer
+    position = output * normalizer.target_std + normalizer.target_mean
+    if params.config.predict_displacement:
+        position = position + initial_pose
+    return position
+
+
+# ---------------------------------------------------------------------------------------------
+# public model API (physical units)
+# ---------------------------------------------------------------------------------------------
+def init_carry(params: DynamicsParams, initial_pose: jax.Array) -> DynamicsCarry:
+    """Carry before step 0 from the observed pose at reset ([3] metres)."""
+    chex.assert_shape(initial_pose, (POSITION_DIM,))
+    network = make_network(params.config)
+    pose_normalized = normalize_pose(params.normalizer, initial_pose)
+    lstm = network.apply(params.network, pose_normalized, method=LSTMDynamicsNet.initial_carry)
+    return DynamicsCarry(lstm=lstm, initial_pose=jnp.asarray(initial_pose, jnp.float32))
+
+
+def step(
+    params: DynamicsParams, carry: DynamicsCarry, pressure: jax.Array
+) -> tuple[DynamicsCarry, jax.Array]:
+    """One model step: ``(carry_t, p_t [3] kPa) -> (carry_{t+1}, x_t [3] m)``."""
+    chex.assert_shape(pressure, (NUM_CHAMBERS,))
+    network = make_network(params.config)
+    pressure_normalized = normalize_pressure(params.normalizer, pressure)
+    lstm, output = network.apply(params.network, carry.lstm, pressure_normalized)
+    position = denormalize_target(params, output, carry.initial_pose)
+    return DynamicsCarry(lstm=lstm, initial_pose=carry.initial_pose), position
+
+
+def step_held(
+    params: DynamicsParams, carry: DynamicsCarry, pressure: jax.Array, num_steps: int
+) -> tuple[DynamicsCarry, jax.Array]:
+    """Holds ``pressure`` ([3] kPa) for ``num_steps`` model steps (one control period).
+
+    Returns the carry after the period and the [num_steps, 3] positions (m) along it; the last
+    row is the pose at the end of the period.
+    """
+    chex.assert_shape(pressure, (NUM_CHAMBERS,))
+    held = jnp.broadcast_to(pressure, (num_steps, NUM_CHAMBERS))
+    return jax.lax.scan(lambda c, p: step(params, c, p), carry, held)
+
+
+def predict_normalized(
+    params: DynamicsParams, pressure_normalized: jax.Array, pose_normalized: jax.Array
+) -> jax.Array:
+    """Open-loop rollout in standardized units: [T, 3], [3] -> [T, 3] (the training path)."""
+    chex.assert_shape(pressure_normalized, (None, NUM_CHAMBERS))
+    chex.assert_shape(pose_normalized, (POSITION_DIM,))
+    network = make_network(params.config)
+    carry = network.apply(params.network, pose_normalized, method=LSTMDynamicsNet.initial_carry)
+
+    def one_step(carry, pressure_t):
+        return network.apply(params.network, carry, pressure_t)
+
+    _, outputs = jax.lax.scan(one_step, carry, pressure_normalized)
+    return outputs
+
+
+def predict_sequence(
+    params: DynamicsParams, pressures: jax.Array, initial_pose: jax.Array
+) -> jax.Array:
+    """Open-loop positions [T, 3] m from pressures [T, 3] kPa and the observed pose x_0 [3] m.
+
+    Row ``t`` is the pose after the network consumed ``p_0 .. p_t`` (see the module docstring);
+    identical to stepping :func:`step` from :func:`init_carry`.
+    """
+    chex.assert_shape(pressures, (None, NUM_CHAMBERS))
+    chex.assert_shape(initial_pose, (POSITION_DIM,))
+    normalizer = params.normalizer
+    outputs = predict_normalized(
+        params, normalize_pressure(normalizer, pressures), normalize_pose(normalizer, initial_pose)
+    )
+    return denormalize_target(params, outputs, initial_pose)

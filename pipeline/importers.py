@@ -1,0 +1,201 @@
+"""Importers of recorded real-arm data into the raw ``commands`` and ``mocap`` schemas.
+
+- **sorolex CSV** (the paper's files, ``shared/data/sorolex``): ``time,1_x,1_y,1_z,
+  control_pressure_0..2``, already aligned by the authors (each command held on the mocap rows
+  until the next). Commands are recovered as the rows where the pressure changes (plus the first
+  row); consecutive commands of identical value are therefore merged into one, which ``align``
+  reproduces identically. Every row is a valid mocap frame.
+- **PlotJuggler CSV** exports of the ROS topics: a ``__time`` column and one column per message
+  field, merged on a common time axis, empty where a topic had no message at that time. Position
+  columns end in ``/pose/position/x`` (``y``, ``z``); pressure columns end in ``p_d.<j>`` or
+  ``data.<j>``.
+
+Rows in errors are 0-based data rows; the CSV line is ``row + 2`` (the header is line 1).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.schemas import (
+    CMD_COLUMNS,
+    COMMANDS,
+    MOCAP,
+    N_VALVES,
+    XYZ,
+    DataError,
+    check_pressure_limits,
+    validate,
+)
+
+SOROLEX_TIME = "time"
+SOROLEX_POSITION = ["1_x", "1_y", "1_z"]
+SOROLEX_PRESSURE = [f"control_pressure_{j}" for j in range(N_VALVES)]
+PLOTJUGGLER_TIME = "__time"
+_PJ_POSITION = re.compile(r"^(?P<body>.*)/pose/position/(?P<axis>[xyz])$")
+_PJ_PRESSURE = re.compile(r"^(?P<topic>.*)/(?:p_d|data)[.\[/](?P<index>\d+)\]?$")
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes (artifact keys of imported data follow the data, not its path)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def list_recordings(robot: Any) -> list[Path]:
+    """The files an import robot reads, sorted; a clear error if there are none."""
+    data_dir = Path(robot.data_dir).expanduser()
+    if not data_dir.is_dir():
+        raise FileNotFoundError(
+            f"robot.data_dir={data_dir} is not a folder (set robot.data_dir=... or SOROLEX_DIR)"
+        )
+    if robot.files:
+        paths = [data_dir / name for name in robot.files]
+        missing = [str(p) for p in paths if not p.is_file()]
+        if missing:
+            raise FileNotFoundError(f"robot.files not found: {missing}")
+    else:
+        paths = sorted(data_dir.glob(robot.pattern))
+    if not paths:
+        raise FileNotFoundError(f"no files match {robot.pattern!r} in {data_dir}")
+    return paths
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    if path.stat().st_size == 0:
+        raise DataError(str(path), "the file is empty")
+    try:
+        df = pd.read_csv(path, skipinitialspace=True)
+    except pd.errors.EmptyDataError as err:
+        raise DataError(str(path), "the file has no header or no data") from err
+    except pd.errors.ParserError as err:
+        raise DataError(str(path), f"not a well-formed CSV ({err})") from err
+    if len(df) == 0:
+        raise DataError(str(path), "the file has a header but no data rows")
+    return df
+
+
+def _require(df: pd.DataFrame, columns: list[str], path: Path) -> None:
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise DataError(str(path), f"missing column(s) {missing}; found {list(df.columns)}",
+                        column=missing[0])
+
+
+def read_sorolex_csv(path: Path, limits: Any, run_id: str | None = None
+                     ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """One paper CSV as ``(commands, mocap)`` tables, validated (limits checked)."""
+    path = Path(path)
+    df = _read_csv(path)
+    _require(df, [SOROLEX_TIME, *SOROLEX_POSITION, *SOROLEX_PRESSURE], path)
+    run_id = run_id or path.stem
+    mocap = pd.DataFrame({"run_id": run_id, "t": df[SOROLEX_TIME]})
+    for axis, column in zip(XYZ, SOROLEX_POSITION):
+        mocap[axis] = df[column]
+    mocap["valid"] = True
+    # Validate against the file's own column names first, so errors name them.
+    renamed = {SOROLEX_TIME: "t", **dict(zip(SOROLEX_POSITION, XYZ)),
+               **dict(zip(SOROLEX_PRESSURE, CMD_COLUMNS))}
+    _validate_named(df, renamed, path, limits)
+    mocap = validate(mocap, MOCAP, str(path))
+
+    pressures = df[SOROLEX_PRESSURE].to_numpy(np.float64)
+    changed = np.r_[True, np.any(pressures[1:] != pressures[:-1], axis=1)]
+    commands = pd.DataFrame({"run_id": run_id, "t": mocap["t"].to_numpy()[changed]})
+    for j, column in enumerate(CMD_COLUMNS):
+        commands[column] = pressures[changed, j]
+    return validate(commands, COMMANDS, str(path), limits), mocap
+
+
+def _validate_named(df: pd.DataFrame, renamed: dict[str, str], path: Path, limits: Any) -> None:
+    """Run the schema checks on the CSV's columns but report the CSV's own column names."""
+    for original in renamed:
+        values = pd.to_numeric(df[original], errors="coerce").to_numpy(np.float64)
+        bad = ~np.isfinite(values)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise DataError(str(path), f"not a finite number: {df[original].iloc[row]!r} "
+                            f"(line {row + 2}; a truncated last line looks like this)",
+                            original, row)
+    t = df[[k for k, v in renamed.items() if v == "t"][0]].to_numpy(np.float64)
+    dt = np.diff(t)
+    for problem, mask in (("duplicate timestamp", dt == 0), ("timestamp goes backwards", dt < 0)):
+        if mask.any():
+            row = int(np.flatnonzero(mask)[0]) + 1
+            raise DataError(str(path), f"{problem}: {t[row]!r} after {t[row - 1]!r} "
+                            f"(line {row + 2})", "t" if "t" in df else SOROLEX_TIME, row)
+    pressure_cols = [k for k, v in renamed.items() if v in CMD_COLUMNS]
+    check_pressure_limits(df[pressure_cols].to_numpy(np.float64), pressure_cols, limits,
+                          str(path))
+
+
+def read_plotjuggler_csv(path: Path, limits: Any, run_id: str | None = None
+                         ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """A PlotJuggler CSV export as ``(commands, mocap)`` tables, validated (limits checked)."""
+    path = Path(path)
+    df = _read_csv(path)
+    _require(df, [PLOTJUGGLER_TIME], path)
+    bodies: dict[str, dict[str, str]] = {}
+    pressure_topics: dict[str, dict[int, str]] = {}
+    for column in df.columns:
+        if m := _PJ_POSITION.match(column):
+            bodies.setdefault(m["body"], {})[m["axis"]] = column
+        elif m := _PJ_PRESSURE.match(column):
+            pressure_topics.setdefault(m["topic"], {})[int(m["index"])] = column
+    bodies = {b: axes for b, axes in bodies.items() if set(axes) == set(XYZ)}
+    if len(bodies) != 1:
+        raise DataError(str(path), f"expected one rigid body with .../pose/position/x,y,z "
+                        f"columns, found {sorted(bodies) or 'none'}")
+    pressure_topics = {k: v for k, v in pressure_topics.items() if len(v) >= N_VALVES}
+    if len(pressure_topics) != 1:
+        raise DataError(str(path), f"expected one pressure topic with fields p_d.0..{N_VALVES - 1}"
+                        f" (or data.0..), found {sorted(pressure_topics) or 'none'}")
+    (axes,) = bodies.values()
+    (fields,) = pressure_topics.values()
+    position_cols = [axes[a] for a in XYZ]
+    pressure_cols = [fields[j] for j in range(N_VALVES)]
+    run_id = run_id or path.stem
+
+    t = pd.to_numeric(df[PLOTJUGGLER_TIME], errors="coerce")
+    if t.isna().any():
+        row = int(np.flatnonzero(t.isna().to_numpy())[0])
+        raise DataError(str(path), f"not a number (line {row + 2})", PLOTJUGGLER_TIME, row)
+
+    def stream(columns: list[str], what: str) -> pd.DataFrame:
+        present = df[columns].notna()
+        partial = present.any(axis=1) & ~present.all(axis=1)
+        if partial.any():
+            row = int(np.flatnonzero(partial.to_numpy())[0])
+            missing = [c for c in columns if pd.isna(df[c].iloc[row])][0]
+            raise DataError(str(path), f"{what} sample with an empty field (line {row + 2})",
+                            missing, row)
+        rows = present.all(axis=1).to_numpy()
+        if not rows.any():
+            raise DataError(str(path), f"no {what} samples", columns[0])
+        return df.loc[rows, [PLOTJUGGLER_TIME, *columns]]
+
+    pose = stream(position_cols, "pose")
+    mocap = pd.DataFrame({"run_id": run_id, "t": pose[PLOTJUGGLER_TIME].to_numpy()})
+    for axis, column in zip(XYZ, position_cols):
+        mocap[axis] = pose[column].to_numpy()
+    mocap["valid"] = True
+    command = stream(pressure_cols, "pressure command")
+    check_pressure_limits(command[pressure_cols].to_numpy(np.float64), pressure_cols, limits,
+                          str(path))
+    commands = pd.DataFrame({"run_id": run_id, "t": command[PLOTJUGGLER_TIME].to_numpy()})
+    for j, column in enumerate(CMD_COLUMNS):
+        commands[column] = command[pressure_cols[j]].to_numpy()
+    return (validate(commands, COMMANDS, f"{path} (pressure topic)", limits),
+            validate(mocap, MOCAP, f"{path} (pose topic)"))
+
+
+READERS = {"sorolex_csv": read_sorolex_csv, "plotjuggler_csv": read_plotjuggler_csv}

@@ -1,0 +1,241 @@
+"""A simulated 3-chamber pneumatic bellows arm hanging from a frame, with motion capture.
+
+It stands in for the real arm of the paper (``shared/data/sorolex``) as the default robot and as
+the ground-truth plant that policies are evaluated on. Everything is pure JAX: ``vmap`` it over
+many arms, ``jit`` it, and it runs on simulated time, never the wall clock.
+
+Model (all parameters in :class:`pipeline.config.SimPhysics`, units SI unless kPa):
+
+1. **Valves to chambers.** Each chamber pressure follows its valve command with a first-order lag
+   ``dp/dt = (p_cmd - p) / pressure_tau_s``.
+2. **Hysteresis.** A play (backlash) operator of half-width ``hysteresis_kpa`` per chamber: the
+   effective pressure ``h`` only moves once the pressure has pushed it past the play.
+3. **Creep.** A fraction ``creep_gain`` of the effective pressure acts through a slow first-order
+   lag ``creep_tau_s``: ``pe = (1 - c) h + c s``, ``ds/dt = (h - s) / creep_tau_s``.
+4. **Configuration.** Bending vector ``b = theta (cos phi, sin phi)`` in the horizontal x-z plane
+   (theta the bending angle of the constant-curvature segment, phi its direction) and elongation
+   ``e``. Pressurising chamber k (at angle ``a_k`` around the axis) bends the arm away from it:
+   ``b* = -bend_gain * sum_k pe_k (cos a_k, sin a_k)``, ``e* = elong_gain * mean_k pe_k``.
+5. **Second-order dynamics with gravity.** ``b'' = w^2 (b* - b - g sin(theta) b / theta) -
+   2 zeta w b'`` (gravity pulls the hanging arm back toward vertical with a torque ~ sin theta, a
+   stiffening that weakens at large angles), ``e'' = w^2 (e* - e) - 2 zeta w e'``, integrated with
+   semi-implicit Euler at ``substeps`` per mocap frame.
+6. **Kinematics.** The constant-curvature segment of length ``L + e`` hangs down (-y) from the
+   base; a rigid end piece of length ``tip_offset_m`` carries the markers. Lateral offset
+   ``(L+e)(1 - cos theta)/theta + d sin theta``, drop ``(L+e) sin theta/theta + d cos theta``.
+   Each session adds a rest-pose offset drawn with ``rest_pose_std_m`` (the real arm's rest pose
+   differs by a few mm between runs).
+7. **Motion capture.** Frames at ``mocap.rate_hz`` with Gaussian position noise, timestamp jitter
+   (clipped to keep time increasing), single dropped frames and bursts of dropped frames
+   (``valid = False``, position NaN).
+
+Magnitudes were calibrated by hand to the real runs: at 2 kPa preload the markers rest near
+(32, 353, 202) mm; a 5 kPa pressure difference moves them about 20 mm sideways and lifts them
+about 2 mm (the real arm: ``dy ≈ 0.006 mm⁻¹ r²``); the mean pressure lengthens the arm by about
+0.5 mm/kPa; steps settle in roughly half a second with a slight overshoot.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+_SMALL_ANGLE = 1e-4  # rad; below it the kinematics use their Taylor expansions
+
+
+@struct.dataclass
+class SimParams:
+    """Physical and sensing parameters of one arm (a pytree: vmap over a batch of them)."""
+
+    base: chex.Array  # [3] m, top of the bending segment at zero elongation
+    chamber_dirs: chex.Array  # [3 chambers, 2] unit vectors (x, z) of the chamber angles
+    segment_length: chex.Array
+    tip_offset: chex.Array
+    pressure_tau: chex.Array
+    bend_gain: chex.Array
+    elong_gain: chex.Array
+    omega: chex.Array
+    damping_ratio: chex.Array
+    gravity_stiffening: chex.Array
+    hysteresis: chex.Array
+    creep_gain: chex.Array
+    creep_tau: chex.Array
+    rest_pose_std: chex.Array  # [3] m
+    noise_std: chex.Array
+    jitter_std: chex.Array
+    drop_prob: chex.Array
+    burst_prob: chex.Array
+    mocap_hz: float = struct.field(pytree_node=False, default=100.0)
+    substeps: int = struct.field(pytree_node=False, default=10)
+    burst_len: int = struct.field(pytree_node=False, default=8)
+
+    @classmethod
+    def from_config(cls, robot: Any) -> SimParams:
+        phys, mocap = robot.physics, robot.mocap
+        angles = np.deg2rad(np.asarray(phys.chamber_angles_deg, np.float64))
+        f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        return cls(
+            base=f32(phys.base_position_m),
+            chamber_dirs=f32(np.stack([np.cos(angles), np.sin(angles)], axis=1)),
+            segment_length=f32(phys.segment_length_m),
+            tip_offset=f32(phys.tip_offset_m),
+            pressure_tau=f32(phys.pressure_tau_s),
+            bend_gain=f32(phys.bend_gain),
+            elong_gain=f32(phys.elong_gain),
+            omega=f32(2 * np.pi * phys.natural_freq_hz),
+            damping_ratio=f32(phys.damping_ratio),
+            gravity_stiffening=f32(phys.gravity_stiffening),
+            hysteresis=f32(phys.hysteresis_kpa),
+            creep_gain=f32(phys.creep_gain),
+            creep_tau=f32(phys.creep_tau_s),
+            rest_pose_std=f32(phys.rest_pose_std_m),
+            noise_std=f32(mocap.noise_std_m),
+            jitter_std=f32(mocap.jitter_std_s),
+            drop_prob=f32(mocap.drop_prob),
+            burst_prob=f32(mocap.burst_prob),
+            mocap_hz=float(mocap.rate_hz),
+            substeps=int(phys.substeps),
+            burst_len=int(mocap.burst_len),
+        )
+
+
+@struct.dataclass
+class SimState:
+    """State of one arm. Pressures in kPa, bending in rad, elongation in m."""
+
+    pressure: chex.Array  # [3] chamber pressures
+    play: chex.Array  # [3] play-operator output (hysteresis)
+    creep: chex.Array  # [3] slow part of the effective pressure
+    config: chex.Array  # [3] (b_x, b_z, e)
+    velocity: chex.Array  # [3] time derivative of config
+    rest_offset: chex.Array  # [3] m, this session's rest-pose offset
+
+
+def _targets(params: SimParams, effective: chex.Array) -> chex.Array:
+    bend = -params.bend_gain * effective @ params.chamber_dirs  # [2]
+    elong = params.elong_gain * effective.mean()
+    return jnp.concatenate([bend, elong[None]])
+
+
+def settled_state(params: SimParams, preload: chex.Array, rest_offset: chex.Array) -> SimState:
+    """The arm at rest after holding ``preload [3]`` kPa for a long time."""
+    preload = jnp.asarray(preload, jnp.float32)
+    chex.assert_shape(preload, (3,))
+    config = _targets(params, preload)
+    # With equal chamber pressures there is no bending, so gravity adds nothing at rest.
+    return SimState(preload, preload, preload, config, jnp.zeros(3), rest_offset)
+
+
+def reset(params: SimParams, key: chex.PRNGKey, preload: chex.Array) -> SimState:
+    """A new session: a fresh rest-pose offset, the arm settled at the preload."""
+    offset = params.rest_pose_std * jax.random.normal(key, (3,))
+    return settled_state(params, preload, offset)
+
+
+def integrate(params: SimParams, state: SimState, command: chex.Array, dt: float) -> SimState:
+    """Advance one integrator step of ``dt`` seconds holding valve ``command [3]`` kPa."""
+    pressure = state.pressure + dt * (command - state.pressure) / params.pressure_tau
+    play = jnp.clip(state.play, pressure - params.hysteresis, pressure + params.hysteresis)
+    creep = state.creep + dt * (play - state.creep) / params.creep_tau
+    effective = (1.0 - params.creep_gain) * play + params.creep_gain * creep
+    target = _targets(params, effective)
+
+    bend = state.config[:2]
+    theta = jnp.sqrt(jnp.sum(bend**2) + 1e-12)
+    gravity = params.gravity_stiffening * (jnp.sin(theta) / theta) * bend
+    restoring = target - state.config - jnp.concatenate([gravity, jnp.zeros(1)])
+    accel = params.omega**2 * restoring - 2.0 * params.damping_ratio * params.omega * state.velocity
+    velocity = state.velocity + dt * accel
+    config = state.config + dt * velocity
+    return SimState(pressure, play, creep, config, velocity, state.rest_offset)
+
+
+def tip_position(params: SimParams, state: SimState) -> chex.Array:
+    """Marker position ``[3]`` (x, y, z) in metres, y vertical."""
+    bx, bz, elong = state.config
+    theta = jnp.sqrt(bx**2 + bz**2)
+    small = theta < _SMALL_ANGLE
+    safe_theta = jnp.where(small, 1.0, theta)
+    length = params.segment_length + elong
+    # (1 - cos t)/t and sin t/t with their series near 0 (keeps gradients finite).
+    one_minus_cos = jnp.where(small, theta / 2.0, (1.0 - jnp.cos(safe_theta)) / safe_theta)
+    sinc = jnp.where(small, 1.0 - theta**2 / 6.0, jnp.sin(safe_theta) / safe_theta)
+    lateral_per_theta = jnp.where(
+        small, length / 2.0 + params.tip_offset, (length * one_minus_cos +
+                                                  params.tip_offset * jnp.sin(safe_theta))
+        / safe_theta)
+    drop = length * sinc + params.tip_offset * jnp.cos(theta)
+    # lateral displacement = lateral_per_theta * theta along (bx, bz) / theta
+    return params.base + state.rest_offset + jnp.stack(
+        [lateral_per_theta * bx, -drop, lateral_per_theta * bz])
+
+
+def advance(params: SimParams, state: SimState, command: chex.Array, num_frames: int
+            ) -> SimState:
+    """Hold ``command [3]`` for ``num_frames`` mocap periods (``substeps`` steps each)."""
+    dt = 1.0 / (params.mocap_hz * params.substeps)
+    return jax.lax.fori_loop(
+        0, num_frames * params.substeps, lambda _, s: integrate(params, s, command, dt), state)
+
+
+def simulate_run(
+    params: SimParams,
+    key: chex.PRNGKey,
+    commands: chex.Array,
+    frame_command: chex.Array,
+    preload: chex.Array,
+) -> dict[str, chex.Array]:
+    """Drive one session with ``commands [N, 3]`` and record motion capture.
+
+    Args:
+      commands: valve commands in kPa; command i is sent at ``t = i / control_hz``.
+      frame_command: ``[K]`` int, index of the command in force during mocap frame k (frame k
+        covers ``[k, k+1) / mocap_hz``); see :func:`frame_command_index`.
+      preload: ``[3]`` kPa the arm has settled at before the run.
+
+    Returns:
+      ``t [K]`` mocap timestamps (s, with jitter), ``position [K, 3]`` (m, noisy, NaN where not
+      valid), ``valid [K]`` bool, ``true_position [K, 3]`` (noise-free, for tests and plots).
+      Frame k's position is the arm's at the frame's nominal time ``k / mocap_hz``.
+    """
+    chex.assert_rank(commands, 2)
+    chex.assert_rank(frame_command, 1)
+    session_key, noise_key, jitter_key, drop_key, burst_key = jax.random.split(key, 5)
+    state = reset(params, session_key, preload)
+
+    def frame(state, command_index):
+        position = tip_position(params, state)
+        state = advance(params, state, commands[command_index], 1)
+        return state, position
+
+    _, true_position = jax.lax.scan(frame, state, frame_command)
+    num_frames = frame_command.shape[0]
+    period = 1.0 / params.mocap_hz
+    jitter = jnp.clip(params.jitter_std * jax.random.normal(jitter_key, (num_frames,)),
+                      -0.4 * period, 0.4 * period)
+    t = jnp.arange(num_frames) * period + jitter
+    noisy = true_position + params.noise_std * jax.random.normal(noise_key, (num_frames, 3))
+    dropped = jax.random.bernoulli(drop_key, params.drop_prob, (num_frames,))
+    burst_start = jax.random.bernoulli(burst_key, params.burst_prob, (num_frames,))
+    in_burst = jnp.convolve(burst_start.astype(jnp.float32), jnp.ones(params.burst_len),
+                            mode="full")[:num_frames] > 0
+    valid = ~(dropped | in_burst)
+    position = jnp.where(valid[:, None], noisy, jnp.nan)
+    return {"t": t, "position": position, "valid": valid, "true_position": true_position}
+
+
+def frame_command_index(num_commands: int, control_hz: float, mocap_hz: float) -> np.ndarray:
+    """Index of the command in force in each mocap frame of a run of ``num_commands`` commands.
+
+    The run lasts ``num_commands / control_hz`` seconds; frame k starts at ``k / mocap_hz``.
+    """
+    num_frames = int(np.floor(num_commands * mocap_hz / control_hz + 1e-9))
+    frames = np.arange(num_frames)
+    # Integer arithmetic where the rates allow it avoids 0.999... rounding at command edges.
+    index = np.floor(frames * control_hz / mocap_hz + 1e-9).astype(np.int32)
+    return np.minimum(index, num_commands - 1)

@@ -1,0 +1,110 @@
+"""Train/test split by run, sliding windows over runs, and batch sampling of windows.
+
+Runs are concatenated along time into one array per signal; a window is the start offset of
+``length`` consecutive rows that lie inside a single run. Batches are drawn as a pure function of
+``(key, step)``, so a resumed training sees exactly the batches an uninterrupted one would.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+ORDERS = ("permuted", "sequential")
+
+
+def split_runs(
+    run_ids: Sequence[str], train_fraction: float, seed: int
+) -> tuple[list[str], list[str]]:
+    """Deterministic split of run ids into (train, test), both returned sorted.
+
+    The ids are sorted first, so the split does not depend on the order they were listed in.
+    ``round(train_fraction * n)`` runs train, but at least one run is kept on each side when
+    there are two or more runs and ``0 < train_fraction < 1``.
+    """
+    if not 0.0 <= train_fraction <= 1.0:
+        raise ValueError(f"train_fraction must lie in [0, 1], got {train_fraction}")
+    ids = sorted(run_ids)
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"duplicate run ids: {ids}")
+    num_train = round(train_fraction * len(ids))
+    if len(ids) >= 2 and 0.0 < train_fraction < 1.0:
+        num_train = min(max(num_train, 1), len(ids) - 1)
+    order = np.random.default_rng(seed).permutation(len(ids))
+    train = sorted(ids[i] for i in order[:num_train])
+    test = sorted(ids[i] for i in order[num_train:])
+    return train, test
+
+
+class Windows(NamedTuple):
+    """Sliding windows over concatenated runs.
+
+    starts: int64 [N] offset of each window's first row in the concatenation.
+    run_index: int64 [N] which run each window lies in.
+    offset_in_run: int64 [N] the window's first row within its run.
+    length: rows per window.
+    """
+
+    starts: np.ndarray
+    run_index: np.ndarray
+    offset_in_run: np.ndarray
+    length: int
+
+
+def make_windows(run_lengths: Sequence[int], length: int, stride: int) -> Windows:
+    """Windows ``[s, s + length)`` with ``s = 0, stride, 2 * stride, ...`` inside every run.
+
+    A run shorter than ``length`` contributes no window. Order: by run, then by start.
+    """
+    if length < 1 or stride < 1:
+        raise ValueError(f"length and stride must be >= 1, got {length}, {stride}")
+    run_offsets = np.concatenate([[0], np.cumsum(run_lengths)[:-1]]).astype(np.int64)
+    starts, run_index, offset_in_run = [], [], []
+    for i, (run_offset, run_length) in enumerate(zip(run_offsets, run_lengths)):
+        local = np.arange(0, run_length - length + 1, stride, dtype=np.int64)
+        starts.append(run_offset + local)
+        run_index.append(np.full(local.shape, i, np.int64))
+        offset_in_run.append(local)
+    return Windows(
+        starts=np.concatenate(starts) if starts else np.zeros(0, np.int64),
+        run_index=np.concatenate(run_index) if run_index else np.zeros(0, np.int64),
+        offset_in_run=np.concatenate(offset_in_run) if offset_in_run else np.zeros(0, np.int64),
+        length=int(length),
+    )
+
+
+def batches_per_epoch(num_windows: int, batch_size: int) -> int:
+    """Full batches in one pass over the windows (the last partial batch is dropped)."""
+    return max(1, num_windows // batch_size)
+
+
+def sample_batch(
+    key: jax.Array, step: jax.Array, num_windows: int, batch_size: int, order: str
+) -> jax.Array:
+    """int32 [batch_size] window indices of training step ``step`` (jit-friendly).
+
+    ``permuted``: epoch ``e = step // batches_per_epoch`` walks through the permutation drawn
+    from ``fold_in(key, e)``, a fresh key per epoch. ``sequential``: every epoch walks through the
+    windows in time order (``key`` unused). With fewer windows than ``batch_size``, indices wrap.
+    """
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+    per_epoch = batches_per_epoch(num_windows, batch_size)
+    epoch, position = jnp.divmod(step, per_epoch)
+    positions = (position * batch_size + jnp.arange(batch_size)) % num_windows
+    if order == "sequential":
+        return positions.astype(jnp.int32)
+    permutation = jax.random.permutation(jax.random.fold_in(key, epoch), num_windows)
+    return permutation[positions].astype(jnp.int32)
+
+
+def gather_windows(series: jax.Array, starts: jax.Array, length: int) -> jax.Array:
+    """Rows ``series[s : s + length]`` for every start: [N, D], [B] -> [B, length, D]."""
+    chex.assert_rank(series, 2)
+    chex.assert_rank(starts, 1)
+    return series[starts[:, None] + jnp.arange(length)[None, :]]

@@ -1,0 +1,132 @@
+import jax
+import numpy as np
+import pytest
+
+from pipeline import dynamics, train_model
+from pipeline.train_model import ModelTrainConfig
+
+
+def first_order_runs(num_runs=3, num_steps=60, seed=0):
+    """Position follows a first-order lag of a linear map of held pressures (learnable)."""
+    rng = np.random.default_rng(seed)
+    gain = np.array([[2.0, -1.0, 0.0], [0.5, 0.5, 0.5], [0.0, 1.0, -2.0]]) * 1e-3
+    runs = []
+    for i in range(num_runs):
+        commands = rng.uniform(0.0, 5.0, (num_steps // 5 + 1, 3))
+        pressure = np.repeat(commands, 5, axis=0)[:num_steps]
+        rest = np.array([0.03, 0.35, 0.2]) + rng.normal(0, 0.002, 3)
+        position, state = [], np.zeros(3)
+        for p in pressure:
+            state = 0.6 * state + 0.4 * gain @ p
+            position.append(rest + state)
+        runs.append({"run_id": f"run{i}", "t": np.arange(num_steps) / 10.0,
+                     "p": pressure.astype(np.float32), "pos": np.array(position, np.float32)})
+    return runs
+
+
+TINY = {
+    "hidden": 16, "layers": 1, "head": [], "condition_on_initial_pose": True,
+    "predict_displacement": True, "batch_size": 8, "learning_rate": 1e-2,
+    "lr_schedule": "constant", "num_steps": 60, "eval_every": 20, "checkpoint_every": 20,
+}
+
+
+def test_tiny_training_loss_falls():
+    runs = first_order_runs()
+    params, normalizer, table = train_model.fit(
+        runs[:2], TINY, window=16, val_runs=runs[2:], progress=False
+    )
+    assert list(table.columns) == train_model.LOSS_TABLE_COLUMNS
+    assert len(table) == 60
+    assert table.train_loss.iloc[-10:].mean() < 0.5 * table.train_loss.iloc[:5].mean()
+    val = table.dropna()
+    assert list(val.step) == [20, 40, 60]
+    assert val.val_mean_mm.iloc[-1] < val.val_mean_mm.iloc[0]
+    assert params.normalizer is normalizer
+    assert train_model.evaluate_open_loop(params, runs[2])["mean_mm"] == pytest.approx(
+        val.val_mean_mm.iloc[-1], rel=1e-4
+    )
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    runs = first_order_runs(2, 40)
+    config = dict(TINY, num_steps=40, lr_schedule="cosine", warmup_steps=5)
+    full, _, full_table = train_model.fit(runs, config, window=12, progress=False)
+
+    checkpoints = tmp_path / "ckpt"
+    train_model.fit(runs, config, window=12, checkpoint_dir=checkpoints, progress=False,
+                    stop_after_steps=20)
+    assert train_model.latest_checkpoint(checkpoints).name == "step_00000020.msgpack"
+    resumed, _, resumed_table = train_model.fit(
+        runs, config, window=12, checkpoint_dir=checkpoints, progress=False
+    )
+    assert train_model.latest_checkpoint(checkpoints).name == "step_00000040.msgpack"
+    for a, b in zip(jax.tree.leaves(full.network), jax.tree.leaves(resumed.network)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(full_table.train_loss, resumed_table.train_loss)
+
+    with pytest.raises(ValueError, match="different training setup"):
+        train_model.fit(runs, dict(config, learning_rate=0.5), window=12,
+                        checkpoint_dir=checkpoints, progress=False)
+
+
+def test_checkpoint_round_trip(tmp_path):
+    runs = first_order_runs(2, 30)
+    params, _, _ = train_model.fit(runs, dict(TINY, num_steps=5), window=10, progress=False,
+                                   checkpoint_dir=tmp_path)
+    for path in (tmp_path / "model.msgpack", train_model.latest_checkpoint(tmp_path)):
+        if path.name == "model.msgpack":
+            train_model.save_dynamics(path, params)
+        loaded = train_model.load_dynamics(path)
+        assert loaded.config == params.config
+        run = runs[0]
+        np.testing.assert_array_equal(
+            dynamics.predict_sequence(loaded, run["p"], run["pos"][0]),
+            dynamics.predict_sequence(params, run["p"], run["pos"][0]),
+        )
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_config_from_any_rejects_unknown_keys():
+    assert ModelTrainConfig.from_any({"hidden": 7, "head": [3]}).head == (3,)
+    with pytest.raises(ValueError, match="unknown model config keys"):
+        ModelTrainConfig.from_any({"hiden": 7})
+    paper = ModelTrainConfig.from_any(
+        {"hidden": 1024, "batch_size": 64, "learning_rate": 1e-3, "lr_schedule": "constant",
+         "num_steps": 200_000, "condition_on_initial_pose": False,
+         "predict_displacement": False}
+    )
+    assert paper.architecture().hidden == 1024
+
+
+def test_position_errors_known_answer():
+    observed = np.zeros((4, 3))
+    predicted = np.array([[0.003, 0.004, 0.0]] * 3 + [[0.0, 0.0, 0.001]])  # 5, 5, 5, 1 mm
+    errors = train_model.position_errors_mm(predicted, observed)
+    assert errors["mean_mm"] == pytest.approx(4.0)
+    assert errors["p95_mm"] == pytest.approx(5.0)
+
+
+def test_baseline_mean_position_known_answer():
+    train = [{"pos": np.array([[0.0, 0.0, 0.0], [0.002, 0.0, 0.0]])}]
+    test = {"pos": np.array([[0.001, 0.0, 0.0], [0.001, 0.003, 0.0]])}
+    errors = train_model.baseline_mean_position(train, test)
+    assert errors["mean_mm"] == pytest.approx(1.5)
+
+
+def test_lagged_features_and_linear_baseline_known_answer():
+    pressure = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]])
+    features = train_model.lagged_features(pressure, num_lags=2)
+    assert features.shape == (3, 13)
+    # Row 0: bias, p_0, p_{-1} (= p_0, the preload), then squares.
+    np.testing.assert_array_equal(features[0], [1, 1, 2, 3, 1, 2, 3, 1, 4, 9, 1, 4, 9])
+    np.testing.assert_array_equal(features[2, 1:7], [7, 8, 9, 4, 5, 6])
+
+    # A position that is exactly linear in p_t, p_{t-1} and p_t**2 is recovered exactly.
+    rng = np.random.default_rng(0)
+    p = rng.uniform(0, 5, (200, 3))
+    previous = np.concatenate([p[:1], p[:-1]])
+    pos = 0.01 + 1e-3 * (p[:, [0, 1, 2]] - 0.5 * previous + 0.1 * p**2)
+    run = {"p": p, "pos": pos}
+    errors = train_model.baseline_linear_lagged([run], run, num_lags=2)
+    assert errors["mean_mm"] < 1e-6

@@ -26,7 +26,10 @@ STAGES: dict[Stage, str] = {
     Stage.fit_model: "pipeline.fit_model:fit_model",
     Stage.train_ppo: "pipeline.train_ppo:train_ppo",
     Stage.evaluate: "pipeline.evaluate:evaluate",
+    Stage.twin: "pipeline.ros2.twin:twin",
 }
+# what `stage=all` runs, in order (the digital twin is a server, started on its own)
+CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
 
 
 def stage_function(stage: Stage) -> Callable[[Any], Any] | None:
@@ -44,7 +47,7 @@ def stage_function(stage: Stage) -> Callable[[Any], Any] | None:
 def run(cfg: Any) -> dict[str, Any]:
     """Run ``cfg.stage`` (or the whole chain); return each stage's result by name."""
     stage = Stage(cfg.stage)
-    chain = list(STAGES) if stage is Stage.all else [stage]
+    chain = list(CHAIN) if stage is Stage.all else [stage]
     results = {}
     for name in chain:
         function = stage_function(name)

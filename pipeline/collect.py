@@ -61,7 +61,7 @@ def collect(cfg: Any) -> Artifact:
     elif kind in _IMPORT_KINDS:
         build = lambda writer: _import_recordings(cfg, writer, spec)  # noqa: E731
     else:
-        from pipeline.ros2 import collect_ros2  # noqa: PLC0415  (optional extra)
+        from pipeline.ros2 import collect_ros2
 
         build = lambda writer: collect_ros2(cfg, writer, spec)  # noqa: E731
     return produce(store, STAGE, spec, inputs, build, force=cfg.force)

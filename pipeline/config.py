@@ -12,10 +12,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, OmegaConf
 
 
 class Stage(str, Enum):
@@ -24,6 +25,7 @@ class Stage(str, Enum):
     fit_model = "fit_model"
     train_ppo = "train_ppo"
     evaluate = "evaluate"
+    twin = "twin"  # the simulated arm as a ROS 2 node (not part of `all`)
     all = "all"
 
 
@@ -32,6 +34,7 @@ class RobotKind(str, Enum):
     ros2 = "ros2"
     sorolex_csv = "sorolex_csv"
     plotjuggler_csv = "plotjuggler_csv"
+    rosbag = "rosbag"
 
 
 class GapPolicy(str, Enum):
@@ -120,18 +123,87 @@ class ImportRobotConfig(RobotConfig):
     files: list[str] = field(default_factory=list)  # explicit names inside data_dir; empty = glob
 
 
+class QosReliability(str, Enum):
+    reliable = "reliable"
+    best_effort = "best_effort"
+
+
+class QosDurability(str, Enum):
+    volatile = "volatile"
+    transient_local = "transient_local"
+
+
 @dataclass
-class Ros2RobotConfig(RobotConfig):
-    name: str = "ros2"
-    kind: RobotKind = RobotKind.ros2
+class QosConfig:
+    """ROS 2 quality of service of one topic (history: keep last ``depth`` messages)."""
+
+    reliability: QosReliability = QosReliability.reliable
+    durability: QosDurability = QosDurability.volatile
+    depth: int = 10
+
+
+@dataclass
+class RosTopicsConfig:
+    """Where the pressure commands and the motion-capture poses travel (ROS 2 and rosbags).
+
+    Field paths are dotted attribute paths into the message: ``command_field`` holds the
+    ``n_valves`` pressures [kPa], ``position_field`` an object with x, y, z [m], ``stamp_field``
+    a ``builtin_interfaces/Time``; an empty ``stamp_field`` uses the time of receipt (collect) or
+    of recording (rosbag) instead.
+    """
+
     command_topic: str = "/control_pressure"
     command_type: str = "std_msgs/msg/Float64MultiArray"
+    command_field: str = "data"
     pose_topic: str = "/mocap_rigid_bodies/rigid_bodies_1/pose"
     pose_type: str = "geometry_msgs/msg/PoseStamped"
     position_field: str = "pose.position"
-    qos_depth: int = 10
+    stamp_field: str = "header.stamp"
+
+
+@dataclass
+class TwinConfig:
+    """The digital twin (``stage=twin``): the simulated arm answering on the ROS 2 topics."""
+
+    seed: int = 0  # session draw (rest pose) and mocap noise
+    frame_id: str = "sorolearn_twin"  # header.frame_id of its poses (collect records it)
+    physics: SimPhysics = field(default_factory=SimPhysics)
+    mocap: MocapConfig = field(default_factory=MocapConfig)
+    record_path: str | None = None  # JSON lines: every command received, with receipt time
+    max_duration_s: float | None = None  # wall seconds until it exits by itself; None: SIGINT
+
+
+@dataclass
+class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
+    """A real arm over ROS 2 (rclpy); durations in the arm's seconds unless marked wall.
+
+    ``time_scale`` is arm seconds per wall second: 1 on a real arm; the digital twin and collect
+    can both run faster (same value on both sides) so that a rehearsal or a test takes seconds.
+    """
+
+    name: str = "ros2"
+    kind: RobotKind = RobotKind.ros2
+    session: str = "default"  # label in the artifact key: a new label records anew
+    node_name: str = "sorolearn_collect"
+    domain_id: int | None = None  # None: ROS_DOMAIN_ID from the environment (default 0)
+    time_scale: float = 1.0
+    command_qos: QosConfig = field(default_factory=QosConfig)
+    pose_qos: QosConfig = field(
+        default_factory=lambda: QosConfig(QosReliability.best_effort, QosDurability.volatile, 100))
     watchdog_s: float = 0.5  # no pose for this long: fault, preload, exit
+    startup_timeout_s: float = 10.0  # wall: wait this long for the first pose and a subscriber
+    flush_every_s: float = 5.0  # wall: raw streams are written to Parquet chunks this often
+    stop_timeout_s: float = 1.0  # wall: wait this long for the preload to be acknowledged
     num_runs: int = 1
+    reuse_incomplete: bool = False  # reuse an interrupted artifact instead of recollecting
+    twin: TwinConfig = field(default_factory=TwinConfig)
+
+
+@dataclass
+class RosbagRobotConfig(ImportRobotConfig, RosTopicsConfig):
+    """ROS 2 bags (sqlite3 or MCAP folders) recorded from the ros2 topics, imported."""
+
+    pattern: str = "*"  # matched in data_dir; only bag folders (with metadata.yaml) are read
 
 
 # --------------------------------------------------------------------------------------------
@@ -191,36 +263,59 @@ class ModelConfig:
 
 @dataclass
 class EnvConfig:
+    """The reaching environment (``pipeline/envs``). Reward: -distance in mm per control period.
+
+    ``name``: learned (the fitted LSTM) | sim (the simulated arm itself) | gymnax (a standard
+    gymnax environment, ``gymnax_name``, to check the PPO against published returns).
+    """
+
     name: str = "learned"
-    max_steps: int = 40
-    goal_tolerance_m: float = 0.001
-    goal_mode: str = "data"  # data | perturb
+    max_steps: int = 40  # control periods per episode (truncation)
+    goal_tolerance_m: float = 0.001  # terminate within this distance of the goal
+    goal_mode: str = "data"  # data (uniform over positions seen) | perturb (paper: N(0,1)*pert.)
     goal_perturbation_m: float = 0.01
-    obs_noise_std: float = 0.0
-    action_noise_std: float = 0.0
+    obs_noise_std: float = 0.0  # m, on the observed position
+    action_noise_std: float = 0.0  # kPa, on the commanded pressures (before projection)
     include_last_action: bool = False
     gymnax_name: str = "Pendulum-v1"
+    settle_seconds: float = 5.0  # preload held before an episode starts
+    reset_bank_size: int = 64  # settled start states computed once per EnvParams
+    env_seed: int = 0  # draws of the reset bank and (env=sim) of the goal sets
+    num_goals: int = 2048  # env=sim: goals drawn from the simulated arm's reachable set
+    held_out_fraction: float = 0.25  # env=sim: share of the goals kept for evaluation
+    goal_every: int = 1  # env=learned: use every n-th aligned row as a goal
 
 
 @dataclass
 class AgentConfig:
+    """PPO (``pipeline/ppo.py``); ``recurrent`` selects the GRU actor-critic."""
+
     name: str = "ppo_ff"
     recurrent: bool = False
-    num_seeds: int = 4
+    num_seeds: int = 4  # seeds trained at once (vmap); seed i uses fold_in(PRNGKey(seed), i)
     num_envs: int = 64
-    num_steps: int = 32
-    total_timesteps: int = 500_000
+    num_steps: int = 32  # rollout length per update
+    total_timesteps: int = 500_000  # per seed
     update_epochs: int = 4
     num_minibatches: int = 4
     gamma: float = 0.99
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
+    clip_value: bool = True  # PPO value clipping (same clip_eps)
     ent_coef: float = 0.0
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     lr: float = 3.0e-4
     anneal_lr: bool = True
-    hidden: int = 64
+    hidden: int = 64  # width of the MLP layers
+    num_layers: int = 2  # MLP layers of the actor and of the critic (after the GRU if any)
+    rnn_hidden: int = 64  # GRU width (recurrent only)
+    activation: str = "tanh"  # tanh | relu
+    log_std_init: float = 0.0  # initial log std of the Gaussian policy (in [-1, 1] units)
+    reward_scale: float = 1.0  # rewards are multiplied by this for the update only
+    num_evals: int = 10  # deterministic evaluations on held-out goals during training
+    eval_envs: int = 256  # episodes per evaluation
+    progress: bool = True  # a progress bar on the host (jax.debug.callback, throttled)
 
 
 @dataclass
@@ -232,7 +327,7 @@ class LoggerConfig:
 
 @dataclass
 class PathsConfig:
-    root_dir: str = "${oc.env:SOROLEARN_ROOT,.}"
+    root_dir: str = "${oc.env:SOROLEARN_ROOT,${project_root:}}"
     data_dir: str = "${oc.env:SOROLEX_DIR,${paths.root_dir}/../shared/data/sorolex}"
     output_dir: str = "${paths.root_dir}/outputs"
     artifact_dir: str = "${paths.output_dir}/artifacts"
@@ -253,13 +348,19 @@ class Config:
     paths: PathsConfig = MISSING
 
 
+PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the checkout: conf/ lies here
+
+
 def register_configs() -> None:
-    """Register the schemas; each YAML names its schema first in its defaults list."""
+    """Register the schemas (each YAML names its schema first in its defaults list) and the
+    ``${project_root:}`` resolver."""
+    OmegaConf.register_new_resolver("project_root", lambda: str(PROJECT_ROOT), replace=True)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(group="robot", name="base_sim", node=SimRobotConfig)
     cs.store(group="robot", name="base_import", node=ImportRobotConfig)
     cs.store(group="robot", name="base_ros2", node=Ros2RobotConfig)
+    cs.store(group="robot", name="base_rosbag", node=RosbagRobotConfig)
     cs.store(group="exploration", name="base_exploration", node=ExplorationConfig)
     cs.store(group="dataset", name="base_dataset", node=DatasetConfig)
     cs.store(group="model", name="base_model", node=ModelConfig)

@@ -73,6 +73,11 @@ def exploration_run(key: chex.PRNGKey, exploration: Any, limits: Any, n_valves: 
     ``alpha`` overrides ``exploration.alpha`` (for the figure that compares values).
     """
     safe = SafeSet.from_limits(limits, n_valves)
+    if n_valves * float(limits.preload) > float(exploration.p_max):
+        raise ValueError(
+            f"exploration.p_max={exploration.p_max} kPa is below the preload sum "
+            f"{n_valves} x {limits.preload} kPa: the runs start and end at the preload"
+        )
     walk = random_walk(
         key,
         float(exploration.alpha if alpha is None else alpha),

@@ -126,13 +126,13 @@ def _validate_named(df: pd.DataFrame, renamed: dict[str, str], path: Path, limit
             raise DataError(str(path), f"not a finite number: {df[original].iloc[row]!r} "
                             f"(line {row + 2}; a truncated last line looks like this)",
                             original, row)
-    t = df[[k for k, v in renamed.items() if v == "t"][0]].to_numpy(np.float64)
+    t = df[SOROLEX_TIME].to_numpy(np.float64)
     dt = np.diff(t)
     for problem, mask in (("duplicate timestamp", dt == 0), ("timestamp goes backwards", dt < 0)):
         if mask.any():
             row = int(np.flatnonzero(mask)[0]) + 1
-            raise DataError(str(path), f"{problem}: {t[row]!r} after {t[row - 1]!r} "
-                            f"(line {row + 2})", "t" if "t" in df else SOROLEX_TIME, row)
+            raise DataError(str(path), f"{problem}: {t[row]:.6f} s after {t[row - 1]:.6f} s "
+                            f"(line {row + 2})", SOROLEX_TIME, row)
     pressure_cols = [k for k, v in renamed.items() if v in CMD_COLUMNS]
     check_pressure_limits(df[pressure_cols].to_numpy(np.float64), pressure_cols, limits,
                           str(path))
@@ -175,7 +175,7 @@ def read_plotjuggler_csv(path: Path, limits: Any, run_id: str | None = None
         partial = present.any(axis=1) & ~present.all(axis=1)
         if partial.any():
             row = int(np.flatnonzero(partial.to_numpy())[0])
-            missing = [c for c in columns if pd.isna(df[c].iloc[row])][0]
+            missing = next(c for c in columns if pd.isna(df[c].iloc[row]))
             raise DataError(str(path), f"{what} sample with an empty field (line {row + 2})",
                             missing, row)
         rows = present.all(axis=1).to_numpy()

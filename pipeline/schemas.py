@@ -195,7 +195,7 @@ def _check_time(df: pd.DataFrame, schema: TableSchema, source: str) -> None:
                           ("timestamp goes backwards", (dt < 0) & same_run)):
         if mask.any():
             row = int(np.flatnonzero(mask)[0]) + 1
-            raise DataError(source, f"{problem}: t={t[row]!r} after t={t[row - 1]!r}",
+            raise DataError(source, f"{problem}: t={t[row]:.6f} s after t={t[row - 1]:.6f} s",
                             schema.time_column, row)
     starts = np.flatnonzero(np.r_[True, ~same_run])
     seen = set()

@@ -1,0 +1,38 @@
+"""Shared fixtures: compose the real configs into a temporary output folder."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+from pipeline.config import PROJECT_ROOT, register_configs
+
+CONF_DIR = PROJECT_ROOT / "conf"
+SOROLEX_DIR = Path(os.environ.get("SOROLEX_DIR", PROJECT_ROOT.parent / "shared/data/sorolex"))
+
+register_configs()
+
+
+def compose_config(output_dir: Path | str, *overrides: str) -> DictConfig:
+    """The pipeline's composed config, writing under ``output_dir``."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=[f"paths.output_dir={output_dir}", *overrides])
+
+
+@pytest.fixture
+def make_cfg(tmp_path):
+    def make(*overrides: str) -> DictConfig:
+        return compose_config(tmp_path / "outputs", *overrides)
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def sorolex_dir() -> Path:
+    if not sorted(SOROLEX_DIR.glob("Step_control_*.csv")):
+        pytest.skip(f"real-arm data not found at {SOROLEX_DIR} (set SOROLEX_DIR)")
+    return SOROLEX_DIR

@@ -1,0 +1,140 @@
+"""Importers on the real recordings, PlotJuggler exports, and bad input."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.align import align_run
+from pipeline.importers import read_plotjuggler_csv, read_sorolex_csv
+from pipeline.schemas import DataError
+
+LIMITS = SimpleNamespace(p_min=-3.0, p_max=7.0, sum_max=13.0, preload=2.0)
+SETTINGS = SimpleNamespace(max_match_dt_s=0.05, max_gap_s=0.25, gap_policy="error",
+                           resample_hz=None)
+
+
+def test_every_real_run_imports_and_aligns_back_to_the_original(sorolex_dir):
+    files = sorted(sorolex_dir.glob("Step_control_*.csv"))
+    assert len(files) == 7
+    for path in files:
+        original = pd.read_csv(path)
+        commands, mocap = read_sorolex_csv(path, LIMITS)
+        assert len(mocap) == len(original) and mocap["valid"].all()
+        assert commands["run_id"].iloc[0] == path.stem
+        # commands change at about 2 Hz
+        assert np.median(np.diff(commands["t"])) == pytest.approx(0.5, abs=0.02)
+        assert np.median(np.diff(mocap["t"])) == pytest.approx(0.01, abs=0.001)
+        # the walk starts at the 2 kPa preload
+        np.testing.assert_array_equal(commands.iloc[0, 2:].to_numpy(float), 2.0)
+        # aligning the recovered streams reproduces the authors' alignment exactly
+        aligned, (counts,) = align_run(commands, mocap, SETTINGS, str(path))
+        assert counts["unmatched"] == 0 and counts["overridden"] == 0
+        np.testing.assert_array_equal(
+            aligned[["p_0", "p_1", "p_2"]].to_numpy(),
+            original[[f"control_pressure_{j}" for j in range(3)]].to_numpy())
+        np.testing.assert_array_equal(aligned["x"].to_numpy(), original["1_x"].to_numpy())
+
+
+def test_real_positions_are_in_metres_with_y_vertical(sorolex_dir):
+    _, mocap = read_sorolex_csv(sorolex_dir / "Step_control_17_10_12_20.csv", LIMITS)
+    assert 0.010 < mocap["x"].min() < mocap["x"].max() < 0.056
+    assert 0.350 < mocap["y"].min() < mocap["y"].max() < 0.362
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input: each case names the file, the column and the row (or line)
+# ---------------------------------------------------------------------------------------------
+HEADER = "time,1_x,1_y,1_z,control_pressure_0,control_pressure_1,control_pressure_2\n"
+
+
+def good_rows(n=20):
+    return "".join(f"{100 + 0.01 * i:.2f},0.03,0.353,0.2,2.0,2.0,{2.0 + (i >= 10)}\n"
+                   for i in range(n))
+
+
+def write(tmp_path, text, name="run.csv"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_a_good_small_file_imports(tmp_path):
+    commands, mocap = read_sorolex_csv(write(tmp_path, HEADER + good_rows()), LIMITS)
+    assert len(mocap) == 20 and len(commands) == 2
+    assert commands["t"].tolist() == [100.0, 100.1]
+
+
+@pytest.mark.parametrize(
+    ("text", "pattern", "column", "row"),
+    [
+        ("", "empty", None, None),
+        (HEADER, "no data rows", None, None),
+        (HEADER.replace(",1_z", "") + good_rows(), r"missing column\(s\) \['1_z'\]", "1_z", None),
+        (HEADER + good_rows()[:-12], "truncated", "control_pressure_0", 19),
+        (HEADER + good_rows().replace("100.14,0.03,0.353", "100.14,0.03,nan"),
+         "not a finite number", "1_y", 14),
+        (HEADER + good_rows().replace("100.05", "100.04"), "duplicate timestamp", "time", 5),
+        (HEADER + good_rows().replace("100.05", "100.01"), "backwards", "time", 5),
+        (HEADER + good_rows().replace("2.0,2.0,3.0", "2.0,7.5,3.0", 1), "above p_max",
+         "control_pressure_1", 10),
+        (HEADER + good_rows().replace("2.0,2.0,3.0", "6.0,6.0,3.0", 1), "exceeds sum_max", None, 10),
+    ],
+    ids=["empty", "header-only", "missing-column", "truncated", "nan", "duplicate-time",
+         "backwards-time", "above-limit", "sum-above-limit"],
+)
+def test_bad_input_names_file_column_and_row(tmp_path, text, pattern, column, row):
+    path = write(tmp_path, text)
+    with pytest.raises(DataError, match=pattern) as err:
+        read_sorolex_csv(path, LIMITS)
+    assert str(path) in str(err.value)
+    if column is not None:
+        assert err.value.column == column and f"'{column}'" in str(err.value)
+    if row is not None:
+        assert err.value.row == row and f"row {row}" in str(err.value)
+
+
+# ---------------------------------------------------------------------------------------------
+# PlotJuggler CSV export of the ROS topics
+# ---------------------------------------------------------------------------------------------
+BODY = "/mocap_rigid_bodies/rigid_bodies.1/pose_stamped/pose/position"
+PRESSURE = "/control_pressure/p_d"
+
+
+def plotjuggler_frame():
+    """Poses at 100 Hz and commands at 2 Hz merged on one time axis, as PlotJuggler exports."""
+    t_pose = 50.0 + np.arange(150) * 0.01
+    t_cmd = 50.0 + np.array([0.003, 0.503, 1.003])
+    pose = pd.DataFrame({"__time": t_pose, f"{BODY}/x": 0.03, f"{BODY}/y": 0.353,
+                         f"{BODY}/z": 0.2 + t_pose - 50})
+    cmd = pd.DataFrame({"__time": t_cmd, **{f"{PRESSURE}.{j}": [2.0, 3.0, 4.0]
+                                             for j in range(3)}})
+    return pd.concat([pose, cmd]).sort_values("__time").reset_index(drop=True)
+
+
+def test_plotjuggler_export_imports_and_aligns(tmp_path):
+    path = tmp_path / "pj.csv"
+    plotjuggler_frame().to_csv(path, index=False)
+    commands, mocap = read_plotjuggler_csv(path, LIMITS)
+    assert len(mocap) == 150 and len(commands) == 3
+    assert commands["p_cmd_2"].tolist() == [2.0, 3.0, 4.0]
+    aligned, (counts,) = align_run(commands, mocap, SETTINGS)
+    assert counts["matched"] == 3 and aligned["p_0"].iloc[-1] == 4.0
+    np.testing.assert_allclose(aligned.loc[aligned["matched"], "t"], [50.0, 50.5, 51.0])
+
+
+def test_plotjuggler_partial_sample_and_missing_topic_are_errors(tmp_path):
+    frame = plotjuggler_frame()
+    frame.loc[3, f"{BODY}/y"] = np.nan
+    path = tmp_path / "pj.csv"
+    frame.to_csv(path, index=False)
+    with pytest.raises(DataError, match="pose sample with an empty field") as err:
+        read_plotjuggler_csv(path, LIMITS)
+    assert err.value.column == f"{BODY}/y"
+    frame = plotjuggler_frame().drop(columns=[f"{PRESSURE}.2"])
+    frame.to_csv(path, index=False)
+    with pytest.raises(DataError, match="pressure topic"):
+        read_plotjuggler_csv(path, LIMITS)

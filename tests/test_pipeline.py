@@ -16,13 +16,15 @@ from pipeline.align import align_key
 from pipeline.artifacts import ArtifactStore
 from pipeline.collect import collect_key
 from pipeline.config import PROJECT_ROOT
-from pipeline.schemas import ALIGNED, COMMANDS, MOCAP, read_table
+from pipeline.schemas import ALIGNED, COMMANDS, MOCAP, RUNS, DataError, read_table, write_table
 
 
 def pipeline_cmd(output_dir, *overrides):
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    flags = [o for o in overrides if o.startswith("-")]  # e.g. -m, before the overrides
+    overrides = [o for o in overrides if not o.startswith("-")]
     return subprocess.run(
-        [sys.executable, "-m", "pipeline", f"paths.output_dir={output_dir}", *overrides],
+        [sys.executable, "-m", "pipeline", *flags, f"paths.output_dir={output_dir}", *overrides],
         cwd=PROJECT_ROOT, env=env, capture_output=True, text=True, timeout=300)
 
 
@@ -87,3 +89,27 @@ def test_real_runs_import_and_align(make_cfg, sorolex_dir):
     assert sorted(frame["run_id"].unique()) == ["Step_control_17_10_12_20",
                                                 "Step_control_17_10_12_29"]
     assert aligned.manifest["summary"]["unmatched"] == 0
+
+
+def test_align_refuses_interrupted_runs_unless_told(make_cfg):
+    cfg = make_cfg("experiment=quick", "robot.num_runs=2", "exploration.num_steps=10",
+                   "stage=collect")
+    raw = run(cfg)["collect"]
+    runs_path = raw.file("runs.parquet")
+    runs, meta = read_table(runs_path, RUNS)
+    runs.loc[1, "complete"] = False  # as an interrupted collection marks its last run
+    write_table(runs, runs_path, RUNS, meta["config"], meta["provenance"])
+    cfg.stage = "align"
+    with pytest.raises(DataError, match=r"\['sim-001'\] were interrupted"):
+        run(cfg)
+    cfg.dataset.align.accept_incomplete = True
+    assert run(cfg)["align"].manifest["summary"]["runs"] == 2
+
+
+def test_multirun_sweeps_exploration_and_shares_nothing_it_should_not(tmp_path):
+    out = tmp_path / "outputs"
+    result = pipeline_cmd(out, "-m", "stage=collect", "experiment=quick", "robot.num_runs=1",
+                          "exploration.num_steps=10", "exploration.alpha=0.3,0.6")
+    assert result.returncode == 0, result.stderr
+    assert len(list((out / "artifacts" / "collect").glob("[!.]*"))) == 2
+    assert len(list((out / "multirun").rglob("multirun.yaml"))) == 1

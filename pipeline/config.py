@@ -248,17 +248,25 @@ class DatasetConfig:
 # --------------------------------------------------------------------------------------------
 @dataclass
 class ModelConfig:
+    """The LSTM forward-dynamics model and its training (see ``pipeline/train_model.py``)."""
+
     name: str = "lstm"
-    seed: int = 0
     hidden: int = 128
     layers: int = 1
     head: list[int] = field(default_factory=list)
-    condition_on_initial_pose: bool = True
+    condition_on_initial_pose: bool = True  # initial carry from the observed pose at reset
+    predict_displacement: bool = True  # predict the displacement from the initial pose
     batch_size: int = 32
-    learning_rate: float = 1.0e-3
+    learning_rate: float = 3.0e-3
+    lr_schedule: str = "cosine"  # constant | cosine
+    warmup_steps: int = 100
+    final_lr_fraction: float = 0.05
+    max_grad_norm: float = 1.0
     num_steps: int = 3000
-    eval_every: int = 100
+    eval_every: int = 250
     checkpoint_every: int = 500
+    seed: int = 0
+    reference_pose: str = "run_start"  # run_start | window_start
 
 
 @dataclass

@@ -1,0 +1,201 @@
+"""Stage ``fit_model``: the LSTM forward-dynamics model on the aligned runs.
+
+The aligned rows (~100 Hz) are resampled to ``dataset.model_hz`` (positions interpolated,
+pressures held), split by run into train and test (``dataset.train_fraction``, seeded, recorded in
+the artifact) and cut into sliding windows (``dataset.window``, ``dataset.stride``, ``dataset.order``).
+Training (:func:`pipeline.train_model.fit`) checkpoints into a work folder beside the artifact,
+so an interrupted ``fit_model`` resumes where it stopped when run again with the same config.
+
+Artifact: ``model.msgpack`` (weights, normalization and architecture), ``split.json``,
+``losses.parquet`` (per step), ``metrics.parquet`` (per held-out run: mean and p95 open-loop error
+in mm over the entire run, next to the mean-position and linear lagged-pressure baselines), and
+figures: the EMA-smoothed loss curve and reconstructions of a training and an unseen run.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from omegaconf import OmegaConf
+
+from pipeline import align as align_stage
+from pipeline.artifacts import Artifact, ArtifactStore, artifact_key, produce
+from pipeline.schemas import ALIGNED, P_COLUMNS, XYZ, read_table
+from pipeline.train_model import (
+    baseline_linear_lagged,
+    baseline_mean_position,
+    evaluate_open_loop,
+    fit,
+    load_dynamics,
+    predict_run,
+    save_dynamics,
+)
+from pipeline.windows import split_runs
+
+log = logging.getLogger(__name__)
+STAGE = "fit_model"
+DATASET_KEYS = ("model_hz", "window", "stride", "order", "train_fraction", "split_seed")
+
+
+def fit_model_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
+    spec = {
+        "model": OmegaConf.to_container(cfg.model, resolve=True),
+        "dataset": {k: OmegaConf.to_container(cfg.dataset, resolve=True)[k] for k in DATASET_KEYS},
+    }
+    return spec, {"align": align_stage.align_key(cfg)}
+
+
+def fit_model_key(cfg: Any) -> str:
+    return artifact_key(*fit_model_spec(cfg))
+
+
+def runs_at_model_rate(aligned: pd.DataFrame, model_hz: float) -> list[dict[str, Any]]:
+    """Aligned rows as the model's runs: ``{run_id, t [T], p [T, 3] kPa, pos [T, 3] m}``."""
+    resampled = align_stage.resample(aligned, model_hz)
+    return [
+        {
+            "run_id": str(run_id),
+            "t": run["t"].to_numpy(np.float64),
+            "p": run[P_COLUMNS].to_numpy(np.float32),
+            "pos": run[XYZ].to_numpy(np.float32),
+        }
+        for run_id, run in resampled.groupby("run_id", sort=True)
+    ]
+
+
+def load_model(artifact: Artifact):
+    """The fitted :class:`pipeline.dynamics.DynamicsParams` of a fit_model artifact."""
+    return load_dynamics(artifact.file("model.msgpack"))
+
+
+def fit_model(cfg: Any) -> Artifact:
+    store = ArtifactStore(cfg.paths.artifact_dir)
+    spec, inputs = fit_model_spec(cfg)
+    aligned_artifact = store.require("align", inputs["align"])
+    data = cfg.dataset
+    key = artifact_key(spec, inputs)
+    work_dir = store.root / STAGE / f".work-{key}"  # checkpoints survive an interrupted run
+
+    def build(writer):
+        aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
+        runs = runs_at_model_rate(aligned, float(data.model_hz))
+        by_id = {run["run_id"]: run for run in runs}
+        train_ids, test_ids = split_runs(list(by_id), float(data.train_fraction),
+                                         int(data.split_seed))
+        if not train_ids:
+            raise ValueError(f"no training run: {len(runs)} runs with train_fraction="
+                             f"{data.train_fraction}")
+        train_runs = [by_id[i] for i in train_ids]
+        test_runs = [by_id[i] for i in test_ids]
+        log.info("fit_model: %d train runs %s, %d test runs %s at %.3g Hz", len(train_ids),
+                 train_ids, len(test_ids), test_ids, float(data.model_hz))
+        writer.file("split.json").write_text(json.dumps(
+            {"train": train_ids, "test": test_ids, "train_fraction": data.train_fraction,
+             "split_seed": data.split_seed, "model_hz": data.model_hz}, indent=2))
+
+        params, _, losses = fit(
+            train_runs, cfg.model, window=int(data.window), stride=int(data.stride),
+            order=str(data.order), val_runs=test_runs, checkpoint_dir=work_dir, resume=True)
+        save_dynamics(writer.file("model.msgpack"), params)
+        losses.to_parquet(writer.file("losses.parquet"), index=False)
+
+        metrics = evaluation_table(params, train_runs, test_runs)
+        metrics.to_parquet(writer.file("metrics.parquet"), index=False)
+        plot_losses(writer.file("figures/loss.png"), losses)
+        shown = [train_runs[0]] + ([test_runs[0]] if test_runs else [])
+        plot_reconstruction(writer.file("figures/reconstruction.png"), params, shown,
+                            ["training run", "unseen run"])
+        held_out = metrics[metrics["split"] == "test"]
+        summary_of = held_out if len(held_out) else metrics
+        writer.summary = {
+            "train_runs": train_ids, "test_runs": test_ids,
+            "steps": int(losses["step"].max()) if len(losses) else 0,
+            **{f"{m}_{k}": float(summary_of.loc[summary_of["model"] == m, k].mean())
+               for m in ("lstm", "mean_position", "linear_lagged") for k in ("mean_mm", "p95_mm")},
+        }
+        log.info("fit_model: held-out open-loop error %.2f mm mean, %.2f mm p95 (baselines: mean "
+                 "position %.2f mm, linear lagged %.2f mm)", writer.summary["lstm_mean_mm"],
+                 writer.summary["lstm_p95_mm"], writer.summary["mean_position_mean_mm"],
+                 writer.summary["linear_lagged_mean_mm"])
+
+    artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)
+    shutil.rmtree(work_dir, ignore_errors=True)
+    return artifact
+
+
+def evaluation_table(params, train_runs: list[dict], test_runs: list[dict]) -> pd.DataFrame:
+    """Open-loop errors over entire runs for the model and the baselines, per run and split."""
+    rows = []
+    for split, runs in (("train", train_runs), ("test", test_runs)):
+        for run in runs:
+            for model, errors in (
+                ("lstm", evaluate_open_loop(params, run)),
+                ("mean_position", baseline_mean_position(train_runs, run)),
+                ("linear_lagged", baseline_linear_lagged(train_runs, run)),
+            ):
+                rows.append({"run_id": run["run_id"], "split": split, "model": model,
+                             "steps": len(run["p"]), **errors})
+    return pd.DataFrame(rows)
+
+
+def plot_losses(path: Path, losses: pd.DataFrame, ema: float = 0.98) -> Path:
+    """Training loss (raw and EMA-smoothed, as in the paper) and the validation error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_loss, ax_val) = plt.subplots(1, 2, figsize=(11, 3.6))
+    train = losses["train_loss"].to_numpy()
+    smooth = pd.Series(train).ewm(alpha=1 - ema, adjust=True).mean()
+    ax_loss.semilogy(losses["step"], train, lw=0.5, alpha=0.3, color="C0", label="train")
+    ax_loss.semilogy(losses["step"], smooth, lw=1.5, color="C0", label=f"train (EMA {ema})")
+    val = losses.dropna(subset=["val_loss"])
+    if len(val):
+        ax_loss.semilogy(val["step"], val["val_loss"], "o-", ms=3, color="C1", label="held out")
+        ax_val.plot(val["step"], val["val_mean_mm"], "o-", ms=3, label="mean")
+        ax_val.plot(val["step"], val["val_p95_mm"], "s--", ms=3, label="p95")
+        ax_val.legend()
+    ax_loss.set_xlabel("step")
+    ax_loss.set_ylabel("loss (normalized MSE)")
+    ax_loss.legend()
+    ax_val.set_xlabel("step")
+    ax_val.set_ylabel("held-out open-loop error [mm]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_reconstruction(path: Path, params, runs: list[dict], labels: list[str]) -> Path:
+    """Measured vs open-loop predicted x, y, z over time (paper Fig. 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, len(runs), figsize=(6.5 * len(runs), 6.5), sharex="col",
+                             squeeze=False)
+    for col, (run, label) in enumerate(zip(runs, labels)):
+        predicted = predict_run(params, run)
+        t = run["t"] - run["t"][0]
+        error = 1e3 * np.linalg.norm(predicted - run["pos"], axis=1)
+        for k, axis in enumerate(XYZ):
+            ax = axes[k, col]
+            ax.plot(t, run["pos"][:, k] * 1e3, lw=0.8, color="k", label="measured")
+            ax.plot(t, predicted[:, k] * 1e3, lw=0.8, color="C3", label="model (open loop)")
+            ax.set_ylabel(f"{axis} [mm]")
+        axes[0, col].set_title(f"{label} {run['run_id']}: mean error {error.mean():.2f} mm",
+                               fontsize=10)
+        axes[-1, col].set_xlabel("time [s]")
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

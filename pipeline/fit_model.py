@@ -27,6 +27,7 @@ from omegaconf import OmegaConf
 from pipeline import align as align_stage
 from pipeline.artifacts import Artifact, ArtifactStore, artifact_key, produce
 from pipeline.schemas import ALIGNED, P_COLUMNS, XYZ, read_table
+from pipeline.tracking import tracking
 from pipeline.train_model import (
     baseline_linear_lagged,
     baseline_mean_position,
@@ -104,6 +105,8 @@ def fit_model(cfg: Any) -> Artifact:
             order=str(data.order), val_runs=test_runs, checkpoint_dir=work_dir, resume=True)
         save_dynamics(writer.file("model.msgpack"), params)
         losses.to_parquet(writer.file("losses.parquet"), index=False)
+        with tracking(cfg, STAGE) as tracker:
+            tracker.log_table(losses)
 
         metrics = evaluation_table(params, train_runs, test_runs)
         metrics.to_parquet(writer.file("metrics.parquet"), index=False)

@@ -32,6 +32,9 @@ class CEMSettings(NamedTuple):
     initial_std_kpa: float = 2.0
 
 
+DEFAULT_SETTINGS = CEMSettings()
+
+
 def plan(
     key: chex.PRNGKey,
     model: Plant,
@@ -41,7 +44,7 @@ def plan(
     start: chex.Array,
     safe: SafeSet,
     steps_per_action: int,
-    settings: CEMSettings = CEMSettings(),
+    settings: CEMSettings = DEFAULT_SETTINGS,
 ) -> chex.Array:
     """The command ``[3]`` kPa to hold now, searched from ``start [3]`` kPa.
 
@@ -83,7 +86,7 @@ def rollout(
     preload: chex.Array,
     safe: SafeSet,
     steps_per_action: int,
-    settings: CEMSettings = CEMSettings(),
+    settings: CEMSettings = DEFAULT_SETTINGS,
 ) -> tuple[chex.Array, chex.Array]:
     """Closed loop of the MPC on ``plant`` for ``T`` control periods.
 

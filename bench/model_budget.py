@@ -1,0 +1,101 @@
+"""Dynamics model: our default configuration next to the paper's at the same wall-clock budget.
+
+On the real runs (``../shared/data/sorolex``; a fixed split by run), each configuration trains for
+the same wall-clock budget (compilation included), then its open-loop error over each entire
+held-out run is measured. Prints training steps/s, steps done and held-out error (mm), with the
+ratios default / paper, and the device JAX ran on.
+
+    python -m bench.model_budget --budget 120 [--test-runs Step_control_17_10_12_20,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pandas as pd
+
+from pipeline.align import align_tables
+from pipeline.config import AlignConfig, ModelConfig
+from pipeline.fit_model import runs_at_model_rate
+from pipeline.importers import read_sorolex_csv
+from pipeline.train_model import evaluate_open_loop, fit
+
+LIMITS = argparse.Namespace(p_min=-3.0, p_max=7.0, sum_max=13.0, preload=2.0)
+DEFAULT_TEST = ["Step_control_17_10_11_29", "Step_control_17_10_12_38"]
+
+
+def configurations() -> dict[str, tuple[dict, float, int]]:
+    """name -> (model settings, model rate in Hz, window in model steps)."""
+    default = {k: v for k, v in vars(ModelConfig()).items()}
+    paper = {**default, "hidden": 1024, "layers": 1, "head": [], "batch_size": 64,
+             "learning_rate": 1e-3, "lr_schedule": "constant", "warmup_steps": 0,
+             "condition_on_initial_pose": False, "predict_displacement": False,
+             "max_grad_norm": 0.0}
+    return {"default": (default, 10.0, 128), "paper": (paper, 100.0, 512)}
+
+
+def load_runs(data_dir: Path) -> pd.DataFrame:
+    commands, mocap = [], []
+    for path in sorted(data_dir.glob("Step_control_*.csv")):
+        c, m = read_sorolex_csv(path, LIMITS)
+        commands.append(c)
+        mocap.append(m)
+    aligned, _ = align_tables(pd.concat(commands), pd.concat(mocap), AlignConfig())
+    return aligned
+
+
+def run_one(name, settings, model_hz, window, aligned, test_ids, budget_s):
+    runs = runs_at_model_rate(aligned, model_hz)
+    train = [r for r in runs if r["run_id"] not in test_ids]
+    test = [r for r in runs if r["run_id"] in test_ids]
+    probe = dict(settings, num_steps=2, eval_every=2, checkpoint_every=2)
+    started = time.perf_counter()
+    fit(train, probe, window=window, progress=False)  # compile + two steps
+    probe_s = time.perf_counter() - started
+    started = time.perf_counter()
+    fit(train, dict(settings, num_steps=4, eval_every=4, checkpoint_every=4), window=window,
+        progress=False)
+    per_step = max((time.perf_counter() - started) / 4, 1e-6)
+    steps = max(1, int((budget_s - (probe_s - 2 * per_step)) / per_step))
+    settings = dict(settings, num_steps=steps, eval_every=steps, checkpoint_every=steps,
+                    warmup_steps=min(int(settings.get("warmup_steps", 0)), steps // 10))
+    started = time.perf_counter()
+    params, _, _ = fit(train, settings, window=window, progress=False)
+    wall = time.perf_counter() - started
+    errors = [evaluate_open_loop(params, run) for run in test]
+    return {
+        "config": name, "units": settings["hidden"], "model_hz": model_hz, "window": window,
+        "batch": settings["batch_size"], "steps_per_s": 1.0 / per_step, "steps": steps,
+        "train_wall_s": wall, "held_out_mean_mm": float(np.mean([e["mean_mm"] for e in errors])),
+        "held_out_p95_mm": float(np.mean([e["p95_mm"] for e in errors])),
+    }
+
+
+def main(argv: list[str] | None = None) -> pd.DataFrame:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--budget", type=float, default=120.0, help="seconds per configuration")
+    parser.add_argument("--data-dir", type=Path, default=Path(os.environ.get(
+        "SOROLEX_DIR", Path(__file__).resolve().parents[1].parent / "shared/data/sorolex")))
+    parser.add_argument("--test-runs", default=",".join(DEFAULT_TEST))
+    args = parser.parse_args(argv)
+    aligned = load_runs(args.data_dir)
+    test_ids = args.test_runs.split(",")
+    rows = [run_one(name, *spec, aligned, test_ids, args.budget)
+            for name, spec in configurations().items()]
+    table = pd.DataFrame(rows).set_index("config")
+    ratio = table.loc["default", ["steps_per_s", "held_out_mean_mm", "held_out_p95_mm"]] / \
+        table.loc["paper", ["steps_per_s", "held_out_mean_mm", "held_out_p95_mm"]]
+    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), budget "
+          f"{args.budget:.0f} s per configuration, held-out runs {test_ids}")
+    print(table.to_string(float_format=lambda v: f"{v:.3g}"))
+    print("ratio default / paper:", ", ".join(f"{k} {v:.3g}" for k, v in ratio.items()))
+    return table
+
+
+if __name__ == "__main__":
+    main()

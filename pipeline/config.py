@@ -193,7 +193,7 @@ class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     watchdog_s: float = 0.5  # no pose for this long: fault, preload, exit
     startup_timeout_s: float = 10.0  # wall: wait this long for the first pose and a subscriber
     flush_every_s: float = 5.0  # wall: raw streams are written to Parquet chunks this often
-    stop_timeout_s: float = 1.0  # wall: wait this long for the preload to be acknowledged
+    stop_timeout_s: float = 3.0  # wall: wait up to this for the preload's acknowledgement
     num_runs: int = 1
     reuse_incomplete: bool = False  # reuse an interrupted artifact instead of recollecting
     twin: TwinConfig = field(default_factory=TwinConfig)
@@ -327,6 +327,22 @@ class AgentConfig:
 
 
 @dataclass
+class EvaluationConfig:
+    """The evaluate stage: which policies, how many episodes, which baselines."""
+
+    policies: list[str] = field(default_factory=lambda: ["ppo_ff", "ppo_rnn"])  # agent configs
+    baselines: list[str] = field(default_factory=lambda: ["preload", "random", "mpc"])
+    num_episodes: int = 64  # held-out goals, the same for every seed, controller and plant
+    num_consecutive_goals: int = 5  # goals reached one after another without reset
+    consecutive_episodes: int = 8
+    plant: bool = True  # also run on the ground-truth plant (the simulated arm for robot=sim)
+    mpc_horizon: int = 2  # control periods a candidate command is held
+    mpc_samples: int = 64
+    mpc_iterations: int = 3
+    seed: int = 0
+
+
+@dataclass
 class LoggerConfig:
     wandb: bool = False
     project: str = "sorolearn"
@@ -352,6 +368,7 @@ class Config:
     model: ModelConfig = MISSING
     env: EnvConfig = MISSING
     agent: AgentConfig = MISSING
+    evaluation: EvaluationConfig = MISSING
     logger: LoggerConfig = MISSING
     paths: PathsConfig = MISSING
 
@@ -374,5 +391,6 @@ def register_configs() -> None:
     cs.store(group="model", name="base_model", node=ModelConfig)
     cs.store(group="env", name="base_env", node=EnvConfig)
     cs.store(group="agent", name="base_agent", node=AgentConfig)
+    cs.store(group="evaluation", name="base_evaluation", node=EvaluationConfig)
     cs.store(group="logger", name="base_logger", node=LoggerConfig)
     cs.store(group="paths", name="base_paths", node=PathsConfig)

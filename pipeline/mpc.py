@@ -6,10 +6,10 @@ arm settles within about a second, so a constant command over a short horizon su
 reaching a fixed goal). Candidates are projected onto the safe set before they are scored, so
 whatever the search does, the command is safe.
 
-On a plant other than the model (the simulated arm, a real arm) the model runs alongside the plant
-open loop, fed the same commands, and the goal given to the model is shifted by the current
-plant-minus-model position offset: the usual offset-free correction of MPC with a model that has
-no state estimator.
+The model runs alongside the plant open loop, fed the same commands, and the goal given to the
+model is shifted by the current plant-minus-model position offset: the usual offset-free
+correction of MPC with a model that has no state estimator. On the learned environment itself the
+offset stays zero; on the simulated arm or a real arm it absorbs the model's error.
 """
 
 from __future__ import annotations
@@ -72,48 +72,32 @@ def plan(
     return project(best[-1], safe)
 
 
-def rollout(
-    key: chex.PRNGKey,
-    plant: Plant,
-    plant_params: Any,
-    plant_carry: Any,
+def mpc_controller(
+    env: Any,
+    env_params: Any,
     model: Plant,
     model_params: Any,
-    model_carry: Any,
-    start_position: chex.Array,
-    model_start_position: chex.Array,
-    goals: chex.Array,
-    preload: chex.Array,
-    safe: SafeSet,
-    steps_per_action: int,
     settings: CEMSettings = DEFAULT_SETTINGS,
-) -> tuple[chex.Array, chex.Array]:
-    """Closed loop of the MPC on ``plant`` for ``T`` control periods.
+):
+    """The MPC as a :data:`pipeline.rollouts.Controller` for ``env`` (any plant).
 
-    Args:
-      goals: ``[T, 3]`` m, the goal in force in each control period.
-      start_position, model_start_position: ``[3]`` m, where plant and model start.
-
-    Returns:
-      positions ``[T + 1, 3]`` (m, on the plant; row 0 the start) and commands ``[T, 3]`` kPa.
+    Its carry is ``(model_carry, model_position [3], last_command [3])``: the learned model run
+    open loop on the commands the controller sends; build the first one with
+    :func:`initial_carry`.
     """
-    chex.assert_rank(goals, 2)
+    steps = env.steps_per_action
 
-    def control_period(carry, inputs):
-        plant_carry, model_carry, plant_position, model_position, previous = carry
-        period_key, goal = inputs
-        offset = plant_position - model_position
-        command = plan(period_key, model, model_params, model_carry, goal - offset, previous,
-                       safe, steps_per_action, settings)
-        plant_carry, plant_path = hold(plant, plant_params, plant_carry, command,
-                                       steps_per_action)
-        model_carry, model_path = hold(model, model_params, model_carry, command,
-                                       steps_per_action)
-        carry = (plant_carry, model_carry, plant_path[-1], model_path[-1], command)
-        return carry, (plant_path[-1], command)
+    def act(key, obs, state, carry):
+        model_carry, model_position, previous = carry
+        offset = state.position - model_position
+        command = plan(key, model, model_params, model_carry, state.goal - offset, previous,
+                       env_params.safe_set, steps, settings)
+        model_carry, path = hold(model, model_params, model_carry, command, steps)
+        return (model_carry, path[-1], command), env.pressure_to_action(command, env_params)
 
-    keys = jax.random.split(key, goals.shape[0])
-    start = (plant_carry, model_carry, start_position, model_start_position,
-             jnp.asarray(preload, jnp.float32))
-    _, (positions, commands) = jax.lax.scan(control_period, start, (keys, goals))
-    return jnp.concatenate([start_position[None], positions]), commands
+    return act
+
+
+def initial_carry(model_carry: Any, model_position: chex.Array, preload: chex.Array):
+    """The MPC's carry at the start of an episode: the model settled where it starts."""
+    return model_carry, jnp.asarray(model_position, jnp.float32), jnp.asarray(preload, jnp.float32)

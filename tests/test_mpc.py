@@ -8,25 +8,29 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline import mpc
+from pipeline import mpc, rollouts
+from pipeline.envs.learned import SoftArmReachEnv, make_env_params
 from pipeline.envs.plants import default_linear_lag_params, hold, linear_lag_plant
 from pipeline.safety import SafeSet
 
 SAFE = SafeSet.from_limits(SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0))
 PLANT = linear_lag_plant(model_hz=10.0)
 REST = jnp.array([0.032, 0.353, 0.2015])
-PRELOAD = jnp.full(3, 2.0)
+ENV = SoftArmReachEnv(PLANT, control_hz=2.0, settle_seconds=2.0)
 
 
 def reach(plant_params, model_params, goal, periods=8):
-    plant_carry = PLANT.init_carry(plant_params, REST)
-    model_carry = PLANT.init_carry(model_params, REST)
-    goals = jnp.broadcast_to(goal, (periods, 3))
-    run = jax.jit(mpc.rollout, static_argnames=("plant", "model", "steps_per_action"))
-    return run(jax.random.key(0), plant=PLANT, plant_params=plant_params, plant_carry=plant_carry,
-               model=PLANT, model_params=model_params, model_carry=model_carry,
-               start_position=REST, model_start_position=REST, goals=goals, preload=PRELOAD,
-               safe=SAFE, steps_per_action=5)
+    env_params = make_env_params(ENV, plant_params, key=jax.random.key(0), safe_set=SAFE,
+                                 preload=2.0, rest_pose=REST, goal_mode="perturb",
+                                 reset_bank_size=2)
+    start_carry = jax.tree.map(lambda x: x[0], env_params.reset_carries)
+    start = env_params.reset_positions[0]
+    model_carry, model_start = ENV.settle(model_params, REST, env_params.preload)
+    controller = mpc.mpc_controller(ENV, env_params, PLANT, model_params)
+    carry = mpc.initial_carry(model_carry, model_start, env_params.preload)
+    run = jax.jit(lambda: rollouts.rollout(ENV, env_params, controller, carry, jax.random.key(1),
+                                           start_carry, start, jnp.broadcast_to(goal, (periods, 3))))
+    return run()
 
 
 def reachable_goal(params):

@@ -26,7 +26,7 @@ def group_options(group: str) -> list[str]:
 )
 def test_every_config_option_composes_and_resolves(make_cfg, override):
     cfg = make_cfg(override)
-    if "data_dir" in cfg.robot and OmegaConf.is_missing(cfg.robot, "data_dir"):
+    if "data_dir" in cfg.robot.keys() and OmegaConf.is_missing(cfg.robot, "data_dir"):
         cfg = make_cfg(override, "robot.data_dir=/recordings")  # import robots name their files
     resolved = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
     assert resolved["paths"]["artifact_dir"].endswith("outputs/artifacts")

@@ -2,8 +2,13 @@
 
 - ``robot=sim``: ``robot.num_runs`` sessions of the simulated arm (each with its own rest pose),
   all simulated at once with ``vmap``.
-- ``robot=sorolex_csv`` / ``robot=plotjuggler_csv``: recorded real runs are imported instead.
-- ``robot=ros2``: the real arm over ROS 2 (``pipeline.ros2``).
+- ``robot=sorolex_csv`` / ``robot=plotjuggler_csv`` / ``robot=rosbag``: recorded real runs are
+  imported instead.
+- ``robot=ros2``: the real arm (or its digital twin) over ROS 2 (``pipeline.ros2``). An
+  interrupted recording (Ctrl-C, SIGTERM, mocap watchdog, error) still becomes an artifact, its
+  last run marked incomplete, and then ``collect`` fails with :class:`CollectionInterrupted`.
+  A later ``collect`` with the same config sets such an artifact aside (renamed
+  ``<key>.incomplete-<time>``) and records anew, unless ``robot.reuse_incomplete=true``.
 
 Artifact: ``commands.parquet``, ``mocap.parquet``, ``runs.parquet`` and figures of the exploration
 (several alpha values, paper Fig. 4) and of the recorded trajectories.
@@ -11,7 +16,9 @@ Artifact: ``commands.parquet``, ``mocap.parquet``, ``runs.parquet`` and figures 
 
 from __future__ import annotations
 
+import datetime as _dt
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +31,23 @@ from pipeline import sim_arm
 from pipeline.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 from pipeline.config import RobotKind
 from pipeline.exploration import exploration_run, plot_walks
-from pipeline.importers import READERS, file_digest, list_recordings
+from pipeline.importers import READERS, list_recordings, recording_digest, recording_id
 from pipeline.safety import validate_limits
 from pipeline.schemas import CMD_COLUMNS, COMMANDS, MOCAP, RUNS, XYZ, write_table
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
-_IMPORT_KINDS = (RobotKind.sorolex_csv, RobotKind.plotjuggler_csv)
+_IMPORT_KINDS = (RobotKind.sorolex_csv, RobotKind.plotjuggler_csv, RobotKind.rosbag)
+
+
+# How a ROS 2 session runs, not what it records: kept out of the key (so that, e.g.,
+# robot.reuse_incomplete=true finds the interrupted artifact it is meant to reuse).
+_ROS2_OPERATIONAL = ("node_name", "domain_id", "startup_timeout_s", "flush_every_s",
+                     "stop_timeout_s", "reuse_incomplete")
+
+
+class CollectionInterrupted(RuntimeError):
+    """A recording was cut short; what was recorded is in an artifact, marked incomplete."""
 
 
 def collect_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
@@ -41,8 +58,11 @@ def collect_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
         # Imported data is keyed by its content, not by where it lies.
         for where in ("data_dir", "pattern", "files"):
             robot.pop(where, None)
-        files = {p.name: file_digest(p) for p in list_recordings(cfg.robot)}
+        files = {p.name: recording_digest(p) for p in list_recordings(cfg.robot)}
         return {"robot": robot, "files": files}, {}
+    if kind is RobotKind.ros2:
+        for setting in _ROS2_OPERATIONAL:
+            robot.pop(setting, None)
     exploration = OmegaConf.to_container(cfg.exploration, resolve=True)
     return {"robot": robot, "exploration": exploration}, {}
 
@@ -61,10 +81,49 @@ def collect(cfg: Any) -> Artifact:
     elif kind in _IMPORT_KINDS:
         build = lambda writer: _import_recordings(cfg, writer, spec)  # noqa: E731
     else:
-        from pipeline.ros2 import collect_ros2
-
-        build = lambda writer: collect_ros2(cfg, writer, spec)  # noqa: E731
+        return _collect_ros2(cfg, store, spec, inputs)
     return produce(store, STAGE, spec, inputs, build, force=cfg.force)
+
+
+def _collect_ros2(cfg: Any, store: ArtifactStore, spec: dict[str, Any],
+                  inputs: dict[str, str]) -> Artifact:
+    from pipeline.ros2 import collect_ros2  # optional extra: imported only for robot=ros2
+
+    _set_aside_incomplete(store, artifact_key(spec, inputs), bool(cfg.robot.reuse_incomplete))
+    interruptions = []
+
+    def build(writer: ArtifactWriter) -> None:
+        interruptions.append(collect_ros2(cfg, writer, spec))
+
+    artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)
+    interruption = interruptions[0] if interruptions else None
+    if interruption is not None:
+        raise CollectionInterrupted(
+            f"collect interrupted: {interruption.reason}. The preload was commanded. The runs "
+            f"recorded so far are in {artifact.path}, the last marked incomplete (align them with "
+            f"dataset.align.accept_incomplete=true); the next collect with this config sets them "
+            f"aside and records anew unless robot.reuse_incomplete=true") from interruption.error
+    return artifact
+
+
+def _set_aside_incomplete(store: ArtifactStore, key: str, reuse: bool) -> None:
+    """Rename an interrupted artifact of ``key`` out of the way, so it is never reused silently.
+
+    Its data stays on disk (``<key>.incomplete-<created>``), it just no longer answers to the key.
+    """
+    with store.lock(STAGE, key):
+        existing = store.find(STAGE, key)
+        if existing is None or not existing.manifest.get("summary", {}).get("incomplete_runs"):
+            return
+        if reuse:
+            log.warning("collect: reusing the INCOMPLETE artifact %s (robot.reuse_incomplete=true)",
+                        existing.path)
+            return
+        stamp = _dt.datetime.fromisoformat(existing.manifest["created"]).strftime("%Y%m%dT%H%M%S")
+        aside = existing.path.with_name(f"{key}.incomplete-{stamp}")
+        os.rename(existing.path, aside)
+        log.warning("collect: the artifact for this config is incomplete (interrupted); moved it to "
+                    "%s and recording anew (robot.reuse_incomplete=true would reuse it)", aside)
 
 
 def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None:
@@ -96,7 +155,7 @@ def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None
     runs_df = pd.DataFrame({"run_id": run_ids, "source": "sim", "complete": True,
                             "n_commands": commands.shape[1],
                             "n_frames": len(frame_command)})
-    _write_raw(writer, cfg, spec, commands_df, mocap_df, runs_df)
+    write_raw(writer, cfg, spec, commands_df, mocap_df, runs_df)
     plot_walks(writer.file("figures/exploration_alphas.png"), figure_key, exploration,
                robot.limits, robot.control_hz, robot.n_valves)
     writer.summary["true_position_range_mm"] = {
@@ -108,18 +167,18 @@ def _import_recordings(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -
     read = READERS[RobotKind(cfg.robot.kind).value]
     commands, mocap, runs = [], [], []
     for path in list_recordings(cfg.robot):
-        run_commands, run_mocap = read(path, cfg.robot.limits)
+        run_commands, run_mocap = read(path, cfg.robot)
         commands.append(run_commands)
         mocap.append(run_mocap)
-        runs.append({"run_id": path.stem, "source": path.name, "complete": True,
+        runs.append({"run_id": recording_id(path), "source": path.name, "complete": True,
                      "n_commands": len(run_commands), "n_frames": len(run_mocap)})
         log.info("collect: imported %s (%d commands, %d frames)", path.name, len(run_commands),
                  len(run_mocap))
-    _write_raw(writer, cfg, spec, pd.concat(commands, ignore_index=True),
-               pd.concat(mocap, ignore_index=True), pd.DataFrame(runs))
+    write_raw(writer, cfg, spec, pd.concat(commands, ignore_index=True),
+              pd.concat(mocap, ignore_index=True), pd.DataFrame(runs))
 
 
-def _write_raw(writer: ArtifactWriter, cfg: Any, spec: dict[str, Any], commands: pd.DataFrame,
+def write_raw(writer: ArtifactWriter, cfg: Any, spec: dict[str, Any], commands: pd.DataFrame,
                mocap: pd.DataFrame, runs: pd.DataFrame) -> None:
     provenance = {"stage": STAGE, "robot": cfg.robot.name}
     write_table(commands, writer.file("commands.parquet"), COMMANDS, spec, provenance)

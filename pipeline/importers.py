@@ -9,6 +9,8 @@
   field, merged on a common time axis, empty where a topic had no message at that time. Position
   columns end in ``/pose/position/x`` (``y``, ``z``); pressure columns end in ``p_d.<j>`` or
   ``data.<j>``.
+- **ROS 2 bags** (``robot=rosbag``): a recording is a bag *folder* (``metadata.yaml`` plus sqlite3
+  or MCAP storage) holding the command and pose topics (``pipeline/ros2/bag.py``).
 
 Rows in errors are 0-based data rows; the CSV line is ``row + 2`` (the header is line 1).
 """
@@ -51,22 +53,47 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
+def recording_digest(path: Path) -> str:
+    """:func:`file_digest` of a recording file, or of every file in a recording folder (a bag)."""
+    if not path.is_dir():
+        return file_digest(path)
+    digest = hashlib.sha256()
+    for member in sorted(p for p in path.rglob("*") if p.is_file()):
+        digest.update(f"{member.relative_to(path)}\0{file_digest(member)}\0".encode())
+    return digest.hexdigest()
+
+
+def recording_id(path: Path) -> str:
+    """Run id of a recording: the file name without suffix, or the folder name."""
+    return path.name if path.is_dir() else path.stem
+
+
+# Import kinds whose recordings are folders, with the file that marks one.
+FOLDER_RECORDINGS = {"rosbag": "metadata.yaml"}
+
+
 def list_recordings(robot: Any) -> list[Path]:
-    """The files an import robot reads, sorted; a clear error if there are none."""
+    """The recordings an import robot reads (files, or bag folders), sorted; an error if none."""
     data_dir = Path(robot.data_dir).expanduser()
     if not data_dir.is_dir():
         raise FileNotFoundError(
             f"robot.data_dir={data_dir} is not a folder (set robot.data_dir=... or SOROLEX_DIR)"
         )
+    marker = FOLDER_RECORDINGS.get(getattr(robot.kind, "value", str(robot.kind)))
+    what = f"folders with a {marker}" if marker else "files"
+
+    def is_recording(path: Path) -> bool:
+        return (path / marker).is_file() if marker else path.is_file()
+
     if robot.files:
         paths = [data_dir / name for name in robot.files]
-        missing = [str(p) for p in paths if not p.is_file()]
+        missing = [str(p) for p in paths if not is_recording(p)]
         if missing:
-            raise FileNotFoundError(f"robot.files not found: {missing}")
+            raise FileNotFoundError(f"robot.files not found (expected {what}): {missing}")
     else:
-        paths = sorted(data_dir.glob(robot.pattern))
+        paths = [p for p in sorted(data_dir.glob(robot.pattern)) if is_recording(p)]
     if not paths:
-        raise FileNotFoundError(f"no files match {robot.pattern!r} in {data_dir}")
+        raise FileNotFoundError(f"no {what} match {robot.pattern!r} in {data_dir}")
     return paths
 
 
@@ -198,4 +225,15 @@ def read_plotjuggler_csv(path: Path, limits: Any, run_id: str | None = None
             validate(mocap, MOCAP, f"{path} (pose topic)"))
 
 
-READERS = {"sorolex_csv": read_sorolex_csv, "plotjuggler_csv": read_plotjuggler_csv}
+def _read_rosbag(path: Path, robot: Any) -> tuple[pd.DataFrame, pd.DataFrame]:
+    from pipeline.ros2.bag import read_rosbag  # rosbags loads only for bags
+
+    return read_rosbag(path, robot)
+
+
+# kind -> reader(path, robot config) -> (commands, mocap), both validated
+READERS = {
+    "sorolex_csv": lambda path, robot: read_sorolex_csv(path, robot.limits),
+    "plotjuggler_csv": lambda path, robot: read_plotjuggler_csv(path, robot.limits),
+    "rosbag": _read_rosbag,
+}

@@ -19,10 +19,10 @@ from flax import struct
 # Bisection on the multiplier of the sum constraint: 40 halvings of a bracket of at most a few
 # tens of kPa resolve it far below float32 precision.
 _BISECTION_STEPS = 40
-# The sum is projected onto sum_max * (1 - _SUM_MARGIN): float rounding in a reordered sum can
-# then never push a projected command over the real limit.
+# The sum is projected a hair inside sum_max (relative _SUM_MARGIN plus 1e-6 kPa): float rounding
+# in a reordered sum can then never push a projected command over the real limit.
 _SUM_MARGIN = 1e-6
-_INPUT_BOUND = 1e6  # kPa; anything beyond is treated as this (the result is the same point)
+_INPUT_BOUND = 1e6  # kPa; inputs beyond are clipped to it before the projection
 
 
 @struct.dataclass
@@ -35,13 +35,27 @@ class SafeSet:
 
     @classmethod
     def from_limits(cls, limits: Any, n_valves: int = 3) -> SafeSet:
-        """Build from a config node with p_min, p_max, sum_max (and preload), checking it."""
+        """Build from a config node with p_min, p_max, sum_max (and preload), checking it.
+
+        The float32 bounds are rounded toward the inside of the set (6.9 kPa becomes the largest
+        float32 not above 6.9), so a command at a float32 bound is within the float64 limits.
+        """
         validate_limits(limits, n_valves)
         return cls(
-            p_min=jnp.full((n_valves,), float(limits.p_min), jnp.float32),
-            p_max=jnp.full((n_valves,), float(limits.p_max), jnp.float32),
-            sum_max=jnp.asarray(float(limits.sum_max), jnp.float32),
+            p_min=jnp.full((n_valves,), _float32_inside(limits.p_min, upward=True)),
+            p_max=jnp.full((n_valves,), _float32_inside(limits.p_max, upward=False)),
+            sum_max=jnp.asarray(_float32_inside(limits.sum_max, upward=False)),
         )
+
+
+def _float32_inside(value: float, upward: bool) -> np.float32:
+    """The float32 nearest ``value`` on the inside: not below it (upward) or not above it."""
+    rounded = np.float32(value)
+    if upward and float(rounded) < float(value):
+        rounded = np.nextafter(rounded, np.float32(np.inf))
+    if not upward and float(rounded) > float(value):
+        rounded = np.nextafter(rounded, np.float32(-np.inf))
+    return rounded
 
 
 def validate_limits(limits: Any, n_valves: int = 3) -> None:
@@ -76,7 +90,7 @@ def project(pressures: chex.Array, safe: SafeSet) -> chex.Array:
     # Bound the input so the bisection bracket stays exact in float32; NaN means "no pressure".
     pressures = jnp.where(jnp.isnan(pressures), safe.p_min, pressures)
     pressures = jnp.clip(pressures, -_INPUT_BOUND, _INPUT_BOUND)
-    target = safe.sum_max * (1.0 - _SUM_MARGIN) - 1e-6
+    target = safe.sum_max - _SUM_MARGIN * jnp.abs(safe.sum_max) - 1e-6
 
     def clipped(lam):
         return jnp.clip(pressures - lam[..., None], safe.p_min, safe.p_max)

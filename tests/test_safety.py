@@ -85,3 +85,14 @@ def test_hardware_gate_refuses_unsafe_commands():
 def test_inconsistent_limits_are_rejected(limits):
     with pytest.raises(ValueError, match=r"robot\.limits"):
         validate_limits(SimpleNamespace(**limits))
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(-5, 0, width=64), st.floats(0.1, 9, width=64), st.floats(1, 20, width=64),
+       st.lists(finite, min_size=3, max_size=3))
+def test_float32_projection_respects_float64_limits(p_min, width, sum_room, command):
+    """Bounds such as 6.9 kPa have no exact float32; the projection still never exceeds them."""
+    limits = SimpleNamespace(p_min=p_min, p_max=p_min + width, sum_max=3 * p_min + sum_room)
+    safe = SafeSet.from_limits(limits)
+    p = np.asarray(project_jit(jnp.array(command, jnp.float32), safe), np.float64)
+    assert_safe(p, limits)

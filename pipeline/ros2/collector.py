@@ -1,0 +1,384 @@
+"""``collect`` with ``robot=ros2``: play the exploration on the arm over ROS 2 and record it.
+
+Each of ``robot.num_runs`` runs is one :func:`pipeline.exploration.exploration_run` (same draws as
+``robot=sim`` with the same ``exploration.seed``), published command by command at
+``control_hz`` on ``robot.command_topic``, while every pose on ``robot.pose_topic`` is recorded.
+
+Clocks: a run's ``t = 0`` is the publish time of its first command. Command rows carry their
+publish time, mocap rows the pose's header stamp (``robot.stamp_field``), both on the ROS clock
+(system time; when the motion capture runs on another computer, synchronise the clocks, e.g.
+chrony). Times are multiplied by ``robot.time_scale`` so they are in the arm's seconds.
+
+Safety: every command passes :class:`pipeline.ros2.gate.CommandGate` right before it is
+published. On SIGINT/SIGTERM (:class:`pipeline.ros2.node.StopSignals`), on an exception, when the
+watchdog sees no pose for ``robot.watchdog_s`` and at the end, the preload is published and its
+delivery awaited (``robot.stop_timeout_s``) before the node is destroyed.
+
+Nothing recorded is lost: rows go to Parquet chunks (:class:`pipeline.ros2.recorder.
+ChunkedRecorder`) every ``robot.flush_every_s`` and at the end of each run, in
+``<paths.output_dir>/recovery/collect-<key>-<time>/``. The artifact is assembled from the chunks;
+an interrupted session still fills it (the cut run with ``complete = False``) and returns an
+:class:`Interruption`, which ``collect`` turns into a non-zero exit. The recovery folder is removed
+once the artifact holds the data; after a hard kill (SIGKILL, power loss) it is what remains.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import shutil
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+import pandas as pd
+
+from pipeline.artifacts import ArtifactWriter
+from pipeline.collect import STAGE, write_raw
+from pipeline.exploration import exploration_run, plot_walks
+from pipeline.ros2.gate import CommandGate
+from pipeline.ros2.messages import (
+    NS_PER_S,
+    is_finite,
+    message_class,
+    read_position,
+    read_stamp_ns,
+    write_pressures,
+)
+from pipeline.ros2.node import StopSignals, qos_profile, ros_node
+from pipeline.ros2.recorder import ChunkedRecorder
+
+log = logging.getLogger(__name__)
+_SPIN_SLICE_S = 0.005  # wall: longest wait inside the executor, so stops and deadlines are seen
+_SETTLE_S = 0.1  # wall: spin this long after the preload so it goes out even if not acknowledged
+
+
+@dataclass
+class Interruption:
+    """Why a session stopped early; ``error`` is the exception behind it, if any."""
+
+    reason: str
+    error: BaseException | None = None
+
+
+class _Stop(Exception):
+    """Ends the recording early (a stop signal or the watchdog)."""
+
+
+@dataclass
+class RunRecord:
+    run_id: str
+    start_ns: int  # ROS time of the first command's publish
+    end_ns: int  # planned end: start + commands / control_hz (wall)
+    complete: bool = False
+    frames: int = 0
+
+
+@dataclass
+class LinkStats:
+    """Timing of the link, in wall milliseconds (see :meth:`Session.link_summary`)."""
+
+    receipt_intervals_ms: list[float] = field(default_factory=list)
+    pose_latency_ms: list[float] = field(default_factory=list)  # receipt - header stamp
+    command_lateness_ms: list[float] = field(default_factory=list)  # publish - schedule
+    poses_out_of_order: int = 0
+    poses_outside_runs: int = 0
+
+
+class ArmLink:
+    """The collect node's command publisher and pose subscriber."""
+
+    def __init__(self, node: Any, executor: Any, robot: Any):
+        self._node, self._executor, self._robot = node, executor, robot
+        # plain strings: a config node read per pose would cost more than the pose itself
+        self._command_field = str(robot.command_field)
+        self._stamp_field, self._position_field = str(robot.stamp_field), str(robot.position_field)
+        self._command_type = message_class(robot.command_type)
+        self._publisher = node.create_publisher(self._command_type, robot.command_topic,
+                                                qos_profile(robot.command_qos))
+        node.create_subscription(message_class(robot.pose_type), robot.pose_topic, self._on_pose,
+                                 qos_profile(robot.pose_qos))
+        self.poses: list[tuple[int, int, tuple[float, float, float]]] = []  # stamp, receipt, xyz
+        self.last_pose_at: float | None = None  # monotonic s
+        self.frame_id: str | None = None
+
+    def now_ns(self) -> int:
+        return self._node.get_clock().now().nanoseconds
+
+    def _on_pose(self, message: Any) -> None:
+        receipt = self.now_ns()
+        stamp = read_stamp_ns(message, self._stamp_field) if self._stamp_field else receipt
+        self.poses.append((stamp, receipt, read_position(message, self._position_field)))
+        self.last_pose_at = time.monotonic()
+        if self.frame_id is None:
+            self.frame_id = str(getattr(getattr(message, "header", None), "frame_id", ""))
+
+    def take_poses(self) -> list[tuple[int, int, tuple[float, float, float]]]:
+        poses, self.poses = self.poses, []
+        return poses
+
+    def spin_once(self, timeout_s: float) -> None:
+        self._executor.spin_once(timeout_sec=timeout_s)
+
+    def publish(self, pressures: np.ndarray) -> int:
+        """Publish ``pressures`` [kPa] (already gated); return the ROS time of the publish [ns]."""
+        message = self._command_type()
+        write_pressures(message, self._command_field, pressures)
+        stamp = self.now_ns()
+        self._publisher.publish(message)
+        return stamp
+
+    def subscribers(self) -> int:
+        return self._publisher.get_subscription_count()
+
+    def wait_for_acks(self, timeout_s: float) -> bool:
+        """True once every reliable subscriber acknowledged what was published."""
+        from rclpy.duration import Duration
+
+        return self._publisher.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * NS_PER_S)))
+
+    def pose_publishers(self) -> list[str]:
+        """``node (type)`` of every publisher on the pose topic, for error messages."""
+        infos = self._node.get_publishers_info_by_topic(self._robot.pose_topic)
+        return [f"{info.node_name} ({info.topic_type})" for info in infos]
+
+
+class Session:
+    """One collect session on the arm: runs played out, streams recorded, a safe stop."""
+
+    def __init__(self, robot: Any, link: ArmLink, gate: CommandGate, recorder: ChunkedRecorder,
+                 signals: StopSignals):
+        self.robot, self.link, self.gate, self.recorder = robot, link, gate, recorder
+        self.signals = signals
+        self.time_scale = float(robot.time_scale)
+        self.period_wall_s = 1.0 / (float(robot.control_hz) * self.time_scale)
+        self.watchdog_wall_s = float(robot.watchdog_s) / self.time_scale
+        self.flush_every_s = float(robot.flush_every_s)
+        self.runs: list[RunRecord] = []
+        self.stats = LinkStats()
+        self.preload_acknowledged: bool | None = None
+        self._last_stamp = -1
+        self._last_receipt: int | None = None
+        self._next_flush = time.monotonic() + self.flush_every_s
+
+    # ---- start ---------------------------------------------------------------------------------
+    def wait_for_arm(self) -> None:
+        """Wait for a first pose and a subscriber of the commands; a clear error if they lack."""
+        robot = self.robot
+        deadline = time.monotonic() + float(robot.startup_timeout_s)
+        while self.link.last_pose_at is None or self.link.subscribers() == 0:
+            if self.signals.received:
+                raise RuntimeError(f"collect stopped by {self.signals.received} before the first "
+                                   f"command; nothing was commanded or recorded")
+            if time.monotonic() > deadline:
+                raise RuntimeError(self._startup_problem())
+            self.link.spin_once(_SPIN_SLICE_S)
+        log.info("collect: arm ready (poses on %s from frame '%s', %d subscriber(s) on %s)",
+                 robot.pose_topic, self.link.frame_id, self.link.subscribers(), robot.command_topic)
+
+    def _startup_problem(self) -> str:
+        robot = self.robot
+        hint = ("is the arm's driver (or `python -m pipeline stage=twin robot=ros2`) running, with "
+                "the same ROS_DOMAIN_ID / robot.domain_id")
+        if self.link.last_pose_at is None:
+            publishers = self.link.pose_publishers()
+            return (f"no pose on {robot.pose_topic} ({robot.pose_type}) within "
+                    f"robot.startup_timeout_s={robot.startup_timeout_s} s: {hint}, and a QoS "
+                    f"compatible with robot.pose_qos? Publishers seen: {publishers or 'none'}")
+        return (f"nobody subscribes to {robot.command_topic} ({robot.command_type}) within "
+                f"robot.startup_timeout_s={robot.startup_timeout_s} s: {hint}?")
+
+    # ---- runs ----------------------------------------------------------------------------------
+    def play(self, plan: Iterable[tuple[str, np.ndarray]]) -> Interruption | None:
+        """Play every run of ``plan``; stop at the first signal, watchdog timeout or error."""
+        try:
+            for run_id, commands in plan:
+                self._play_run(run_id, commands)
+        except _Stop as stop:
+            return Interruption(str(stop))
+        except Exception as err:  # any failure: stop safely, keep the data, report it
+            log.error("collect: %s: %s; stopping safely", type(err).__name__, err)
+            return Interruption(f"{type(err).__name__}: {err}", err)
+        return None
+
+    def _play_run(self, run_id: str, commands: np.ndarray) -> None:
+        start = None
+        for i, command in enumerate(commands):
+            projected = self.gate.project(command)  # ahead of the deadline: it takes a while
+            if start is not None:
+                self._wait_until(start + i * self.period_wall_s)
+            due = start + i * self.period_wall_s if start is not None else time.monotonic()
+            safe = self.gate.check(projected)
+            stamp = self.link.publish(safe)
+            self.stats.command_lateness_ms.append((time.monotonic() - due) * 1e3)
+            if start is None:
+                start = due
+                end = stamp + round(len(commands) * self.period_wall_s * NS_PER_S)
+                self.runs.append(RunRecord(run_id, stamp, end))
+                log.info("collect: run %s started (%d commands at %g Hz)", run_id, len(commands),
+                         float(self.robot.control_hz))
+            self.recorder.add_command(run_id, self._run_time(stamp), safe)
+        self._wait_until(start + len(commands) * self.period_wall_s)  # the last command's period
+        self._drain()
+        run = self.runs[-1]
+        run.complete = True
+        self.recorder.flush()
+        log.info("collect: run %s complete (%d commands, %d frames)", run_id, len(commands),
+                 run.frames)
+
+    def _run_time(self, stamp_ns: int) -> float:
+        """Seconds on the current run's clock (arm seconds) of a ROS time."""
+        return (stamp_ns - self.runs[-1].start_ns) / NS_PER_S * self.time_scale
+
+    def _wait_until(self, deadline: float) -> None:
+        """Receive poses until the monotonic ``deadline``, checking stops and flushing chunks."""
+        while True:
+            self._check()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return
+            self.link.spin_once(min(remaining, _SPIN_SLICE_S))
+            self._drain()
+            if time.monotonic() >= self._next_flush:
+                self.recorder.flush()
+                self._next_flush += self.flush_every_s
+
+    def _check(self) -> None:
+        if self.signals.received:
+            raise _Stop(f"{self.signals.received} received")
+        silent = time.monotonic() - self.link.last_pose_at
+        if silent > self.watchdog_wall_s:
+            self.link.spin_once(0.0)  # a pose may be queued behind a stall of this process
+            silent = time.monotonic() - self.link.last_pose_at
+            if silent > self.watchdog_wall_s:
+                raise _Stop(f"mocap watchdog: no pose on {self.robot.pose_topic} for "
+                            f"{silent * self.time_scale:.2f} s (robot.watchdog_s="
+                            f"{self.robot.watchdog_s})")
+
+    def _drain(self) -> None:
+        """Move received poses into the current run (by stamp); count what does not fit."""
+        run = self.runs[-1] if self.runs else None
+        for stamp, receipt, xyz in self.link.take_poses():
+            if run is None or not run.start_ns <= stamp < run.end_ns:
+                self.stats.poses_outside_runs += 1
+                continue
+            if stamp <= self._last_stamp:
+                self.stats.poses_out_of_order += 1
+                continue
+            if self._last_receipt is not None and run.frames > 0:
+                self.stats.receipt_intervals_ms.append((receipt - self._last_receipt) / 1e6)
+            self._last_stamp, self._last_receipt = stamp, receipt
+            self.stats.pose_latency_ms.append((receipt - stamp) / 1e6)
+            self.recorder.add_frame(run.run_id, self._run_time(stamp), xyz, is_finite(xyz))
+            run.frames += 1
+
+    # ---- stop ----------------------------------------------------------------------------------
+    def stop_safely(self) -> None:
+        """Publish the preload, give it a moment to go out, wait for its acknowledgement."""
+        preload = self.gate.check(self.gate.preload)
+        self.link.publish(preload)
+        settle_until = time.monotonic() + _SETTLE_S
+        while time.monotonic() < settle_until:
+            self.link.spin_once(_SPIN_SLICE_S)
+        # Poses from now on show the arm going to the preload, which no command row explains:
+        # they are not recorded.
+        # Fast DDS acknowledges reliable samples on its heartbeat, so this can take a second or
+        # more although the sample itself arrives within milliseconds.
+        self.preload_acknowledged = self.link.wait_for_acks(float(self.robot.stop_timeout_s))
+        if self.preload_acknowledged:
+            log.info("collect: commanded the preload %s kPa (acknowledged by %d subscriber(s))",
+                     preload.tolist(), self.link.subscribers())
+        else:
+            log.warning("collect: commanded the preload %s kPa; its delivery was not acknowledged "
+                        "within robot.stop_timeout_s=%s s (check that the valves went to it)",
+                        preload.tolist(), self.robot.stop_timeout_s)
+
+    def link_summary(self) -> dict[str, Any]:
+        """Rates and latencies of the session (wall ms unless named otherwise) for the manifest."""
+
+        def describe(values: list[float]) -> dict[str, float] | None:
+            if not values:
+                return None
+            v = np.asarray(values)
+            return {"n": len(v), "mean": float(v.mean()), "std": float(v.std()),
+                    "median": float(np.median(v)), "p99": float(np.percentile(v, 99)),
+                    "max": float(v.max())}
+
+        intervals = self.stats.receipt_intervals_ms
+        return {
+            "time_scale": self.time_scale,
+            "pose_frame_id": self.link.frame_id,
+            "runs": [{"run_id": r.run_id, "start_ns": r.start_ns} for r in self.runs],
+            "pose_receipt_rate_hz_wall": 1e3 / float(np.mean(intervals)) if intervals else None,
+            "pose_receipt_interval_ms": describe(intervals),
+            "pose_latency_ms": describe(self.stats.pose_latency_ms),
+            "command_lateness_ms": describe(self.stats.command_lateness_ms),
+            "poses_out_of_order": self.stats.poses_out_of_order,
+            "poses_outside_runs": self.stats.poses_outside_runs,
+            "preload_acknowledged": self.preload_acknowledged,
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# the collect stage's entry (through pipeline.ros2.collect_ros2)
+# --------------------------------------------------------------------------------------------
+def exploration_plan(cfg: Any) -> list[tuple[str, np.ndarray]]:
+    """``(run_id, commands [N, n_valves] kPa)`` per run: the same walks as ``robot=sim``."""
+    robot, exploration = cfg.robot, cfg.exploration
+    walk_key, _, _ = jax.random.split(jax.random.key(int(exploration.seed)), 3)
+    return [(f"ros2-{i:03d}", exploration_run(key, exploration, robot.limits, robot.n_valves))
+            for i, key in enumerate(jax.random.split(walk_key, int(robot.num_runs)))]
+
+
+def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interruption | None:
+    """Run a session on the arm and fill ``writer`` like ``robot=sim`` does (see module doc)."""
+    robot = cfg.robot
+    if not float(robot.time_scale) > 0:
+        raise ValueError(f"robot.time_scale={robot.time_scale} must be positive")
+    if float(robot.time_scale) != 1.0:
+        log.warning("collect: robot.time_scale=%s: the arm's time runs %sx wall time, which only "
+                    "a digital twin with the same time_scale can follow", robot.time_scale,
+                    robot.time_scale)
+    plan = exploration_plan(cfg)
+    gate = CommandGate(robot.limits, robot.n_valves)
+    started = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
+    recovery = Path(cfg.paths.output_dir) / "recovery" / f"{STAGE}-{writer.key}-{started}"
+    recorder = ChunkedRecorder(recovery, spec, {"stage": STAGE, "robot": robot.name,
+                                                "recovery": True})
+    log.info("collect: streams are saved to %s every %s s while recording", recovery,
+             robot.flush_every_s)
+
+    with StopSignals() as signals, ros_node(robot.node_name, robot.domain_id) as (node, executor):
+        session = Session(robot, ArmLink(node, executor, robot), gate, recorder, signals)
+        try:
+            session.wait_for_arm()
+            interruption = session.play(plan)
+        finally:
+            try:
+                session.stop_safely()
+            finally:
+                recorder.flush()
+
+    commands, mocap = recorder.read_all()
+    if commands.empty or mocap.empty:
+        reason = interruption.reason if interruption else "no pose arrived during the runs"
+        raise RuntimeError(f"collect: nothing to keep ({len(commands)} commands, {len(mocap)} "
+                           f"frames recorded): {reason}") from (interruption and interruption.error)
+    source = f"{robot.pose_topic} [{session.link.frame_id}]"
+    runs = pd.DataFrame([
+        {"run_id": r.run_id, "source": source, "complete": r.complete,
+         "n_commands": int((commands["run_id"] == r.run_id).sum()), "n_frames": r.frames}
+        for r in session.runs])
+    write_raw(writer, cfg, spec, commands, mocap, runs)
+    plot_walks(writer.file("figures/exploration_alphas.png"),
+               jax.random.split(jax.random.key(int(cfg.exploration.seed)), 3)[2],
+               cfg.exploration, robot.limits, robot.control_hz, robot.n_valves)
+    writer.summary["ros2"] = session.link_summary()
+    if interruption is not None:
+        writer.summary["interrupted"] = interruption.reason
+    shutil.rmtree(recovery)  # the artifact's temporary folder now holds every row
+    return interruption

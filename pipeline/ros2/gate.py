@@ -1,0 +1,43 @@
+"""The safety gate every pressure command passes on its way to the valves.
+
+First the same projection onto the safe set as the exploration (:func:`pipeline.safety.project`),
+then the float64 check :func:`pipeline.safety.assert_safe` right before it is published: a bug
+upstream can stop the collection but never send a command outside ``robot.limits``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pipeline.safety import SafeSet, assert_safe, project
+
+
+class CommandGate:
+    """``gate(pressures) -> safe float64 pressures [kPa]``; raises ``ValueError`` if unsafe.
+
+    :meth:`project` and :meth:`check` are the two halves, for a caller that projects ahead of
+    time and checks right before publishing.
+    """
+
+    def __init__(self, limits: Any, n_valves: int):
+        self.limits = limits
+        self._safe = SafeSet.from_limits(limits, n_valves)
+        self._project = jax.jit(project)
+        self.preload = self(np.full(n_valves, float(limits.preload)))  # compiles before a run
+
+    def project(self, pressures: np.ndarray) -> np.ndarray:
+        projected = np.asarray(
+            self._project(jnp.asarray(pressures, jnp.float32), self._safe), np.float64)
+        # The projection works in float32: a bound such as 6.9 kPa rounds to 6.9000001, which the
+        # float64 gate would refuse. Clipping to the float64 box moves a command only inward.
+        return np.clip(projected, float(self.limits.p_min), float(self.limits.p_max))
+
+    def check(self, pressures: np.ndarray) -> np.ndarray:
+        return assert_safe(pressures, self.limits)
+
+    def __call__(self, pressures: np.ndarray) -> np.ndarray:
+        return self.check(self.project(pressures))

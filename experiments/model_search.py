@@ -8,7 +8,7 @@ Example (one CPU core)::
 
     XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \\
     taskset -c 1 .venv/bin/python experiments/model_search.py \\
-        --data-dir ../shared/data/sorolex --hz 10 --window 128 --hidden 64 --steps 2000 \\
+        --data-dir ../shared/data/sorolex --hz 10 --window 128 --hidden 64 --steps 1500 \\
         --folds all --out outputs/model_search/default.jsonl
 """
 
@@ -25,27 +25,29 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from experiments.model_data import load_runs  # noqa: E402
-from pipeline import train_model  # noqa: E402
+from experiments.model_data import load_runs
+from pipeline import train_model
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data-dir", default="/work/shared/data/sorolex")
     parser.add_argument("--hz", type=float, default=10.0, help="model rate")
+    parser.add_argument("--pressure", default="interval_mean", choices=["interval_mean", "sample"])
     parser.add_argument("--window", type=int, default=128)
     parser.add_argument("--stride", type=int, default=1)
     parser.add_argument("--order", default="permuted", choices=["permuted", "sequential"])
     parser.add_argument("--hidden", type=int, default=64)
     parser.add_argument("--layers", type=int, default=1)
     parser.add_argument("--head", default="", help="comma-separated widths, e.g. 64,64")
-    parser.add_argument("--condition", type=int, default=1, help="condition_on_initial_pose")
-    parser.add_argument("--displacement", type=int, default=1, help="predict_displacement")
+    parser.add_argument("--condition", type=int, default=0, help="condition_on_initial_pose")
+    parser.add_argument("--displacement", type=int, default=0, help="predict_displacement")
+    parser.add_argument("--reference", default="run_start", choices=["run_start", "window_start"])
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--lr", type=float, default=3e-3)
     parser.add_argument("--schedule", default="cosine", choices=["constant", "cosine"])
     parser.add_argument("--warmup", type=int, default=100)
-    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--folds", default="all", help="'all' or comma-separated run indices")
     parser.add_argument("--lags", type=int, default=20, help="linear baseline lags (model steps)")
@@ -70,13 +72,14 @@ def model_config(args: argparse.Namespace) -> dict:
         "eval_every": args.steps,
         "checkpoint_every": args.steps,
         "seed": args.seed,
+        "reference_pose": args.reference,
     }
 
 
 def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
     test_run = runs[held_out]
     train_runs = [run for i, run in enumerate(runs) if i != held_out]
-    started = time.perf_counter()
+    started, started_cpu = time.perf_counter(), time.process_time()
     params, _, _ = train_model.fit(
         train_runs,
         model_config(args),
@@ -86,6 +89,7 @@ def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
         progress=bool(args.progress),
     )
     train_seconds = time.perf_counter() - started
+    train_cpu_seconds = time.process_time() - started_cpu
     model = train_model.evaluate_open_loop(params, test_run)
     mean_baseline = train_model.baseline_mean_position(train_runs, test_run)
     linear_baseline = train_model.baseline_linear_lagged(train_runs, test_run, args.lags)
@@ -95,11 +99,13 @@ def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
         "mean_mm": model["mean_mm"],
         "p95_mm": model["p95_mm"],
         "train_s": train_seconds,
+        "train_cpu_s": train_cpu_seconds,
         "baseline_mean_mm": mean_baseline["mean_mm"],
         "baseline_mean_p95_mm": mean_baseline["p95_mm"],
         "baseline_linear_mm": linear_baseline["mean_mm"],
         "baseline_linear_p95_mm": linear_baseline["p95_mm"],
         "hz": args.hz,
+        "pressure_resampling": args.pressure,
         "window": args.window,
         "order": args.order,
         **model_config(args),
@@ -108,7 +114,7 @@ def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    runs = load_runs(args.data_dir, args.hz)
+    runs = load_runs(args.data_dir, args.hz, args.pressure)
     folds = range(len(runs)) if args.folds == "all" else [int(i) for i in args.folds.split(",")]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -121,11 +127,12 @@ def main(argv=None) -> None:
         print(
             f"{row['held_out']}: model {row['mean_mm']:.2f}/{row['p95_mm']:.2f} mm  "
             f"linear {row['baseline_linear_mm']:.2f}  mean {row['baseline_mean_mm']:.2f}  "
-            f"({row['train_s']:.0f} s)",
+            f"({row['train_s']:.0f} s wall, {row['train_cpu_s']:.0f} s CPU)",
             flush=True,
         )
     table = pd.DataFrame(rows)[
-        ["held_out", "mean_mm", "p95_mm", "baseline_linear_mm", "baseline_mean_mm", "train_s"]
+        ["held_out", "mean_mm", "p95_mm", "baseline_linear_mm", "baseline_linear_p95_mm",
+         "baseline_mean_mm", "baseline_mean_p95_mm", "train_s", "train_cpu_s"]
     ]
     print(table.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
     print(f"average over folds: model {np.mean(table.mean_mm):.2f} mm mean, "

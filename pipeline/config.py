@@ -251,18 +251,18 @@ class ModelConfig:
     """The LSTM forward-dynamics model and its training (see ``pipeline/train_model.py``)."""
 
     name: str = "lstm"
-    hidden: int = 128
+    hidden: int = 64
     layers: int = 1
     head: list[int] = field(default_factory=list)
-    condition_on_initial_pose: bool = True  # initial carry from the observed pose at reset
-    predict_displacement: bool = True  # predict the displacement from the initial pose
+    condition_on_initial_pose: bool = False  # initial carry from the observed pose at reset
+    predict_displacement: bool = False  # predict the displacement from the initial pose
     batch_size: int = 32
     learning_rate: float = 3.0e-3
     lr_schedule: str = "cosine"  # constant | cosine
     warmup_steps: int = 100
     final_lr_fraction: float = 0.05
     max_grad_norm: float = 1.0
-    num_steps: int = 3000
+    num_steps: int = 1500
     eval_every: int = 250
     checkpoint_every: int = 500
     seed: int = 0
@@ -319,10 +319,10 @@ class AgentConfig:
     num_layers: int = 2  # MLP layers of the actor and of the critic (after the GRU if any)
     rnn_hidden: int = 64  # GRU width (recurrent only)
     activation: str = "tanh"  # tanh | relu
-    log_std_init: float = 0.0  # initial log std of the Gaussian policy (in [-1, 1] units)
-    reward_scale: float = 1.0  # rewards are multiplied by this for the update only
+    log_std_init: float = -1.0  # initial log std of the Gaussian policy ([-1, 1] units)
+    reward_scale: float = 0.1  # rewards are multiplied by this for the update only
     num_evals: int = 10  # deterministic evaluations on held-out goals during training
-    eval_envs: int = 256  # episodes per evaluation
+    eval_envs: int = 256  # episodes per evaluation (0: none)
     progress: bool = True  # a progress bar on the host (jax.debug.callback, throttled)
 
 

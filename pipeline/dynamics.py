@@ -24,6 +24,7 @@ observed at reset (both are measured in ``experiments/MODEL_RESULTS.md``):
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -47,11 +48,11 @@ _MIN_STD = 1.0e-6  # floor of every standard deviation, so a constant channel ca
 class DynamicsConfig:
     """Architecture of the network (hashable: it is static data of :class:`DynamicsParams`)."""
 
-    hidden: int = 128
+    hidden: int = 64
     layers: int = 1
     head: tuple[int, ...] = ()
-    condition_on_initial_pose: bool = True
-    predict_displacement: bool = True
+    condition_on_initial_pose: bool = False
+    predict_displacement: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "head", tuple(int(width) for width in self.head))
@@ -151,8 +152,9 @@ def make_network(config: DynamicsConfig) -> LSTMDynamicsNet:
     )
 
 
+@functools.partial(jax.jit, static_argnames="config")
 def init_network(key: jax.Array, config: DynamicsConfig) -> Any:
-    """Fresh flax variables for ``config``."""
+    """Fresh flax variables for ``config`` (jitted: one compilation per architecture)."""
     zeros = jnp.zeros((NUM_CHAMBERS,), jnp.float32)
     return make_network(config).init(key, zeros, zeros, method=LSTMDynamicsNet.initialize)
 
@@ -163,8 +165,8 @@ def init_network(key: jax.Array, config: DynamicsConfig) -> Any:
 def fit_normalizer(runs: Sequence[dict], predict_displacement: bool) -> Normalizer:
     """Statistics over all steps of ``runs`` (dicts with "p" [T, 3] kPa and "pos" [T, 3] m).
 
-    The displacement target of a run is taken from its own first pose, as at evaluation; the
-    training windows use their own first pose, whose spread is similar.
+    Displacements are measured from each run's first pose, as the training windows are by default
+    (``reference_pose="run_start"`` in ``train_model``).
     """
     pressures = np.concatenate([np.asarray(run["p"], np.float64) for run in runs])
     positions = np.concatenate([np.asarray(run["pos"], np.float64) for run in runs])

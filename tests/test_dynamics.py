@@ -6,6 +6,8 @@ import pytest
 from pipeline import dynamics
 from pipeline.dynamics import DynamicsConfig, DynamicsParams
 
+predict_sequence = jax.jit(dynamics.predict_sequence)  # one compilation per architecture
+
 
 def make_runs(num_runs=2, num_steps=40, seed=0):
     rng = np.random.default_rng(seed)
@@ -30,7 +32,8 @@ def make_params(config: DynamicsConfig, seed=0) -> DynamicsParams:
 
 
 CONFIGS = [
-    DynamicsConfig(hidden=8, layers=1, head=(), condition_on_initial_pose=True),
+    DynamicsConfig(hidden=8, layers=1, head=(), condition_on_initial_pose=True,
+                   predict_displacement=True),
     DynamicsConfig(hidden=8, layers=2, head=(6,), condition_on_initial_pose=False,
                    predict_displacement=False),
 ]
@@ -41,7 +44,7 @@ def test_stepped_equals_sequence(config):
     params = make_params(config)
     run = make_runs(1, 25, seed=5)[0]
     pressures, initial_pose = jnp.asarray(run["p"]), jnp.asarray(run["pos"][0])
-    whole = dynamics.predict_sequence(params, pressures, initial_pose)
+    whole = predict_sequence(params, pressures, initial_pose)
     assert whole.shape == (25, 3)
 
     step = jax.jit(dynamics.step)
@@ -58,7 +61,7 @@ def test_step_held_is_repeated_steps():
     carry = dynamics.init_carry(params, jnp.array([0.03, 0.35, 0.2]))
     pressure = jnp.array([2.0, 3.0, 1.0])
     held_carry, held = dynamics.step_held(params, carry, pressure, 5)
-    whole = dynamics.predict_sequence(params, jnp.tile(pressure, (5, 1)), carry.initial_pose)
+    whole = predict_sequence(params, jnp.tile(pressure, (5, 1)), carry.initial_pose)
     assert held.shape == (5, 3)
     np.testing.assert_allclose(held, whole, rtol=1e-5, atol=1e-7)
     assert jax.tree.structure(held_carry) == jax.tree.structure(carry)
@@ -68,22 +71,22 @@ def test_initial_pose_conditioning_and_displacement():
     conditioned = make_params(CONFIGS[0])
     pressures = jnp.full((6, 3), 2.0)
     pose_a, pose_b = jnp.array([0.03, 0.35, 0.2]), jnp.array([0.033, 0.352, 0.203])
-    out_a = dynamics.predict_sequence(conditioned, pressures, pose_a)
-    out_b = dynamics.predict_sequence(conditioned, pressures, pose_b)
+    out_a = predict_sequence(conditioned, pressures, pose_a)
+    out_b = predict_sequence(conditioned, pressures, pose_b)
     # Displacement target: the offset of the initial pose passes through, plus the carry effect.
     assert not np.allclose(out_b - out_a, 0.0)
 
     plain = make_params(DynamicsConfig(hidden=8, condition_on_initial_pose=False,
                                        predict_displacement=True))
-    shift = dynamics.predict_sequence(plain, pressures, pose_b) - dynamics.predict_sequence(
+    shift = predict_sequence(plain, pressures, pose_b) - predict_sequence(
         plain, pressures, pose_a
     )
     np.testing.assert_allclose(shift, np.broadcast_to(pose_b - pose_a, (6, 3)), atol=1e-6)
 
     absolute = make_params(CONFIGS[1])
     np.testing.assert_allclose(
-        dynamics.predict_sequence(absolute, pressures, pose_a),
-        dynamics.predict_sequence(absolute, pressures, pose_b),
+        predict_sequence(absolute, pressures, pose_a),
+        predict_sequence(absolute, pressures, pose_b),
         atol=1e-7,
     )
 
@@ -101,6 +104,6 @@ def test_normalizer_statistics():
 def test_shape_asserts():
     params = make_params(CONFIGS[0])
     with pytest.raises(AssertionError):
-        dynamics.predict_sequence(params, jnp.zeros((5, 2)), jnp.zeros(3))
+        predict_sequence(params, jnp.zeros((5, 2)), jnp.zeros(3))
     with pytest.raises(AssertionError):
         dynamics.init_carry(params, jnp.zeros(2))

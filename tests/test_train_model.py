@@ -2,7 +2,7 @@ import jax
 import numpy as np
 import pytest
 
-from pipeline import dynamics, train_model
+from pipeline import train_model
 from pipeline.train_model import ModelTrainConfig
 
 
@@ -81,8 +81,7 @@ def test_checkpoint_round_trip(tmp_path):
         assert loaded.config == params.config
         run = runs[0]
         np.testing.assert_array_equal(
-            dynamics.predict_sequence(loaded, run["p"], run["pos"][0]),
-            dynamics.predict_sequence(params, run["p"], run["pos"][0]),
+            train_model.predict_run(loaded, run), train_model.predict_run(params, run)
         )
     assert not list(tmp_path.glob("*.tmp"))
 

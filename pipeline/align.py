@@ -168,6 +168,35 @@ def resample(aligned: pd.DataFrame, hz: float) -> pd.DataFrame:
     return pd.concat(out, ignore_index=True)
 
 
+def resample_command_locked(aligned: pd.DataFrame, hz: float) -> pd.DataFrame:
+    """Resample onto a grid locked to the commands: each interval between two matched commands
+    is cut into ``round(duration * hz)`` equal steps starting at the command.
+
+    Every command then takes effect exactly on a grid point, as an action does in the learned
+    environment (held for a whole number of model steps), instead of at a phase that drifts
+    with the clock. Positions are interpolated, pressures held, ``matched`` on command points.
+    """
+    out = []
+    for run_id, run in aligned.groupby("run_id", sort=False):
+        t = run["t"].to_numpy(np.float64)
+        matched = run["matched"].to_numpy(bool)
+        bounds = np.r_[t[matched], t[-1]]
+        pieces = []
+        for start, end in zip(bounds[:-1], bounds[1:]):
+            steps = max(1, round((end - start) * hz))
+            pieces.append(start + (end - start) * np.arange(steps) / steps)
+        grid = np.concatenate(pieces) if pieces else t[:1]
+        held = np.searchsorted(t, grid + 1e-12, side="right") - 1
+        rows = pd.DataFrame({"run_id": run_id, "t": grid})
+        for column in P_COLUMNS:
+            rows[column] = run[column].to_numpy()[held]
+        for column in XYZ:
+            rows[column] = np.interp(grid, t, run[column].to_numpy())
+        rows["matched"] = np.isin(grid, t[matched])
+        out.append(rows)
+    return pd.concat(out, ignore_index=True)
+
+
 def align_tables(commands: pd.DataFrame, mocap: pd.DataFrame, settings: Any,
                  source: str = "align") -> tuple[pd.DataFrame, pd.DataFrame]:
     """Align every run; return the ``aligned`` table and the per-run report."""

@@ -236,6 +236,7 @@ class AlignConfig:
 class DatasetConfig:
     align: AlignConfig = field(default_factory=AlignConfig)
     model_hz: float = 10.0  # rate the dynamics model runs at (downsampled aligned data)
+    model_grid: str = "clock"  # clock: regular grid | commands: locked to the command times
     window: int = 128  # sliding-window length in model steps
     stride: int = 1
     order: str = "permuted"  # permuted | sequential

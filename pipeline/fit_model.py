@@ -41,7 +41,8 @@ from pipeline.windows import split_runs
 
 log = logging.getLogger(__name__)
 STAGE = "fit_model"
-DATASET_KEYS = ("model_hz", "window", "stride", "order", "train_fraction", "split_seed")
+DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order", "train_fraction",
+                "split_seed")
 
 
 def fit_model_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
@@ -56,9 +57,19 @@ def fit_model_key(cfg: Any) -> str:
     return artifact_key(*fit_model_spec(cfg))
 
 
-def runs_at_model_rate(aligned: pd.DataFrame, model_hz: float) -> list[dict[str, Any]]:
-    """Aligned rows as the model's runs: ``{run_id, t [T], p [T, 3] kPa, pos [T, 3] m}``."""
-    resampled = align_stage.resample(aligned, model_hz)
+def runs_at_model_rate(aligned: pd.DataFrame, model_hz: float, grid: str = "clock"
+                       ) -> list[dict[str, Any]]:
+    """Aligned rows as the model's runs: ``{run_id, t [T], p [T, 3] kPa, pos [T, 3] m}``.
+
+    ``grid``: ``clock`` (a regular grid) or ``commands`` (locked to the command times, see
+    :func:`pipeline.align.resample_command_locked`).
+    """
+    if grid == "clock":
+        resampled = align_stage.resample(aligned, model_hz)
+    elif grid == "commands":
+        resampled = align_stage.resample_command_locked(aligned, model_hz)
+    else:
+        raise ValueError(f"dataset.model_grid must be clock or commands, got {grid!r}")
     return [
         {
             "run_id": str(run_id),
@@ -85,7 +96,7 @@ def fit_model(cfg: Any) -> Artifact:
 
     def build(writer):
         aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
-        runs = runs_at_model_rate(aligned, float(data.model_hz))
+        runs = runs_at_model_rate(aligned, float(data.model_hz), str(data.model_grid))
         by_id = {run["run_id"]: run for run in runs}
         train_ids, test_ids = split_runs(list(by_id), float(data.train_fraction),
                                          int(data.split_seed))

@@ -116,3 +116,22 @@ def test_align_tables_handles_several_runs_and_reports_each():
 def test_a_run_without_commands_is_an_error():
     with pytest.raises(DataError, match="run 'b' has mocap frames but no commands"):
         align_tables(commands([0.0], run_id="a"), mocap(run_id="b"), SETTINGS)
+
+
+def test_command_locked_grid_puts_every_command_on_a_grid_point():
+    from pipeline.align import resample_command_locked
+
+    # commands 0.5 s apart but drifting against the 10 Hz clock (0.503 s periods)
+    times = [0.103 + 0.503 * i for i in range(3)]
+    aligned, _ = align_run(commands(times), mocap(n=200), SETTINGS)
+    coarse = resample_command_locked(aligned, 10.0)
+    validate(coarse, ALIGNED, "test")
+    starts = coarse.loc[coarse["matched"], "t"].to_numpy()
+    np.testing.assert_allclose(starts, [0.10, 0.61, 1.11])  # the frames the commands matched
+    assert coarse["matched"].sum() == 3
+    # 5 equal steps per 0.5 s command period, the last interval up to the end of the run
+    first_period = coarse[(coarse["t"] >= 0.10) & (coarse["t"] < 0.61)]
+    assert len(first_period) == 5 and (first_period["p_0"] == 1.0).all()
+    np.testing.assert_allclose(np.diff(first_period["t"]), 0.102)
+    assert coarse["p_0"].tolist()[5:10] == [2.0] * 5
+    np.testing.assert_allclose(coarse["x"], coarse["t"], atol=1e-12)

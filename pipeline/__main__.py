@@ -30,6 +30,8 @@ STAGES: dict[Stage, str] = {
 }
 # what `stage=all` runs, in order (the digital twin is a server, started on its own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
+# in the chain, evaluate trains the other policy types it compares (stage=evaluate alone asks)
+CHAIN_OPTIONS: dict[Stage, dict[str, Any]] = {Stage.evaluate: {"train_missing": True}}
 
 
 def stage_function(stage: Stage) -> Callable[[Any], Any] | None:
@@ -58,7 +60,8 @@ def run(cfg: Any) -> dict[str, Any]:
                 break
             raise NotImplementedError(f"stage={name.value} is not implemented in this version")
         started = time.perf_counter()
-        results[name.value] = function(cfg)
+        options = CHAIN_OPTIONS.get(name, {}) if stage is Stage.all else {}
+        results[name.value] = function(cfg, **options)
         log.info("stage %s done in %.1f s", name.value, time.perf_counter() - started)
     return results
 

@@ -1,0 +1,93 @@
+"""PPO training throughput in the learned environment: our default next to the paper's setting.
+
+    python bench/ppo_throughput.py [--updates 20] [--seeds 1]
+
+- ``default``: this project's defaults — LSTM of 128 units (``model.hidden``) at 10 Hz stepped
+  5 times per 2 Hz action (zero-order hold), ``agent.num_envs`` = 64 environments.
+- ``paper``: the paper's environment — a 1024-unit LSTM stepped once per action, 32 environments.
+
+Same PPO (feed-forward, ``agent.num_steps`` = 32, 4 epochs x 4 minibatches), same run, random
+model weights (throughput does not depend on them). Compilation is timed apart; throughput is
+environment steps per second of the compiled training program (all seeds together), and the
+table gives the ratio of each row to the paper's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+from omegaconf import OmegaConf
+
+from pipeline import dynamics
+from pipeline.envs import SoftArmReachEnv, learned_plant, make_env_params
+from pipeline.ppo import PPOConfig, make_train, seed_keys
+from pipeline.safety import SafeSet
+
+LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
+REST_POSE = jnp.array([0.032, 0.353, 0.202])
+CONTROL_HZ = 2.0
+SETTINGS = {
+    # name: (LSTM units, model Hz, environments)
+    "default": (128, 10.0, 64),
+    "paper": (1024, 2.0, 32),
+}
+
+
+def random_model(hidden: int) -> dynamics.DynamicsParams:
+    config = dynamics.DynamicsConfig(hidden=hidden)
+    ones, zeros = jnp.ones(3), jnp.zeros(3)
+    normalizer = dynamics.Normalizer(2.0 * ones, ones, REST_POSE, 0.01 * ones, zeros,
+                                     0.01 * ones)
+    return dynamics.DynamicsParams(dynamics.init_network(jax.random.PRNGKey(0), config),
+                                   normalizer, config)
+
+
+def measure(name: str, updates: int, seeds: int) -> dict:
+    hidden, model_hz, num_envs = SETTINGS[name]
+    env = SoftArmReachEnv(learned_plant(model_hz), CONTROL_HZ, settle_seconds=5.0,
+                          include_last_action=True)
+    params = make_env_params(env, random_model(hidden), key=jax.random.PRNGKey(0),
+                             safe_set=SafeSet.from_limits(LIMITS), preload=2.0,
+                             rest_pose=REST_POSE, goal_mode="perturb", reset_bank_size=16)
+    agent = PPOConfig(num_seeds=seeds, num_envs=num_envs, num_steps=32,
+                      total_timesteps=updates * num_envs * 32, num_evals=1, eval_envs=8,
+                      progress=False)
+    train = jax.jit(jax.vmap(make_train(agent, env, params, eval_steps=1),
+                             in_axes=(0, None, None)))
+    keys = seed_keys(0, seeds)
+    started = time.perf_counter()
+    compiled = train.lower(keys, params, params).compile()
+    compile_s = time.perf_counter() - started
+    started = time.perf_counter()
+    jax.block_until_ready(compiled(keys, params, params))
+    run_s = time.perf_counter() - started
+    steps = seeds * agent.num_updates * agent.steps_per_update
+    return {"name": name, "lstm": hidden, "model_steps_per_action": env.steps_per_action,
+            "envs": num_envs, "compile_s": compile_s, "run_s": run_s,
+            "steps_per_s": steps / run_s, "model_steps_per_s": steps * env.steps_per_action / run_s}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--updates", type=int, default=20, help="PPO updates per setting")
+    parser.add_argument("--seeds", type=int, default=1, help="seeds trained at once (vmap)")
+    args = parser.parse_args()
+    rows = [measure(name, args.updates, args.seeds) for name in SETTINGS]
+    paper = next(r for r in rows if r["name"] == "paper")
+    print(f"PPO training throughput, {args.updates} updates x 32 steps, {args.seeds} seed(s), "
+          f"{jax.devices()[0].platform}")
+    header = (f"{'setting':<9}{'LSTM':>6}{'steps/act':>10}{'envs':>6}{'compile s':>11}"
+              f"{'run s':>8}{'env steps/s':>13}{'x paper':>9}{'model steps/s':>15}")
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        print(f"{r['name']:<9}{r['lstm']:>6}{r['model_steps_per_action']:>10}{r['envs']:>6}"
+              f"{r['compile_s']:>11.1f}{r['run_s']:>8.2f}{r['steps_per_s']:>13.0f}"
+              f"{r['steps_per_s'] / paper['steps_per_s']:>9.2f}{r['model_steps_per_s']:>15.0f}")
+
+
+if __name__ == "__main__":
+    main()

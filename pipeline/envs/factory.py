@@ -1,0 +1,196 @@
+"""Build environments and their parameters from the composed config (``env`` group).
+
+``env.name``:
+
+- ``learned``: :class:`SoftArmReachEnv` on the fitted LSTM (:func:`make_learned_env`; the model,
+  the rest pose and the goal sets come from the fit_model / align artifacts).
+- ``sim``: the same environment on the simulated arm (:func:`make_sim_env`), the ground-truth
+  plant: goals are positions the simulated arm reaches holding random safe pressures.
+- ``gymnax``: a standard gymnax environment (``env.gymnax_name``), to check the PPO against
+  published results independently of our model.
+
+Every builder returns ``(env, train_params, eval_params)``: the evaluation parameters differ only
+in their goal set (held-out goals).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from pipeline import sim_arm
+from pipeline.envs.learned import SoftArmReachEnv, make_env_params, split_goals
+from pipeline.envs.plants import (
+    NUM_VALVES,
+    SimPlantParams,
+    hold,
+    learned_plant,
+    sim_plant,
+)
+from pipeline.safety import SafeSet, project, validate_limits
+
+
+def _common_params(cfg: Any) -> dict[str, Any]:
+    env_cfg = cfg.env
+    return {
+        "goal_mode": str(env_cfg.goal_mode),
+        "goal_perturbation_m": float(env_cfg.goal_perturbation_m),
+        "goal_tolerance_m": float(env_cfg.goal_tolerance_m),
+        "obs_noise_std_m": float(env_cfg.obs_noise_std),
+        "action_noise_std_kpa": float(env_cfg.action_noise_std),
+        "max_steps": int(env_cfg.max_steps),
+        "reset_bank_size": int(env_cfg.reset_bank_size),
+    }
+
+
+def _safe_set(cfg: Any) -> SafeSet:
+    validate_limits(cfg.robot.limits, cfg.robot.n_valves)
+    return SafeSet.from_limits(cfg.robot.limits, cfg.robot.n_valves)
+
+
+# ---------------------------------------------------------------------------------------------
+# simulated arm
+# ---------------------------------------------------------------------------------------------
+def sim_plant_params(cfg: Any) -> SimPlantParams:
+    """The simulated arm of ``cfg.robot`` (robot=sim physics) resting at the preload."""
+    preload = jnp.full((NUM_VALVES,), float(cfg.robot.limits.preload), jnp.float32)
+    return SimPlantParams(sim_arm.SimParams.from_config(cfg.robot), preload)
+
+
+def sim_reachable_positions(env: SoftArmReachEnv, plant_params: SimPlantParams,
+                            safe_set: SafeSet, rest_pose: jax.Array, key: jax.Array,
+                            num: int, hold_seconds: float = 5.0) -> jax.Array:
+    """``[num, 3]`` m: where the arm rests after holding random safe pressures for a while.
+
+    Pressures are drawn uniformly in the valve box and projected onto the safe set; each one is
+    held for ``hold_seconds`` starting from the arm settled at the preload.
+    """
+    pressures = project(
+        jax.random.uniform(key, (num, NUM_VALVES), minval=safe_set.p_min,
+                           maxval=safe_set.p_max), safe_set)
+    hold_steps = max(1, round(hold_seconds * env.plant.model_hz))
+
+    def reach(pressure):
+        carry, _ = env.settle(plant_params, rest_pose, plant_params.preload)
+        _, positions = hold(env.plant, plant_params, carry, pressure, hold_steps)
+        return positions[-1]
+
+    return jax.jit(jax.vmap(reach))(pressures)
+
+
+def sim_rest_pose(plant_params: SimPlantParams) -> jax.Array:
+    """[3] m: the simulated arm's marker at rest at the preload, without a session offset."""
+    state = sim_arm.settled_state(plant_params.sim, plant_params.preload, jnp.zeros(3))
+    return sim_arm.tip_position(plant_params.sim, state)
+
+
+def make_sim_env(cfg: Any) -> tuple[SoftArmReachEnv, Any, Any]:
+    """The reaching environment on the simulated arm (``env=sim``)."""
+    env_cfg = cfg.env
+    mocap_hz = float(cfg.robot.mocap.rate_hz)
+    frames_per_step = round(mocap_hz / float(cfg.dataset.model_hz))
+    env = SoftArmReachEnv(sim_plant(mocap_hz, frames_per_step), float(cfg.robot.control_hz),
+                          float(env_cfg.settle_seconds), bool(env_cfg.include_last_action))
+    plant_params = sim_plant_params(cfg)
+    safe_set = _safe_set(cfg)
+    rest_pose = sim_rest_pose(plant_params)
+    rest_pose_std = jnp.asarray(cfg.robot.physics.rest_pose_std_m, jnp.float32)
+    goal_key, held_out_key, train_bank_key, eval_bank_key = jax.random.split(
+        jax.random.PRNGKey(int(env_cfg.env_seed)), 4)
+    num_goals = int(env_cfg.num_goals)
+    num_held_out = max(1, round(float(env_cfg.held_out_fraction) * num_goals))
+    train_goals = sim_reachable_positions(env, plant_params, safe_set, rest_pose, goal_key,
+                                          num_goals - num_held_out)
+    held_out_goals = sim_reachable_positions(env, plant_params, safe_set, rest_pose,
+                                             held_out_key, num_held_out)
+    common = _common_params(cfg)
+    train_params = make_env_params(
+        env, plant_params, key=train_bank_key, safe_set=safe_set,
+        preload=plant_params.preload, rest_pose=rest_pose, rest_pose_std=rest_pose_std,
+        goal_set=train_goals, **common)
+    eval_params = make_env_params(
+        env, plant_params, key=eval_bank_key, safe_set=safe_set,
+        preload=plant_params.preload, rest_pose=rest_pose, rest_pose_std=rest_pose_std,
+        goal_set=held_out_goals, obs_mean=train_params.obs_mean,
+        obs_scale=train_params.obs_scale, **common)
+    return env, train_params, eval_params
+
+
+# ---------------------------------------------------------------------------------------------
+# learned model
+# ---------------------------------------------------------------------------------------------
+def data_goals_and_rest_pose(aligned: pd.DataFrame, test_run_ids: list[str], every: int = 1
+                             ) -> dict[str, np.ndarray]:
+    """Goal sets and rest pose from aligned data (columns run_id, x, y, z in metres).
+
+    Returns ``train_goals [G, 3]`` (positions of the training runs, every ``every``-th row),
+    ``held_out_goals [H, 3]`` (positions of ``test_run_ids``), ``rest_pose [3]`` and
+    ``rest_pose_std [3]`` (mean and spread of the first pose of every run: the runs start at the
+    preload).
+    """
+    xyz = ["x", "y", "z"]
+    held_out = aligned["run_id"].isin(test_run_ids)
+    first = aligned.groupby("run_id", sort=True)[xyz].first().to_numpy(np.float64)
+    return {
+        "train_goals": aligned.loc[~held_out, xyz].to_numpy(np.float32)[::every],
+        "held_out_goals": aligned.loc[held_out, xyz].to_numpy(np.float32)[::every],
+        "rest_pose": first.mean(axis=0).astype(np.float32),
+        "rest_pose_std": (first.std(axis=0) if len(first) > 1 else np.zeros(3)).astype(
+            np.float32),
+    }
+
+
+def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
+                     held_out_goals: np.ndarray, rest_pose: np.ndarray,
+                     rest_pose_std: np.ndarray | float = 0.0
+                     ) -> tuple[SoftArmReachEnv, Any, Any]:
+    """The reaching environment on a fitted model (``env=learned``).
+
+    Args:
+      dynamics_params: a ``pipeline.dynamics.DynamicsParams`` (the fit_model artifact).
+      train_goals, held_out_goals: [G, 3] m goals for training and evaluation (``goal_mode=data``);
+        e.g. positions of the training and test runs of the aligned data.
+      rest_pose, rest_pose_std: [3] m, the observed pose at rest at the preload and its spread.
+    """
+    env_cfg = cfg.env
+    env = SoftArmReachEnv(learned_plant(float(cfg.dataset.model_hz)),
+                          float(cfg.robot.control_hz), float(env_cfg.settle_seconds),
+                          bool(env_cfg.include_last_action))
+    safe_set = _safe_set(cfg)
+    preload = float(cfg.robot.limits.preload)
+    train_bank_key, eval_bank_key = jax.random.split(jax.random.PRNGKey(int(env_cfg.env_seed)))
+    common = _common_params(cfg)
+    train_params = make_env_params(
+        env, dynamics_params, key=train_bank_key, safe_set=safe_set, preload=preload,
+        rest_pose=rest_pose, rest_pose_std=rest_pose_std, goal_set=train_goals, **common)
+    eval_params = make_env_params(
+        env, dynamics_params, key=eval_bank_key, safe_set=safe_set, preload=preload,
+        rest_pose=rest_pose, rest_pose_std=rest_pose_std, goal_set=held_out_goals,
+        obs_mean=train_params.obs_mean, obs_scale=train_params.obs_scale, **common)
+    return env, train_params, eval_params
+
+
+# ---------------------------------------------------------------------------------------------
+# standard gymnax environments
+# ---------------------------------------------------------------------------------------------
+def make_gymnax_env(cfg: Any) -> tuple[Any, Any, Any]:
+    """``gymnax.make(env.gymnax_name)`` with its default parameters (train = eval)."""
+    env, params = gymnax.make(str(cfg.env.gymnax_name))
+    return env, params, params
+
+
+__all__ = [
+    "data_goals_and_rest_pose",
+    "make_gymnax_env",
+    "make_learned_env",
+    "make_sim_env",
+    "sim_plant_params",
+    "sim_reachable_positions",
+    "sim_rest_pose",
+    "split_goals",
+]

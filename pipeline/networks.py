@@ -1,0 +1,147 @@
+"""Actor-critic networks for PPO: feed-forward (MLP) and recurrent (GRU), one call signature.
+
+Both are called on time-major batches::
+
+    hidden_T, pi, value = network.apply(variables, hidden_0, obs, resets)
+
+with ``obs [T, B, obs_dim]``, ``resets [T, B]`` (True where ``obs[t]`` starts a new episode: the
+GRU state is zeroed before it is read), ``hidden_0 [B, H]``; ``pi`` is a diagonal Gaussian over
+``[T, B, action_dim]`` (actions in ``[-1, 1]`` units, clipped by the caller) and ``value [T, B]``.
+The feed-forward network ignores ``hidden`` and ``resets`` (its hidden state is a dummy
+``[B, 1]``), so the PPO code has one path for both.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import distrax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax.linen.initializers import constant, orthogonal
+
+ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
+
+
+def _activation(name: str):
+    if name not in ACTIVATIONS:
+        raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {name!r}")
+    return ACTIVATIONS[name]
+
+
+class MLP(nn.Module):
+    """``num_layers`` dense layers of ``width`` with orthogonal(sqrt 2) init, then a linear
+    output of ``out`` units with orthogonal(``out_scale``) init."""
+
+    width: int
+    num_layers: int
+    out: int
+    out_scale: float
+    activation: str = "tanh"
+
+    @nn.compact
+    def __call__(self, x):
+        act = _activation(self.activation)
+        for _ in range(self.num_layers):
+            x = act(nn.Dense(self.width, kernel_init=orthogonal(np.sqrt(2)),
+                             bias_init=constant(0.0))(x))
+        return nn.Dense(self.out, kernel_init=orthogonal(self.out_scale),
+                        bias_init=constant(0.0))(x)
+
+
+class GaussianActorCriticHeads(nn.Module):
+    """Separate actor and critic MLPs on the same features; state-independent log std."""
+
+    action_dim: int
+    width: int
+    num_layers: int
+    activation: str
+    log_std_init: float
+
+    @nn.compact
+    def __call__(self, features):
+        mean = MLP(self.width, self.num_layers, self.action_dim, 0.01, self.activation,
+                   name="actor")(features)
+        log_std = self.param("log_std", constant(self.log_std_init), (self.action_dim,))
+        value = MLP(self.width, self.num_layers, 1, 1.0, self.activation, name="critic")(features)
+        pi = distrax.MultivariateNormalDiag(mean, jnp.exp(log_std) * jnp.ones_like(mean))
+        return pi, jnp.squeeze(value, axis=-1)
+
+
+class ActorCriticFF(nn.Module):
+    """Feed-forward actor-critic (``hidden`` and ``resets`` are ignored and passed through)."""
+
+    action_dim: int
+    width: int = 64
+    num_layers: int = 2
+    activation: str = "tanh"
+    log_std_init: float = 0.0
+
+    @nn.compact
+    def __call__(self, hidden, obs, resets):
+        pi, value = GaussianActorCriticHeads(self.action_dim, self.width, self.num_layers,
+                                             self.activation, self.log_std_init)(obs)
+        return hidden, pi, value
+
+    @staticmethod
+    def initialize_carry(batch_size: int) -> jax.Array:
+        return jnp.zeros((batch_size, 1), jnp.float32)
+
+
+class ResettingGRU(nn.Module):
+    """A GRU scanned over time; the state is zeroed where ``resets[t]`` before step t."""
+
+    features: int
+
+    @functools.partial(
+        nn.scan, variable_broadcast="params", in_axes=0, out_axes=0,
+        split_rngs={"params": False})
+    @nn.compact
+    def __call__(self, carry, inputs):
+        x, resets = inputs  # [B, D], [B]
+        carry = jnp.where(resets[:, None], jnp.zeros_like(carry), carry)
+        carry, y = nn.GRUCell(self.features)(carry, x)
+        return carry, y
+
+
+class ActorCriticRNN(nn.Module):
+    """Dense embedding -> GRU (reset at episode starts) -> Gaussian actor and critic heads."""
+
+    action_dim: int
+    width: int = 64
+    num_layers: int = 2
+    rnn_hidden: int = 64
+    activation: str = "tanh"
+    log_std_init: float = 0.0
+
+    @nn.compact
+    def __call__(self, hidden, obs, resets):
+        act = _activation(self.activation)
+        embedding = act(nn.Dense(self.rnn_hidden, kernel_init=orthogonal(np.sqrt(2)),
+                                 bias_init=constant(0.0), name="embed")(obs))
+        hidden, features = ResettingGRU(self.rnn_hidden, name="gru")(hidden, (embedding, resets))
+        pi, value = GaussianActorCriticHeads(self.action_dim, self.width, self.num_layers,
+                                             self.activation, self.log_std_init)(features)
+        return hidden, pi, value
+
+    def initialize_carry(self, batch_size: int) -> jax.Array:
+        return jnp.zeros((batch_size, self.rnn_hidden), jnp.float32)
+
+
+def make_network(agent, action_dim: int) -> nn.Module:
+    """The actor-critic of the ``agent`` config (fields recurrent, hidden, num_layers, ...)."""
+    common = {"action_dim": int(action_dim), "width": int(agent.hidden),
+              "num_layers": int(agent.num_layers), "activation": str(agent.activation),
+              "log_std_init": float(agent.log_std_init)}
+    if agent.recurrent:
+        return ActorCriticRNN(rnn_hidden=int(agent.rnn_hidden), **common)
+    return ActorCriticFF(**common)
+
+
+def initial_hidden(network: nn.Module, batch_size: int) -> jax.Array:
+    """Zero hidden state ``[batch_size, H]`` of either network (H = 1 for the MLP)."""
+    if isinstance(network, ActorCriticRNN):
+        return network.initialize_carry(batch_size)
+    return ActorCriticFF.initialize_carry(batch_size)

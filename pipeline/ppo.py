@@ -1,0 +1,602 @@
+"""PPO in the PureJaxRL style: the whole training run is one pure, jittable function.
+
+``make_train(agent, env, env_params)`` returns ``train(rng) -> TrainOutput``; jit it once and
+``vmap`` it over seeds (``train_seeds`` does both). Inside, ``lax.scan`` runs
+
+    evaluation chunks (agent.num_evals)
+      └ updates (num_updates / num_evals)
+          ├ rollout: agent.num_steps steps of agent.num_envs environments (vmap)
+          ├ GAE (bootstrapped on truncation, not on termination)
+          └ agent.update_epochs x agent.num_minibatches clipped-PPO gradient steps
+      └ deterministic evaluation: agent.eval_envs episodes on the evaluation parameters
+
+Feed-forward and recurrent (GRU) actor-critics share one code path (``pipeline.networks``); the
+recurrent one is trained on whole rollout sequences, minibatched over environments, starting from
+the hidden state at the start of the rollout.
+
+Time indices in a rollout of length T: ``obs[t]`` is seen, ``action[t]`` taken, ``reward[t]``,
+``terminated[t]``, ``truncated[t]`` come back; ``reset[t]`` says ``obs[t]`` starts an episode.
+When ``truncated[t]`` (and not ``terminated[t]``), the return is bootstrapped with the value of
+the episode's final observation (``bootstrap_value[t]``, gymnax's ``info["final_observation"]``);
+when ``terminated[t]`` nothing is bootstrapped.
+
+Actions: the Gaussian policy acts in ``[-1, 1]`` units; samples are clipped and mapped linearly to
+the environment's ``Box`` bounds (identity for the soft-arm environment, whose own action is
+``[-1, 1]``). Log-probabilities are of the unclipped samples.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import serialization
+from flax.training.train_state import TrainState
+
+from pipeline.networks import initial_hidden, make_network
+
+
+# ---------------------------------------------------------------------------------------------
+# configuration
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PPOConfig:
+    """The ``agent`` config group as a frozen dataclass (see ``pipeline.config.AgentConfig``)."""
+
+    name: str = "ppo_ff"
+    recurrent: bool = False
+    num_seeds: int = 4
+    num_envs: int = 64
+    num_steps: int = 32
+    total_timesteps: int = 1_200_000
+    update_epochs: int = 4
+    num_minibatches: int = 4
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.2
+    clip_value: bool = True
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    lr: float = 3.0e-4
+    anneal_lr: bool = True
+    hidden: int = 64
+    num_layers: int = 2
+    rnn_hidden: int = 64
+    activation: str = "tanh"
+    log_std_init: float = -1.0
+    reward_scale: float = 0.1
+    num_evals: int = 10
+    eval_envs: int = 256  # 0: no evaluation
+    progress: bool = True
+
+    @classmethod
+    def from_any(cls, config: Any, **overrides: Any) -> PPOConfig:
+        """From a mapping, a dataclass or an OmegaConf node; unknown keys fail."""
+        if isinstance(config, cls):
+            values = dataclasses.asdict(config)
+        elif dataclasses.is_dataclass(config):
+            values = dataclasses.asdict(config)
+        elif isinstance(config, Mapping) or hasattr(config, "items"):
+            values = dict(config.items())
+        else:
+            raise TypeError(f"cannot read an agent config from {type(config).__name__}")
+        values.update(overrides)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown agent config keys {unknown}; known: {sorted(known)}")
+        return cls(**values)
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_steps * self.num_envs
+
+    @property
+    def updates_per_eval(self) -> int:
+        return max(1, self.total_timesteps // self.steps_per_update // self.num_evals)
+
+    @property
+    def num_updates(self) -> int:
+        """Updates actually run: a multiple of ``num_evals`` (total_timesteps rounded down)."""
+        return self.updates_per_eval * self.num_evals
+
+    def check(self) -> None:
+        if self.recurrent and self.num_envs % self.num_minibatches:
+            raise ValueError(f"recurrent PPO minibatches over environments: num_envs="
+                             f"{self.num_envs} must be divisible by num_minibatches="
+                             f"{self.num_minibatches}")
+        if self.steps_per_update % self.num_minibatches:
+            raise ValueError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
+                             f"by num_minibatches={self.num_minibatches}")
+
+
+# ---------------------------------------------------------------------------------------------
+# data carried through the scans
+# ---------------------------------------------------------------------------------------------
+class Transition(NamedTuple):
+    """One rollout step of every environment (leading axis [B]; stacked: [T, B])."""
+
+    obs: jax.Array  # [B, obs_dim]
+    reset: jax.Array  # [B] bool: obs starts an episode
+    action: jax.Array  # [B, action_dim] unclipped policy sample, [-1, 1] units
+    log_prob: jax.Array  # [B]
+    value: jax.Array  # [B] V(obs)
+    reward: jax.Array  # [B] scaled by agent.reward_scale
+    terminated: jax.Array  # [B] bool
+    truncated: jax.Array  # [B] bool
+    bootstrap_value: jax.Array  # [B] V(final obs of the episode); used where truncated
+
+
+class RunnerState(NamedTuple):
+    train_state: TrainState
+    env_state: Any  # [B] environment states
+    obs: jax.Array  # [B, obs_dim] the next observation
+    reset: jax.Array  # [B] bool: obs starts an episode
+    hidden: jax.Array  # [B, H] policy hidden state before obs
+    episode_return: jax.Array  # [B] unscaled return of the running episodes
+    episode_length: jax.Array  # [B] int32
+    rng: jax.Array
+
+
+class TrainOutput(NamedTuple):
+    """``params``: final network variables. ``metrics``: [num_updates] arrays per name.
+    ``evaluation``: per evaluation, [num_evals] summaries and [num_evals, eval_envs] episodes."""
+
+    params: Any
+    metrics: dict[str, jax.Array]
+    evaluation: dict[str, jax.Array]
+
+
+# ---------------------------------------------------------------------------------------------
+# GAE
+# ---------------------------------------------------------------------------------------------
+def compute_gae(
+    rewards: jax.Array,
+    values: jax.Array,
+    terminated: jax.Array,
+    truncated: jax.Array,
+    bootstrap_values: jax.Array,
+    last_value: jax.Array,
+    gamma: float,
+    gae_lambda: float,
+) -> tuple[jax.Array, jax.Array]:
+    """Generalized advantage estimates and value targets, both ``[T, B]``.
+
+    Args:
+      rewards, values, terminated, truncated, bootstrap_values: ``[T, B]`` (see Transition).
+      last_value: ``[B]``, V of the observation after the last step (the next rollout's first).
+
+    The one-step target of step t bootstraps with ``V(obs[t+1])`` inside an episode, with
+    ``bootstrap_values[t]`` where the episode was truncated at t, and with 0 where it terminated;
+    the advantage recursion ``A_t = delta_t + gamma * lambda * A_{t+1}`` stops at every episode
+    end (terminated or truncated).
+    """
+    chex.assert_equal_shape([rewards, values, terminated, truncated, bootstrap_values])
+    chex.assert_rank(rewards, 2)
+    chex.assert_shape(last_value, rewards.shape[1:])
+    next_values = jnp.concatenate([values[1:], last_value[None]], axis=0)
+    done = jnp.logical_or(terminated, truncated)
+    next_values = jnp.where(done, bootstrap_values, next_values)
+    next_values = jnp.where(terminated, 0.0, next_values)
+    deltas = rewards + gamma * next_values - values
+    continues = 1.0 - done.astype(rewards.dtype)
+
+    def backward(advantage_next, step):
+        delta, cont = step
+        advantage = delta + gamma * gae_lambda * cont * advantage_next
+        return advantage, advantage
+
+    _, advantages = jax.lax.scan(backward, jnp.zeros_like(last_value), (deltas, continues),
+                                 reverse=True)
+    return advantages, advantages + values
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------
+def action_bounds(env: Any, env_params: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The environment's Box action bounds as float32 numpy arrays of the action shape."""
+    space = env.action_space(env_params)
+    shape = tuple(space.shape)
+    low = np.broadcast_to(np.asarray(space.low, np.float32), shape)
+    high = np.broadcast_to(np.asarray(space.high, np.float32), shape)
+    return low, high
+
+
+def to_env_action(action: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
+    """Policy action in [-1, 1] units (clipped) -> the environment's Box."""
+    return low + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+
+
+def _masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
+    """Mean of ``values`` where ``mask``; NaN where nothing is selected."""
+    count = mask.sum()
+    return jnp.where(count > 0, jnp.where(mask, values, 0.0).sum() / jnp.maximum(count, 1),
+                     jnp.nan)
+
+
+class ThrottledProgress:
+    """A tqdm bar on the host fed from ``jax.debug.callback``; redraws at most every
+    ``min_interval_s`` seconds. Under ``vmap`` over seeds it receives each seed's index and
+    shows the furthest one."""
+
+    def __init__(self, total: int, desc: str = "ppo", min_interval_s: float = 1.0,
+                 disable: bool = False):
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=total, desc=desc, disable=disable, mininterval=min_interval_s,
+                        unit="update")
+        self.min_interval_s = min_interval_s
+        self.done = 0
+        self.last_draw = 0.0
+
+    def __call__(self, update_index: Any, mean_return: Any) -> None:
+        done = int(np.max(np.asarray(update_index))) + 1
+        now = time.monotonic()
+        if done > self.done and (now - self.last_draw >= self.min_interval_s
+                                 or done >= self.bar.total):
+            self.bar.update(done - self.done)
+            returns = np.asarray(mean_return, np.float64)
+            if np.isfinite(returns).any():
+                self.bar.set_postfix(ret=f"{np.nanmean(returns):.3g}", refresh=False)
+            self.done = done
+            self.last_draw = now
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# training
+# ---------------------------------------------------------------------------------------------
+def make_train(
+    agent: Any,
+    env: Any,
+    env_params: Any,
+    eval_env_params: Any = None,
+    eval_steps: int | None = None,
+    progress: Callable[[Any, Any], None] | None = None,
+) -> Callable[..., TrainOutput]:
+    """Build ``train(rng, env_params=None, eval_env_params=None) -> TrainOutput``.
+
+    Args:
+      agent: the agent config (``PPOConfig`` or anything :meth:`PPOConfig.from_any` reads).
+      env: a gymnax environment with a ``Box`` action space.
+      env_params: training parameters; ``eval_env_params`` (default: the same) are used for the
+        deterministic evaluations. Both may be passed to ``train`` instead, as arguments, so large
+        parameters (model weights) are not baked into the compiled program as constants.
+      eval_steps: steps per evaluation (one episode per environment); default
+        ``env_params.max_steps_in_episode``.
+      progress: host function ``(update_index, mean_return)`` called every update through
+        ``jax.debug.callback`` (e.g. :class:`ThrottledProgress`).
+    """
+    config = PPOConfig.from_any(agent)
+    config.check()
+    eval_env_params = env_params if eval_env_params is None else eval_env_params
+    if eval_steps is None:
+        eval_steps = int(env_params.max_steps_in_episode)
+    low, high = action_bounds(env, env_params)
+    action_dim = int(np.prod(low.shape))
+    obs_shape = tuple(env.observation_space(env_params).shape)
+    network = make_network(config, action_dim)
+    num_envs, num_steps = config.num_envs, config.num_steps
+    num_minibatches, num_updates = config.num_minibatches, config.num_updates
+    has_distance = _has_distance(env, env_params)
+
+    def learning_rate(count):
+        fraction = 1.0 - (count // (num_minibatches * config.update_epochs)) / num_updates
+        return config.lr * fraction
+
+    def apply_step(params, hidden, obs, reset):
+        """One time step for a batch: [B, H], [B, D], [B] -> hidden, pi, value [B]."""
+        hidden, pi, value = network.apply(params, hidden, obs[None], reset[None])
+        return hidden, pi, value[0]
+
+    def env_step(keys, state, action, params):
+        return jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            keys, state, to_env_action(action, low, high), params)
+
+    def train(rng: jax.Array, env_params=env_params, eval_env_params=eval_env_params
+              ) -> TrainOutput:
+        # ---------------------------------------------------------------- init network, optimizer
+        init_key, reset_key, runner_key = jax.random.split(rng, 3)
+        hidden0 = initial_hidden(network, num_envs)
+        variables = network.init(init_key, hidden0, jnp.zeros((1, num_envs, *obs_shape)),
+                                 jnp.zeros((1, num_envs), bool))
+        lr = learning_rate if config.anneal_lr else config.lr
+        tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
+                         optax.adam(learning_rate=lr, eps=1e-5))
+        train_state = TrainState.create(apply_fn=network.apply, params=variables, tx=tx)
+
+        # ---------------------------------------------------------------- init environments
+        obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(
+            jax.random.split(reset_key, num_envs), env_params)
+        runner = RunnerState(train_state, env_state, obs, jnp.ones(num_envs, bool), hidden0,
+                             jnp.zeros(num_envs), jnp.zeros(num_envs, jnp.int32), runner_key)
+
+        # ---------------------------------------------------------------- one update
+        def update_step(runner: RunnerState, update_index):
+            # ------------------------------------------------------------ collect a rollout
+            def rollout_step(runner: RunnerState, _):
+                rng, action_key, step_key = jax.random.split(runner.rng, 3)
+                params = runner.train_state.params
+                hidden, pi, value = apply_step(params, runner.hidden, runner.obs, runner.reset)
+                action = pi.sample(seed=action_key)[0]
+                log_prob = pi.log_prob(action[None])[0]
+                obs, env_state, reward, terminated, truncated, info = env_step(
+                    jax.random.split(step_key, num_envs), runner.env_state, action, env_params)
+                _, _, bootstrap_value = apply_step(params, hidden, info["final_observation"],
+                                                   jnp.zeros(num_envs, bool))
+                done = jnp.logical_or(terminated, truncated)
+                episode_return = runner.episode_return + reward
+                episode_length = runner.episode_length + 1
+                transition = Transition(
+                    runner.obs, runner.reset, action, log_prob, value,
+                    reward * config.reward_scale, terminated, truncated, bootstrap_value)
+                episode = {
+                    "done": done,
+                    "terminated": terminated,
+                    "return": episode_return,
+                    "length": episode_length,
+                    "distance": info["distance_m"] if has_distance else jnp.zeros(num_envs),
+                }
+                runner = RunnerState(
+                    runner.train_state, env_state, obs, done, hidden,
+                    jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length),
+                    rng)
+                return runner, (transition, episode)
+
+            rollout_hidden = runner.hidden
+            runner, (trajectory, episodes) = jax.lax.scan(rollout_step, runner, None, num_steps)
+
+            # ------------------------------------------------------------ advantages
+            _, _, last_value = apply_step(runner.train_state.params, runner.hidden, runner.obs,
+                                          runner.reset)
+            advantages, targets = compute_gae(
+                trajectory.reward, trajectory.value, trajectory.terminated,
+                trajectory.truncated, trajectory.bootstrap_value, last_value, config.gamma,
+                config.gae_lambda)
+
+            # ------------------------------------------------------------ PPO epochs
+            def loss_fn(params, hidden, batch: Transition, advantage, target):
+                _, pi, value = network.apply(params, hidden, batch.obs, batch.reset)
+                log_prob = pi.log_prob(batch.action)
+                if config.clip_value:
+                    value_clipped = batch.value + jnp.clip(
+                        value - batch.value, -config.clip_eps, config.clip_eps)
+                    value_loss = 0.5 * jnp.maximum(
+                        jnp.square(value - target), jnp.square(value_clipped - target)).mean()
+                else:
+                    value_loss = 0.5 * jnp.square(value - target).mean()
+                log_ratio = log_prob - batch.log_prob
+                ratio = jnp.exp(log_ratio)
+                advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+                actor_loss = -jnp.minimum(
+                    ratio * advantage,
+                    jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * advantage,
+                ).mean()
+                entropy = pi.entropy().mean()
+                total = actor_loss + config.vf_coef * value_loss - config.ent_coef * entropy
+                aux = {
+                    "value_loss": value_loss,
+                    "actor_loss": actor_loss,
+                    "entropy": entropy,
+                    "approx_kl": ((ratio - 1.0) - log_ratio).mean(),
+                    "clip_fraction": (jnp.abs(ratio - 1.0) > config.clip_eps).mean(),
+                }
+                return total, aux
+
+            def minibatch_step(train_state: TrainState, minibatch):
+                hidden, batch, advantage, target = minibatch
+                (total, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+                    train_state.params, hidden, batch, advantage, target)
+                return train_state.apply_gradients(grads=grads), {"total_loss": total, **aux}
+
+            def epoch_step(carry, _):
+                train_state, rng = carry
+                rng, permute_key = jax.random.split(rng)
+                data = (trajectory, advantages, targets)
+                if config.recurrent:
+                    # whole sequences, minibatched over environments
+                    permutation = jax.random.permutation(permute_key, num_envs)
+                    data = jax.tree.map(lambda x: jnp.take(x, permutation, axis=1), data)
+                    data = jax.tree.map(
+                        lambda x: jnp.swapaxes(
+                            x.reshape(num_steps, num_minibatches, -1, *x.shape[2:]), 0, 1),
+                        data)
+                    hidden = jnp.take(rollout_hidden, permutation, axis=0).reshape(
+                        num_minibatches, -1, rollout_hidden.shape[-1])
+                else:
+                    # single steps, shuffled over time and environments
+                    size = num_steps * num_envs
+                    permutation = jax.random.permutation(permute_key, size)
+                    data = jax.tree.map(
+                        lambda x: jnp.take(x.reshape(size, *x.shape[2:]), permutation, axis=0)
+                        .reshape(num_minibatches, -1, *x.shape[2:]), data)
+                    hidden = jnp.zeros((num_minibatches, size // num_minibatches, 1))
+                train_state, losses = jax.lax.scan(
+                    minibatch_step, train_state, (hidden, *data))
+                return (train_state, rng), losses
+
+            rng, epoch_key = jax.random.split(runner.rng)
+            (train_state, _), losses = jax.lax.scan(
+                epoch_step, (runner.train_state, epoch_key), None, config.update_epochs)
+            runner = runner._replace(train_state=train_state, rng=rng)
+
+            # ------------------------------------------------------------ metrics
+            done = episodes["done"]
+            metrics = {k: v.mean() for k, v in losses.items()}
+            metrics.update({
+                "timesteps": (update_index + 1) * num_steps * num_envs,
+                "episodes": done.sum(),
+                "mean_return": _masked_mean(episodes["return"], done),
+                "mean_length": _masked_mean(episodes["length"].astype(jnp.float32), done),
+                "success_rate": _masked_mean(episodes["terminated"].astype(jnp.float32), done),
+                "final_distance_m": (_masked_mean(episodes["distance"], done)
+                                     if has_distance else jnp.nan),
+            })
+            if progress is not None:
+                jax.debug.callback(progress, update_index, metrics["mean_return"])
+            return runner, metrics
+
+        # ---------------------------------------------------------------- evaluation
+        def evaluate(params, key):
+            num_eval = config.eval_envs
+            if num_eval == 0:  # evaluation switched off (saves compile time in tests)
+                empty = jnp.zeros((0,))
+                return {"episode_return": empty, "episode_final_distance_m": empty,
+                        "episode_success": empty.astype(bool),
+                        "episode_finished": empty.astype(bool), "mean_return": jnp.nan,
+                        "median_final_distance_m": jnp.nan, "success_rate": jnp.nan}
+            reset_key, episode_key = jax.random.split(key)
+            obs, state = jax.vmap(env.reset, in_axes=(0, None))(
+                jax.random.split(reset_key, num_eval), eval_env_params)
+
+            def eval_step(carry, step_key):
+                obs, state, hidden, reset, active, episode_return, record = carry
+                hidden, pi, _ = apply_step(params, hidden, obs, reset)
+                action = pi.mode()[0]
+                obs, state, reward, terminated, truncated, info = jax.vmap(
+                    env.step, in_axes=(0, 0, 0, None))(
+                    jax.random.split(step_key, num_eval), state,
+                    to_env_action(action, low, high), eval_env_params)
+                done = jnp.logical_or(terminated, truncated)
+                ending = jnp.logical_and(active, done)
+                distance = info["distance_m"] if has_distance else jnp.full(num_eval, jnp.nan)
+                episode_return = episode_return + jnp.where(active, reward, 0.0)
+                record = {
+                    "final_distance_m": jnp.where(active, distance, record["final_distance_m"]),
+                    "success": jnp.where(ending, terminated, record["success"]),
+                }
+                active = jnp.logical_and(active, ~done)
+                return (obs, state, hidden, done, active, episode_return, record), None
+
+            record = {"final_distance_m": jnp.full(num_eval, jnp.nan),
+                      "success": jnp.zeros(num_eval, bool)}
+            carry = (obs, state, initial_hidden(network, num_eval), jnp.ones(num_eval, bool),
+                     jnp.ones(num_eval, bool), jnp.zeros(num_eval), record)
+            carry, _ = jax.lax.scan(eval_step, carry, jax.random.split(episode_key, eval_steps))
+            *_, active, episode_return, record = carry
+            return {
+                "episode_return": episode_return,
+                "episode_final_distance_m": record["final_distance_m"],
+                "episode_success": record["success"],
+                "episode_finished": ~active,
+                "mean_return": episode_return.mean(),
+                "median_final_distance_m": jnp.median(record["final_distance_m"]),
+                "success_rate": record["success"].mean(),
+            }
+
+        # ---------------------------------------------------------------- chunks of updates
+        def chunk_step(runner: RunnerState, chunk_index):
+            update_indices = chunk_index * config.updates_per_eval + jnp.arange(
+                config.updates_per_eval)
+            runner, metrics = jax.lax.scan(update_step, runner, update_indices)
+            rng, eval_key = jax.random.split(runner.rng)
+            evaluation = evaluate(runner.train_state.params, eval_key)
+            evaluation["timesteps"] = metrics["timesteps"][-1]
+            return runner._replace(rng=rng), (metrics, evaluation)
+
+        runner, (metrics, evaluation) = jax.lax.scan(
+            chunk_step, runner, jnp.arange(config.num_evals))
+        metrics = jax.tree.map(lambda x: x.reshape(num_updates, *x.shape[2:]), metrics)
+        return TrainOutput(runner.train_state.params, metrics, evaluation)
+
+    return train
+
+
+def _has_distance(env: Any, env_params: Any) -> bool:
+    """Whether the environment reports ``info["distance_m"]`` (abstract evaluation only)."""
+
+    def probe(key):
+        _, state = env.reset(key, env_params)
+        low, high = action_bounds(env, env_params)
+        return env.step(key, state, jnp.asarray((low + high) / 2), env_params)[-1]
+
+    info = jax.eval_shape(probe, jax.random.PRNGKey(0))
+    return "distance_m" in info
+
+
+def seed_keys(seed: int, num_seeds: int) -> jax.Array:
+    """``[num_seeds]`` keys: ``fold_in(PRNGKey(seed), i)`` for seed index i."""
+    base = jax.random.PRNGKey(int(seed))
+    return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
+
+
+def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = None,
+                seed: int = 0, progress: bool | None = None, desc: str = "ppo",
+                timings: dict[str, float] | None = None) -> TrainOutput:
+    """Train ``agent.num_seeds`` seeds at once (one jit, vmap over seeds); arrays come back with
+    a leading [num_seeds] axis. ``timings`` (if given) receives ``compile_s`` and ``run_s``."""
+    config = PPOConfig.from_any(agent)
+    show = config.progress if progress is None else progress
+    bar = ThrottledProgress(config.num_updates, desc=desc, disable=not show) if show else None
+    eval_env_params = env_params if eval_env_params is None else eval_env_params
+    train = make_train(config, env, env_params, eval_env_params, progress=bar)
+    try:
+        keys = seed_keys(seed, config.num_seeds)
+        started = time.perf_counter()
+        compiled = jax.jit(jax.vmap(train, in_axes=(0, None, None))).lower(
+            keys, env_params, eval_env_params).compile()
+        compiled_at = time.perf_counter()
+        output = jax.block_until_ready(compiled(keys, env_params, eval_env_params))
+        if timings is not None:
+            timings.update(compile_s=compiled_at - started,
+                           run_s=time.perf_counter() - compiled_at)
+    finally:
+        if bar is not None:
+            bar.close()
+    return output
+
+
+# ---------------------------------------------------------------------------------------------
+# policies: acting and checkpoints
+# ---------------------------------------------------------------------------------------------
+def deterministic_action(network, params, hidden, obs, reset):
+    """Mean action (``[-1, 1]`` units, clipped) for a batch: returns (hidden, action [B, A])."""
+    hidden, pi, _ = network.apply(params, hidden, obs[None], reset[None])
+    return hidden, jnp.clip(pi.mode()[0], -1.0, 1.0)
+
+
+def save_policy(path: str | Path, params: Any, meta: Mapping[str, Any]) -> Path:
+    """Write network variables (any pytree, e.g. stacked over seeds) and ``meta`` (JSON-able:
+    the agent config, observation and action sizes...) to one msgpack file, atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = serialization.msgpack_serialize({
+        "meta": json.dumps(dict(meta), default=str),
+        "params": serialization.to_state_dict(jax.device_get(params)),
+    })
+    temporary = path.with_name(path.name + ".tmp")
+    with open(temporary, "wb") as handle:
+        handle.write(payload)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(temporary, path)
+    return path
+
+
+def load_policy(path: str | Path, seed_index: int | None = None) -> tuple[Any, Any, dict]:
+    """Read :func:`save_policy`'s file: ``(network, params, meta)``.
+
+    With ``seed_index`` the parameters of that seed are taken from a stack over seeds.
+    """
+    state = serialization.msgpack_restore(Path(path).read_bytes())
+    meta = json.loads(state["meta"])
+    params = jax.tree.map(jnp.asarray, state["params"])
+    if seed_index is not None:
+        params = jax.tree.map(lambda x: x[seed_index], params)
+    network = make_network(PPOConfig.from_any(meta["agent"]), int(meta["action_dim"]))
+    return network, params, meta

@@ -32,7 +32,7 @@ from omegaconf import OmegaConf
 
 from pipeline import mpc, rollouts
 from pipeline.artifacts import Artifact, ArtifactStore, artifact_key, produce
-from pipeline.config import PROJECT_ROOT, AgentConfig, RobotKind
+from pipeline.config import PROJECT_ROOT, RobotKind
 from pipeline.envs.learned import EnvParams, SoftArmReachEnv, make_env_params
 from pipeline.envs.plants import learned_plant, sim_plant
 from pipeline.metrics import MM_PER_M, episode_metrics, plant_gap, summarize
@@ -45,15 +45,19 @@ STAGE = "evaluate"
 # --------------------------------------------------------------------------------------------
 # configuration of the policies to evaluate
 # --------------------------------------------------------------------------------------------
-def agent_config(name: str) -> Any:
-    """The ``agent`` config group option ``name`` (conf/agent/<name>.yaml) as a typed node."""
+def agent_config(name: str, base: Any) -> Any:
+    """``base`` (the composed ``agent``) with the settings of option ``name`` laid over it.
+
+    The option file (conf/agent/<name>.yaml) says what makes the policy type (name, recurrent,
+    ...); everything else, e.g. an experiment's seeds and budget, carries over from ``base``.
+    """
     path = PROJECT_ROOT / "conf" / "agent" / f"{name}.yaml"
     if not path.is_file():
         options = sorted(p.stem for p in path.parent.glob("*.yaml"))
         raise ValueError(f"evaluation.policies: no agent config {name!r}; options: {options}")
     node = OmegaConf.load(path)
     node.pop("defaults", None)
-    return OmegaConf.merge(OmegaConf.structured(AgentConfig), node)
+    return OmegaConf.merge(base, node)
 
 
 def policy_configs(cfg: Any) -> dict[str, Any]:
@@ -61,7 +65,7 @@ def policy_configs(cfg: Any) -> dict[str, Any]:
     variants = {}
     for name in cfg.evaluation.policies:
         variant = cfg.copy()
-        variant.agent = agent_config(name)
+        variant.agent = agent_config(name, cfg.agent)
         variants[name] = variant
     return variants
 

@@ -5,6 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+# Before JAX starts: one XLA thread per test worker (pytest -n 2 already fills the cores).
+os.environ.setdefault("XLA_FLAGS",
+                      "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
+
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig

@@ -58,9 +58,10 @@ def policy_controller(network: Any, policy_params: Any) -> Controller:
     from pipeline.ppo import deterministic_action
 
     def act(key, obs, state, carry):
-        hidden, first = carry
-        hidden, action = deterministic_action(network, policy_params, hidden, obs, first)
-        return (hidden, jnp.zeros_like(first)), action
+        hidden, first = carry  # hidden [1, H]; first: True before the first step
+        hidden, action = deterministic_action(network, policy_params, hidden, obs[None],
+                                              first[None])
+        return (hidden, jnp.zeros_like(first)), action[0]
 
     return act
 

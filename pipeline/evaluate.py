@@ -388,6 +388,26 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Path]:
     return figures
 
 
+def _summary_section(cfg, model, summary: pd.DataFrame, policies: list[str]) -> Section:
+    """The headline: model accuracy, and each controller's median final distance."""
+    section = Section("Summary")
+    if model is not None:
+        held_out = model.manifest["summary"]
+        section.add(f"Dynamics model: **{held_out['lstm_mean_mm']:.2f} mm** mean open-loop error "
+                    f"on held-out runs (mean-position baseline {held_out['mean_position_mean_mm']:.2f}"
+                    f" mm, linear lagged-pressure baseline {held_out['linear_lagged_mean_mm']:.2f} "
+                    "mm).")
+    wide = summary.pivot_table(index="controller", columns="plant",
+                               values="median_final_mm").reset_index()
+    wide.columns.name = None
+    order = {name: i for i, name in enumerate(policies + list(cfg.evaluation.baselines))}
+    wide = wide.sort_values("controller", key=lambda c: c.map(order))
+    section.add(Table(wide.rename(columns={"learned": "learned env [mm]", "plant": "plant [mm]"}),
+                      f"median final distance to held-out goals after {cfg.env.max_steps} control "
+                      "periods"))
+    return section
+
+
 def report_sections(cfg, store, policies, results, figures) -> list[Section]:
     from pipeline.align import align_key
     from pipeline.collect import collect_key
@@ -397,7 +417,8 @@ def report_sections(cfg, store, policies, results, figures) -> list[Section]:
     aligned = store.find("align", align_key(cfg))
     model = store.find("fit_model", fit_model_key(cfg))
     tables = results["tables"]
-    sections = []
+    summary = tables["summary"]
+    sections = [_summary_section(cfg, model, summary, list(policies))]
 
     config = Section("Configuration")
     config.add(f"Robot `{cfg.robot.name}`; exploration alpha {cfg.exploration.alpha}, beta "
@@ -410,10 +431,10 @@ def report_sections(cfg, store, policies, results, figures) -> list[Section]:
 
     data = Section("Data")
     if collect is not None:
-        summary = collect.manifest["summary"]
-        data.add(f"{summary.get('runs')} runs, {summary.get('commands')} commands, "
-                 f"{summary.get('frames')} motion-capture frames ({summary.get('dropped_frames')}"
-                 f" dropped). Artifact `{collect.path}`.")
+        collected = collect.manifest["summary"]
+        data.add(f"{collected.get('runs')} runs, {collected.get('commands')} commands, "
+                 f"{collected.get('frames')} motion-capture frames "
+                 f"({collected.get('dropped_frames')} dropped). Artifact `{collect.path}`.")
         for name, caption in (("exploration_alphas.png", "exploration walk for several alpha"),
                               ("runs.png", "recorded commands and positions")):
             if collect.file(f"figures/{name}").is_file():
@@ -427,16 +448,16 @@ def report_sections(cfg, store, policies, results, figures) -> list[Section]:
     if model is not None:
         metrics = pd.read_parquet(model.file("metrics.parquet"))
         accuracy.add("Open-loop error over each entire run (mean and 95th percentile, mm).")
-        accuracy.add(Table(metrics.pivot_table(index=["split", "run_id"], columns="model",
-                                               values="mean_mm").reset_index(),
-                           "mean error [mm] per run"))
+        per_run = metrics.pivot_table(index=["split", "run_id"], columns="model",
+                                      values="mean_mm").reset_index()
+        per_run.columns.name = None
+        accuracy.add(Table(per_run, "mean error [mm] per run"))
         for name, caption in (("loss.png", "loss curves (EMA-smoothed)"),
                               ("reconstruction.png", "reconstruction of a training and an "
                                                      "unseen run")):
             accuracy.add(Figure(model.file(f"figures/{name}"), caption))
     sections.append(accuracy)
 
-    summary = tables["summary"]
     is_policy = summary["controller"].isin(list(policies))
     sections.append(Section("Policy results", [
         f"Final distance to held-out goals after {cfg.env.max_steps} control periods (the "

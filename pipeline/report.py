@@ -27,6 +27,8 @@ figure img { max-width: 100%; border: 1px solid #d0d7de; }
 figcaption { font-size: 0.9em; color: #57606a; }
 pre { background: #f6f8fa; padding: .8em; overflow-x: auto; font-size: 0.85em; }
 .note { color: #57606a; font-size: 0.9em; }
+.scroll { overflow-x: auto; }
+summary { cursor: pointer; color: #0969da; }
 """
 
 
@@ -105,14 +107,16 @@ def render_html(title: str, sections: list[Section], base: Path) -> str:
                                                                          border=0, escape=True)
                 caption = f"<p class='note'>{html.escape(block.caption)}</p>" if block.caption \
                     else ""
-                body.append(caption + table)
+                body.append(f"{caption}<div class='scroll'>{table}</div>")
             elif isinstance(block, Figure):
                 body.append(f"<figure><img src='{html.escape(_relative(block.path, base))}' "
                             f"alt='{html.escape(block.caption)}'><figcaption>"
                             f"{html.escape(block.caption)}</figcaption></figure>")
             elif block.startswith("```"):
+                # long listings (the full configuration) stay folded until asked for
                 code = block.strip("`").split("\n", 1)[-1]
-                body.append(f"<pre>{html.escape(code)}</pre>")
+                body.append(f"<details><summary>show</summary><pre>{html.escape(code)}</pre>"
+                            "</details>")
             else:
                 body.append(f"<p>{_inline(block)}</p>")
     return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}"

@@ -59,7 +59,8 @@ def test_a_tiny_run_ends_with_a_report_with_every_section(make_cfg):
     results = run(cfg)  # the whole chain: evaluate trains the second policy type itself
     artifact = results["evaluate"]
     markdown = artifact.file("report.md").read_text()
-    for section in ("Configuration", "Data", "Model accuracy", "Policy results", "Baselines",
+    for section in ("Summary", "Configuration", "Data", "Model accuracy", "Policy results",
+                    "Baselines",
                     "Plant gap", "Consecutive goals"):
         assert f"## {section}" in markdown, section
     page = artifact.file("report.html").read_text()

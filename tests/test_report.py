@@ -24,4 +24,4 @@ def test_report_has_every_section_table_and_figure(tmp_path):
     markup = page.read_text()
     assert "<code>sim</code>" in markup and "<b>4</b>" in markup
     assert "src='../artifacts/fig.png'" in markup and "<pre>" in markup
-    assert markup.count("<h2") == 2
+    assert markup.count("<h2") == 2 and "<details>" in markup

@@ -128,7 +128,7 @@ def test_twin_collect_align_end_to_end(tmp_path, ros_domain):
     assert np.isclose(planned, LIMITS["p_max"], atol=1e-6).any()  # the limit was reached
     # on schedule, give or take the scheduling delays of a busy machine (0.4 s arm = 100 ms wall)
     lateness = commands["t"] - np.arange(len(planned)) * 0.5
-    assert lateness.abs().max() < 0.4 and lateness.abs().median() < 0.05
+    assert lateness.abs().max() < 1.0 and lateness.abs().median() < 0.05
 
     # the poses: header stamps at 100 Hz of the arm's time, the twin's few dropped frames aside
     duration = len(planned) * 0.5

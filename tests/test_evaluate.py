@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
+import pytest
 
 from pipeline import rollouts
 from pipeline.__main__ import run
@@ -54,6 +55,7 @@ TINY = ["experiment=quick", "robot.num_runs=2", "exploration.num_steps=40",
         "model.checkpoint_every=10", "dataset.window=32", "dataset.train_fraction=0.5"]
 
 
+@pytest.mark.slow  # ~3 min: two PPO trainings in fresh processes, and the whole chain
 def test_a_tiny_run_ends_with_a_report_with_every_section(make_cfg):
     cfg = make_cfg(*TINY)
     results = run(cfg)  # the whole chain: evaluate trains the second policy type itself

@@ -78,7 +78,11 @@ def fold_id(run_id: str) -> str:
 def run_variant(variant: str, folds: list[str] | None, seed: int | None = None) -> None:
     from pipeline.fit_model import runs_at_model_rate
     from pipeline.train_model import (
-        baseline_linear_lagged, evaluate_open_loop, fit, position_errors_mm, predict_run,
+        baseline_linear_lagged,
+        evaluate_open_loop,
+        fit,
+        position_errors_mm,
+        predict_run,
     )
 
     grid, hz, window, overrides = VARIANTS[variant]
@@ -105,7 +109,7 @@ def run_variant(variant: str, folds: list[str] | None, seed: int | None = None) 
                              for j in range(3)], axis=1)
         lstm_clock10 = position_errors_mm(on_clock, clock["pos"])
         linear = baseline_linear_lagged(train, held)  # 30 lags (library default)
-        linear_2s = baseline_linear_lagged(train, held, num_lags=int(round(2.0 * hz)))
+        linear_2s = baseline_linear_lagged(train, held, num_lags=round(2.0 * hz))
         row = {
             "variant": variant, "grid": grid, "model_hz": hz, "window": window,
             "fold": fold, "held_out": held["run_id"], "held_out_steps": len(held["t"]),
@@ -114,7 +118,7 @@ def run_variant(variant: str, folds: list[str] | None, seed: int | None = None) 
             "mean_mm": lstm["mean_mm"], "p95_mm": lstm["p95_mm"],
             "clock10_mean_mm": lstm_clock10["mean_mm"], "clock10_p95_mm": lstm_clock10["p95_mm"],
             "linear30_mean_mm": linear["mean_mm"], "linear30_p95_mm": linear["p95_mm"],
-            "linear2s_lags": int(round(2.0 * hz)),
+            "linear2s_lags": round(2.0 * hz),
             "linear2s_mean_mm": linear_2s["mean_mm"], "linear2s_p95_mm": linear_2s["p95_mm"],
             "final_train_loss": float(losses["train_loss"].iloc[-1]),
             "fit_wall_s": wall_fit, "fit_cpu_s": cpu_fit,

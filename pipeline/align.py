@@ -22,6 +22,7 @@ The per-run counts are written as ``align_report.parquet`` and logged.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from typing import Any
 
@@ -182,7 +183,7 @@ def resample_command_locked(aligned: pd.DataFrame, hz: float) -> pd.DataFrame:
         matched = run["matched"].to_numpy(bool)
         bounds = np.r_[t[matched], t[-1]]
         pieces = []
-        for start, end in zip(bounds[:-1], bounds[1:]):
+        for start, end in itertools.pairwise(bounds):
             steps = max(1, round((end - start) * hz))
             pieces.append(start + (end - start) * np.arange(steps) / steps)
         grid = np.concatenate(pieces) if pieces else t[:1]

@@ -151,18 +151,29 @@ def _match_and_fill(run_id: str, t: np.ndarray, xyz: np.ndarray, commands: pd.Da
     return rows, counts
 
 
+def _rows_on_grid(run_id: str, run: pd.DataFrame, grid: np.ndarray
+                  ) -> tuple[pd.DataFrame, np.ndarray]:
+    """A run's rows at ``grid`` times: pressures held, positions linearly interpolated.
+
+    Returns the rows (without ``matched``) and, per grid point, the index of the row held there.
+    """
+    t = run["t"].to_numpy(np.float64)
+    held = np.searchsorted(t, grid + 1e-12, side="right") - 1
+    rows = pd.DataFrame({"run_id": run_id, "t": grid})
+    for column in P_COLUMNS:
+        rows[column] = run[column].to_numpy()[held]
+    for column in XYZ:
+        rows[column] = np.interp(grid, t, run[column].to_numpy())
+    return rows, held
+
+
 def resample(aligned: pd.DataFrame, hz: float) -> pd.DataFrame:
     """Resample aligned runs onto a regular ``hz`` grid (positions linear, pressures held)."""
     out = []
     for run_id, run in aligned.groupby("run_id", sort=False):
         t = run["t"].to_numpy(np.float64)
         grid = t[0] + np.arange(int(np.floor((t[-1] - t[0]) * hz + 1e-9)) + 1) / hz
-        held = np.searchsorted(t, grid + 1e-12, side="right") - 1
-        rows = pd.DataFrame({"run_id": run_id, "t": grid})
-        for column in P_COLUMNS:
-            rows[column] = run[column].to_numpy()[held]
-        for column in XYZ:
-            rows[column] = np.interp(grid, t, run[column].to_numpy())
+        rows, held = _rows_on_grid(run_id, run, grid)
         matched_count = np.cumsum(run["matched"].to_numpy())[held]
         rows["matched"] = np.diff(np.r_[0, matched_count]) > 0
         out.append(rows)
@@ -187,12 +198,7 @@ def resample_command_locked(aligned: pd.DataFrame, hz: float) -> pd.DataFrame:
             steps = max(1, round((end - start) * hz))
             pieces.append(start + (end - start) * np.arange(steps) / steps)
         grid = np.concatenate(pieces) if pieces else t[:1]
-        held = np.searchsorted(t, grid + 1e-12, side="right") - 1
-        rows = pd.DataFrame({"run_id": run_id, "t": grid})
-        for column in P_COLUMNS:
-            rows[column] = run[column].to_numpy()[held]
-        for column in XYZ:
-            rows[column] = np.interp(grid, t, run[column].to_numpy())
+        rows, _ = _rows_on_grid(run_id, run, grid)
         rows["matched"] = np.isin(grid, t[matched])
         out.append(rows)
     return pd.concat(out, ignore_index=True)

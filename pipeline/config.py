@@ -10,6 +10,8 @@ Units: pressures in kPa, positions in metres, times in seconds, rates in Hz.
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -373,6 +375,25 @@ class Config:
     evaluation: EvaluationConfig = MISSING
     logger: LoggerConfig = MISSING
     paths: PathsConfig = MISSING
+
+
+def dataclass_values(cls: type, config: Any, what: str,
+                     overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Field values for dataclass ``cls`` read from a dataclass, a mapping or an OmegaConf node
+    (plus ``overrides``); unknown keys fail, naming ``what`` ("agent", "model")."""
+    if dataclasses.is_dataclass(config):
+        values = dataclasses.asdict(config)
+    elif isinstance(config, Mapping) or hasattr(config, "items"):
+        values = dict(config.items())
+    else:
+        raise TypeError(f"cannot read a{'n' if what[0] in 'aeiou' else ''} {what} config from "
+                        f"{type(config).__name__}")
+    values.update(overrides or {})
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(f"unknown {what} config keys {unknown}; known: {sorted(known)}")
+    return values
 
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the checkout: conf/ lies here

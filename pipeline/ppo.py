@@ -27,7 +27,6 @@ the environment's ``Box`` bounds (identity for the soft-arm environment, whose o
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
@@ -44,6 +43,7 @@ import optax
 from flax import serialization
 from flax.training.train_state import TrainState
 
+from pipeline.config import dataclass_values
 from pipeline.networks import initial_hidden, make_network
 
 
@@ -84,19 +84,7 @@ class PPOConfig:
     @classmethod
     def from_any(cls, config: Any, **overrides: Any) -> PPOConfig:
         """From a mapping, a dataclass or an OmegaConf node; unknown keys fail."""
-        if isinstance(config, cls):
-            values = dataclasses.asdict(config)
-        elif dataclasses.is_dataclass(config):
-            values = dataclasses.asdict(config)
-        elif isinstance(config, Mapping) or hasattr(config, "items"):
-            values = dict(config.items())
-        else:
-            raise TypeError(f"cannot read an agent config from {type(config).__name__}")
-        values.update(overrides)
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown agent config keys {unknown}; known: {sorted(known)}")
+        values = dataclass_values(cls, config, "agent", overrides)
         return cls(**values)
 
     @property

@@ -24,7 +24,7 @@ import functools
 import json
 import math
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -38,6 +38,7 @@ from flax import serialization
 from tqdm.auto import tqdm
 
 from pipeline import dynamics
+from pipeline.config import dataclass_values
 from pipeline.dynamics import DynamicsConfig, DynamicsParams, Normalizer
 from pipeline.windows import gather_windows, make_windows, sample_batch
 
@@ -94,16 +95,7 @@ class ModelTrainConfig:
         """From this class, another dataclass, a mapping or an OmegaConf node; unknown keys fail."""
         if isinstance(config, cls):
             return config
-        if dataclasses.is_dataclass(config):
-            values = dataclasses.asdict(config)
-        elif isinstance(config, Mapping) or hasattr(config, "items"):
-            values = dict(config.items())
-        else:
-            raise TypeError(f"cannot read a model config from {type(config).__name__}")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown model config keys {unknown}; known: {sorted(known)}")
+        values = dataclass_values(cls, config, "model")
         if "head" in values:
             values["head"] = tuple(values["head"])
         return cls(**values)

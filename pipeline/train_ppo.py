@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
-import subprocess
-import sys
-import tempfile
+import multiprocessing
 from pathlib import Path
 from typing import Any
 
@@ -301,24 +299,24 @@ def train_ppo(cfg: Any, isolate: bool = True) -> Artifact:
     return produce(store, STAGE, spec, inputs, build, force=cfg.force)
 
 
-def _train_in_child(config_path: str) -> None:
-    """Entry of the worker process: train from the resolved config saved at ``config_path``."""
+def _train_in_child(cfg: Any) -> None:
     logging.basicConfig(level=logging.INFO,
                         format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
-    train_ppo(OmegaConf.load(config_path), isolate=False)
+    train_ppo(cfg, isolate=False)
 
 
 def _run_in_fresh_process(cfg: Any) -> None:
-    # A plain subprocess, not multiprocessing: inside a joblib (loky) sweep job the spawn
-    # start method cannot be re-created in the child.
     resolved = cfg.copy()
     OmegaConf.resolve(resolved)  # the child has none of this process's resolvers
-    with tempfile.TemporaryDirectory() as folder:
-        config_path = Path(folder) / "config.yaml"
-        OmegaConf.save(resolved, config_path)
-        code = ("import sys; from pipeline.train_ppo import _train_in_child; "
-                "_train_in_child(sys.argv[1])")
-        result = subprocess.run([sys.executable, "-c", code, str(config_path)], check=False)
-    if result.returncode != 0:
+    child = multiprocessing.get_context("spawn").Process(target=_train_in_child, args=(resolved,),
+                                                         name=f"{STAGE}-{cfg.agent.name}")
+    child.start()
+    try:
+        child.join()
+    finally:
+        if child.is_alive():  # interrupted while waiting (Ctrl-C): stop the training too
+            child.terminate()
+            child.join()
+    if child.exitcode != 0:
         raise RuntimeError(f"{STAGE} ({cfg.agent.name}) failed in its worker process "
-                           f"(exit code {result.returncode}); its log is above")
+                           f"(exit code {child.exitcode}); its log is above")

@@ -1,7 +1,9 @@
 """Entry point: ``python -m pipeline stage=<name> [overrides]``; only composes and routes.
 
 ``stage=all`` (the default) runs the chain collect -> align -> fit_model -> train_ppo -> evaluate,
-each stage reusing the artifacts of identical upstream settings.
+each stage reusing the artifacts of identical upstream settings. A single stage first produces
+what it needs upstream the same way (reused when present), except data from a real arm: with
+``robot=ros2`` the arm is driven only by an explicit ``stage=collect``.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.config import Stage, register_configs
+from pipeline.config import RobotKind, Stage, register_configs
 
 log = logging.getLogger("pipeline")
 
@@ -30,7 +32,7 @@ STAGES: dict[Stage, str] = {
 }
 # what `stage=all` runs, in order (the digital twin is a server, started on its own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
-# in the chain, evaluate trains the other policy types it compares (stage=evaluate alone asks)
+# evaluate trains the other policy types it compares when they are missing
 CHAIN_OPTIONS: dict[Stage, dict[str, Any]] = {Stage.evaluate: {"train_missing": True}}
 
 
@@ -46,12 +48,30 @@ def stage_function(stage: Stage) -> Callable[[Any], Any] | None:
     return getattr(module, function_name)
 
 
-def run(cfg: Any) -> dict[str, Any]:
-    """Run ``cfg.stage`` (or the whole chain); return each stage's result by name."""
+def stages_to_run(cfg: Any) -> list[Stage]:
+    """``cfg.stage`` preceded by the upstream stages it needs (the whole chain for ``all``); a
+    real arm's collection is never started by another stage."""
     stage = Stage(cfg.stage)
-    chain = list(CHAIN) if stage is Stage.all else [stage]
+    if stage not in CHAIN and stage is not Stage.all:
+        return [stage]
+    chain = list(CHAIN) if stage is Stage.all else list(CHAIN[: CHAIN.index(stage) + 1])
+    env = getattr(cfg.env.name, "value", cfg.env.name)
+    if stage is not Stage.all and (env == "gymnax" or (env != "learned" and stage is Stage.train_ppo)):
+        chain = [s for s in chain if s not in (Stage.collect, Stage.align, Stage.fit_model)]
+    if stage not in (Stage.collect, Stage.all) and RobotKind(cfg.robot.kind) is RobotKind.ros2:
+        chain.remove(Stage.collect)
+    return chain
+
+
+def run(cfg: Any) -> dict[str, Any]:
+    """Run ``cfg.stage`` after its upstream stages (or the whole chain); return each stage's
+    result by name. ``force=true`` recomputes the requested stage only (every stage for ``all``)."""
+    stage = Stage(cfg.stage)
+    upstream_cfg = cfg.copy()
+    if stage is not Stage.all:
+        upstream_cfg.force = False
     results = {}
-    for name in chain:
+    for name in stages_to_run(cfg):
         function = stage_function(name)
         if function is None:
             if stage is Stage.all:
@@ -60,8 +80,9 @@ def run(cfg: Any) -> dict[str, Any]:
                 break
             raise NotImplementedError(f"stage={name.value} is not implemented in this version")
         started = time.perf_counter()
-        options = CHAIN_OPTIONS.get(name, {}) if stage is Stage.all else {}
-        results[name.value] = function(cfg, **options)
+        options = CHAIN_OPTIONS.get(name, {})
+        results[name.value] = function(cfg if name is stage or stage is Stage.all
+                                       else upstream_cfg, **options)
         log.info("stage %s done in %.1f s", name.value, time.perf_counter() - started)
     return results
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 from pathlib import Path
 from typing import Any
 
@@ -230,24 +229,10 @@ def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, ti
 # --------------------------------------------------------------------------------------------
 # the stage
 # --------------------------------------------------------------------------------------------
-def train_ppo(cfg: Any, isolate: bool = True) -> Artifact:
-    """Train ``agent.num_seeds`` PPO policies in this config's environment (see module doc).
-
-    With ``isolate`` (the default) the training runs in a fresh process and this one picks up
-    its artifact: jaxlib 0.10's CPU runtime was seen to hang (every thread asleep) when a PPO
-    training program ran in a process that had already run another large program (a second PPO
-    training, or the dynamics fit), never in a fresh one.
-    """
+def train_ppo(cfg: Any) -> Artifact:
+    """Train ``agent.num_seeds`` PPO policies in this config's environment (see module doc)."""
     store = ArtifactStore(cfg.paths.artifact_dir)
     spec, inputs = train_ppo_spec(cfg)
-    if isolate:
-        existing = store.find(STAGE, artifact_key(spec, inputs))
-        if existing is not None and not cfg.force:
-            log.info("%s: reusing artifact %s (same config; force=true recomputes)", STAGE,
-                     existing.path)
-            return existing
-        _run_in_fresh_process(cfg)
-        return store.require(STAGE, artifact_key(spec, inputs))
     agent = PPOConfig.from_any(cfg.agent)
 
     def build(writer):
@@ -298,25 +283,3 @@ def train_ppo(cfg: Any, isolate: bool = True) -> Artifact:
 
     return produce(store, STAGE, spec, inputs, build, force=cfg.force)
 
-
-def _train_in_child(cfg: Any) -> None:
-    logging.basicConfig(level=logging.INFO,
-                        format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
-    train_ppo(cfg, isolate=False)
-
-
-def _run_in_fresh_process(cfg: Any) -> None:
-    resolved = cfg.copy()
-    OmegaConf.resolve(resolved)  # the child has none of this process's resolvers
-    child = multiprocessing.get_context("spawn").Process(target=_train_in_child, args=(resolved,),
-                                                         name=f"{STAGE}-{cfg.agent.name}")
-    child.start()
-    try:
-        child.join()
-    finally:
-        if child.is_alive():  # interrupted while waiting (Ctrl-C): stop the training too
-            child.terminate()
-            child.join()
-    if child.exitcode != 0:
-        raise RuntimeError(f"{STAGE} ({cfg.agent.name}) failed in its worker process "
-                           f"(exit code {child.exitcode}); its log is above")

@@ -11,11 +11,11 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.__main__ import run
+from pipeline.__main__ import run, stages_to_run
 from pipeline.align import align_key
 from pipeline.artifacts import ArtifactStore
 from pipeline.collect import collect_key
-from pipeline.config import PROJECT_ROOT
+from pipeline.config import PROJECT_ROOT, Stage
 from pipeline.schemas import ALIGNED, COMMANDS, MOCAP, RUNS, DataError, read_table, write_table
 
 
@@ -72,8 +72,27 @@ def test_run_in_process_finds_inputs_from_the_config_alone(make_cfg):
     assert results["align"].manifest["inputs"] == {"collect": collect_key(cfg)}
 
 
-def test_align_before_collect_says_which_stage_to_run(make_cfg):
-    cfg = make_cfg("experiment=quick", "stage=align")
+def test_a_stage_produces_what_it_needs_upstream_and_reuses_it(make_cfg):
+    cfg = make_cfg("experiment=quick", "robot.num_runs=2", "exploration.num_steps=10",
+                   "stage=align", "force=true")
+    results = run(cfg)
+    assert list(results) == ["collect", "align"]
+    assert results["align"].manifest["inputs"] == {"collect": collect_key(cfg)}
+    again = run(cfg)  # force=true recomputes the requested stage only
+    assert again["collect"].path == results["collect"].path
+
+
+def test_stages_to_run_never_drives_a_real_arm_implicitly(make_cfg):
+    assert stages_to_run(make_cfg("stage=fit_model")) == [Stage.collect, Stage.align,
+                                                          Stage.fit_model]
+    assert stages_to_run(make_cfg("stage=align", "robot=ros2")) == [Stage.align]
+    assert stages_to_run(make_cfg("stage=collect", "robot=ros2")) == [Stage.collect]
+    assert stages_to_run(make_cfg("stage=train_ppo", "env=gymnax")) == [Stage.train_ppo]
+    assert stages_to_run(make_cfg("stage=twin")) == [Stage.twin]
+
+
+def test_align_on_a_real_arm_before_collect_says_which_stage_to_run(make_cfg):
+    cfg = make_cfg("stage=align", "robot=ros2")
     with pytest.raises(FileNotFoundError, match="stage=collect"):
         run(cfg)
 

@@ -213,9 +213,16 @@ def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, ti
     ax.legend()
     if has_distance:
         ax = axes[0, 1]
+        many = evaluation["seed"].nunique() > 6  # then one thin grey line per seed, no legend
         for seed, rows in evaluation.groupby("seed"):
-            ax.semilogy(rows["timesteps"], 1000 * rows["median_final_distance_m"], "o-",
-                        alpha=0.7, label=f"seed {seed}")
+            ax.semilogy(rows["timesteps"], 1000 * rows["median_final_distance_m"],
+                        "-" if many else "o-", color="0.6" if many else None,
+                        lw=0.8 if many else 1.5, alpha=0.7,
+                        label=None if many else f"seed {seed}")
+        if many:
+            across = evaluation.groupby("timesteps")["median_final_distance_m"].median()
+            ax.semilogy(across.index, 1000 * across.to_numpy(), "o-", color="C3",
+                        label=f"median over {evaluation['seed'].nunique()} seeds")
         ax.axhline(1.0, color="k", ls="--", lw=1, label="1 mm")
         ax.set(xlabel="environment steps per seed", ylabel="median final distance [mm]",
                title="held-out goals (deterministic policy)")

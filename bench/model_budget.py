@@ -26,6 +26,7 @@ from pipeline.importers import read_sorolex_csv
 from pipeline.train_model import evaluate_open_loop, fit
 
 LIMITS = argparse.Namespace(p_min=-3.0, p_max=7.0, sum_max=13.0, preload=2.0)
+CHUNK = 10  # training steps between checks of the clock
 DEFAULT_TEST = ["Step_control_17_10_11_29", "Step_control_17_10_12_38"]
 
 
@@ -33,7 +34,7 @@ def configurations() -> dict[str, tuple[dict, float, int]]:
     """name -> (model settings, model rate in Hz, window in model steps)."""
     default = {k: v for k, v in vars(ModelConfig()).items()}
     paper = {**default, "hidden": 1024, "layers": 1, "head": [], "batch_size": 64,
-             "learning_rate": 1e-3, "lr_schedule": "constant", "warmup_steps": 0,
+             "learning_rate": 1e-3, "lr_schedule": "constant", "warmup_steps": 0, "num_steps": 200_000,
              "condition_on_initial_pose": False, "predict_displacement": False,
              "max_grad_norm": 0.0}
     return {"default": (default, 10.0, 128), "paper": (paper, 100.0, 512)}
@@ -53,28 +54,18 @@ def run_one(name, settings, model_hz, window, aligned, test_ids, budget_s):
     runs = runs_at_model_rate(aligned, model_hz)
     train = [r for r in runs if r["run_id"] not in test_ids]
     test = [r for r in runs if r["run_id"] in test_ids]
-    def timed_fit(num_steps):
-        started = time.perf_counter()
-        fit(train, dict(settings, num_steps=num_steps, eval_every=num_steps,
-                        checkpoint_every=num_steps), window=window, progress=False)
-        return time.perf_counter() - started
-
-    # Each fit compiles once; the difference of two fits is the pure training time.
-    short = timed_fit(2)
-    extra = 2 if short > 60 else 10
-    per_step = max((timed_fit(2 + extra) - short) / extra, 1e-6)
-    compile_s = max(short - 2 * per_step, 0.0)
-    steps = max(1, int((budget_s - compile_s) / per_step))
-    settings = dict(settings, num_steps=steps, eval_every=steps, checkpoint_every=steps,
-                    warmup_steps=min(int(settings.get("warmup_steps", 0)), steps // 10))
+    # Each recipe trains until its own step count or the budget (compilation included) is spent,
+    # checking the clock every CHUNK steps.
+    settings = dict(settings, eval_every=CHUNK, checkpoint_every=CHUNK)
     started = time.perf_counter()
-    params, _, _ = fit(train, settings, window=window, progress=False)
+    params, _, losses = fit(train, settings, window=window, progress=False,
+                            time_budget_s=budget_s)
     wall = time.perf_counter() - started
+    steps = len(losses)
     errors = [evaluate_open_loop(params, run) for run in test]
     return {
         "config": name, "units": settings["hidden"], "model_hz": model_hz, "window": window,
-        "batch": settings["batch_size"], "steps_per_s": 1.0 / per_step, "compile_s": compile_s,
-        "steps": steps,
+        "batch": settings["batch_size"], "steps_per_s": steps / wall, "steps": steps,
         "train_wall_s": wall, "held_out_mean_mm": float(np.mean([e["mean_mm"] for e in errors])),
         "held_out_p95_mm": float(np.mean([e["p95_mm"] for e in errors])),
     }

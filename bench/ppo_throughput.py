@@ -70,11 +70,11 @@ def measure(name: str, updates: int, seeds: int) -> dict:
             "steps_per_s": steps / run_s, "model_steps_per_s": steps * env.steps_per_action / run_s}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--updates", type=int, default=20, help="PPO updates per setting")
     parser.add_argument("--seeds", type=int, default=1, help="seeds trained at once (vmap)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     rows = [measure(name, args.updates, args.seeds) for name in SETTINGS]
     paper = next(r for r in rows if r["name"] == "paper")
     print(f"PPO training throughput, {args.updates} updates x 32 steps, {args.seeds} seed(s), "

@@ -24,6 +24,7 @@ import functools
 import json
 import math
 import os
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -445,6 +446,7 @@ def fit(
     resume: bool = True,
     progress: bool = True,
     stop_after_steps: int | None = None,
+    time_budget_s: float | None = None,
 ) -> tuple[DynamicsParams, Normalizer, pd.DataFrame]:
     """Trains the dynamics on ``train_runs``; returns (params, normalizer, loss_table).
 
@@ -459,6 +461,8 @@ def fit(
             must come from the same setup, else ``ValueError``).
         stop_after_steps: stop (after checkpointing) once this many steps are done, as if
             interrupted; for time-sliced jobs and the resume test.
+        time_budget_s: also stop after the chunk during which this many seconds (compilation
+            included) have passed since the call; for equal wall-clock budgets (bench).
 
     Returns:
         params: the trained model (``params.normalizer`` is the returned normalizer).
@@ -466,6 +470,7 @@ def fit(
         loss_table: one row per step (``step``, ``train_loss``) with ``val_loss``,
             ``val_mean_mm``, ``val_p95_mm`` filled on evaluation steps.
     """
+    started = time.perf_counter()
     config = ModelTrainConfig.from_any(model_cfg)
     windows = make_windows([len(run["p"]) for run in train_runs], window, stride)
     if len(windows.starts) == 0:
@@ -534,8 +539,12 @@ def fit(
         bar.set_postfix(postfix)
         bar.update(num)
         at_checkpoint = step % config.checkpoint_every == 0 or step == last_step
-        if checkpoint_dir is not None and at_checkpoint:
+        out_of_time = (time_budget_s is not None
+                       and time.perf_counter() - started >= time_budget_s)
+        if checkpoint_dir is not None and (at_checkpoint or out_of_time):
             _save_checkpoint(checkpoint_dir, template, state, history, spec)
+        if out_of_time:
+            break
     bar.close()
     params = template.replace(network=state.network)
     return params, normalizer, _loss_table(history)

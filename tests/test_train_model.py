@@ -70,6 +70,15 @@ def test_resume_equals_uninterrupted(tmp_path):
                         checkpoint_dir=checkpoints, progress=False)
 
 
+def test_time_budget_stops_after_the_chunk_that_spends_it(tmp_path):
+    runs = first_order_runs(2, 40)
+    checkpoints = tmp_path / "ckpt"
+    _, _, table = train_model.fit(runs, TINY, window=12, progress=False, time_budget_s=0.0,
+                                  checkpoint_dir=checkpoints)
+    assert len(table) == 20  # one chunk of gcd(eval_every, checkpoint_every) steps, then stop
+    assert train_model.latest_checkpoint(checkpoints).name == "step_00000020.msgpack"
+
+
 def test_checkpoint_round_trip(tmp_path):
     runs = first_order_runs(2, 30)
     params, _, _ = train_model.fit(runs, dict(TINY, num_steps=5), window=10, progress=False,

@@ -2,8 +2,8 @@
 
     python bench/ppo_throughput.py [--updates 20] [--seeds 1]
 
-- ``default``: this project's defaults — LSTM of 128 units (``model.hidden``) at 10 Hz stepped
-  5 times per 2 Hz action (zero-order hold), ``agent.num_envs`` = 64 environments.
+- ``default``: this project's defaults — LSTM of ``model.hidden`` units at ``dataset.model_hz``
+  stepped model_hz / 2 times per 2 Hz action (zero-order hold), ``agent.num_envs`` environments.
 - ``paper``: the paper's environment — a 1024-unit LSTM stepped once per action, 32 environments.
 
 Same PPO (feed-forward, ``agent.num_steps`` = 32, 4 epochs x 4 minibatches), same run, random
@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from omegaconf import OmegaConf
 
 from pipeline import dynamics
+from pipeline.config import AgentConfig, DatasetConfig, ModelConfig
 from pipeline.envs import SoftArmReachEnv, learned_plant, make_env_params
 from pipeline.ppo import PPOConfig, make_train, seed_keys
 from pipeline.safety import SafeSet
@@ -31,7 +32,7 @@ REST_POSE = jnp.array([0.032, 0.353, 0.202])
 CONTROL_HZ = 2.0
 SETTINGS = {
     # name: (LSTM units, model Hz, environments)
-    "default": (128, 10.0, 64),
+    "default": (ModelConfig().hidden, DatasetConfig().model_hz, AgentConfig().num_envs),
     "paper": (1024, 2.0, 32),
 }
 

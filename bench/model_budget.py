@@ -34,7 +34,8 @@ def configurations() -> dict[str, tuple[dict, float, int]]:
     """name -> (model settings, model rate in Hz, window in model steps)."""
     default = {k: v for k, v in vars(ModelConfig()).items()}
     paper = {**default, "hidden": 1024, "layers": 1, "head": [], "batch_size": 64,
-             "learning_rate": 1e-3, "lr_schedule": "constant", "warmup_steps": 0, "num_steps": 200_000,
+             "learning_rate": 1e-3, "lr_schedule": "constant", "warmup_steps": 0,
+             "num_steps": 200_000,
              "condition_on_initial_pose": False, "predict_displacement": False,
              "max_grad_norm": 0.0}
     return {"default": (default, 10.0, 128), "paper": (paper, 100.0, 512)}

@@ -52,14 +52,18 @@ def stages_to_run(cfg: Any) -> list[Stage]:
     """``cfg.stage`` preceded by the upstream stages it needs (the whole chain for ``all``); a
     real arm's collection is never started by another stage."""
     stage = Stage(cfg.stage)
-    if stage not in CHAIN and stage is not Stage.all:
+    if stage is Stage.all:
+        return list(CHAIN)
+    if stage not in CHAIN:
         return [stage]
-    chain = list(CHAIN) if stage is Stage.all else list(CHAIN[: CHAIN.index(stage) + 1])
+    chain = list(CHAIN[: CHAIN.index(stage) + 1])
     env = getattr(cfg.env.name, "value", cfg.env.name)
-    if stage is not Stage.all and (env == "gymnax" or (env != "learned" and stage is Stage.train_ppo)):
+    # only the learned environment trains on data; evaluate also reads it, except on gymnax
+    needs_data = env == "learned" or (stage is Stage.evaluate and env != "gymnax")
+    if not needs_data:
         chain = [s for s in chain if s not in (Stage.collect, Stage.align, Stage.fit_model)]
-    if stage not in (Stage.collect, Stage.all) and RobotKind(cfg.robot.kind) is RobotKind.ros2:
-        chain.remove(Stage.collect)
+    if stage is not Stage.collect and RobotKind(cfg.robot.kind) is RobotKind.ros2:
+        chain = [s for s in chain if s is not Stage.collect]
     return chain
 
 
@@ -67,8 +71,9 @@ def run(cfg: Any) -> dict[str, Any]:
     """Run ``cfg.stage`` after its upstream stages (or the whole chain); return each stage's
     result by name. ``force=true`` recomputes the requested stage only (every stage for ``all``)."""
     stage = Stage(cfg.stage)
-    upstream_cfg = cfg.copy()
+    upstream_cfg = cfg
     if stage is not Stage.all:
+        upstream_cfg = cfg.copy()
         upstream_cfg.force = False
     results = {}
     for name in stages_to_run(cfg):
@@ -80,9 +85,8 @@ def run(cfg: Any) -> dict[str, Any]:
                 break
             raise NotImplementedError(f"stage={name.value} is not implemented in this version")
         started = time.perf_counter()
-        options = CHAIN_OPTIONS.get(name, {})
-        results[name.value] = function(cfg if name is stage or stage is Stage.all
-                                       else upstream_cfg, **options)
+        stage_cfg = cfg if name is stage else upstream_cfg
+        results[name.value] = function(stage_cfg, **CHAIN_OPTIONS.get(name, {}))
         log.info("stage %s done in %.1f s", name.value, time.perf_counter() - started)
     return results
 

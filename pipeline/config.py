@@ -263,7 +263,7 @@ class ModelConfig:
     head: list[int] = field(default_factory=list)
     condition_on_initial_pose: bool = False  # initial carry from the observed pose at reset
     # predict the displacement from the run's initial pose (default: robot.settled_start; sim
-    # held-out 1.03 mm vs 1.96 mm absolute, real runs leave-one-out 4.2 mm vs 3.1 mm)
+    # held-out 1.03 mm vs 1.96 mm absolute; real runs leave-one-out 4.04 mm vs 3.09 mm)
     predict_displacement: bool = False
     batch_size: int = 32
     learning_rate: float = 3.0e-3

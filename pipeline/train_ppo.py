@@ -214,11 +214,10 @@ def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, ti
     if has_distance:
         ax = axes[0, 1]
         many = evaluation["seed"].nunique() > 6  # then one thin grey line per seed, no legend
+        style = {"color": "0.6", "lw": 0.8} if many else {"marker": "o"}
         for seed, rows in evaluation.groupby("seed"):
-            ax.semilogy(rows["timesteps"], 1000 * rows["median_final_distance_m"],
-                        "-" if many else "o-", color="0.6" if many else None,
-                        lw=0.8 if many else 1.5, alpha=0.7,
-                        label=None if many else f"seed {seed}")
+            ax.semilogy(rows["timesteps"], 1000 * rows["median_final_distance_m"], alpha=0.7,
+                        label=None if many else f"seed {seed}", **style)
         if many:
             across = evaluation.groupby("timesteps")["median_final_distance_m"].median()
             ax.semilogy(across.index, 1000 * across.to_numpy(), "o-", color="C3",

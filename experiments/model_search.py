@@ -54,6 +54,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--tag", default="")
     parser.add_argument("--out", default="outputs/model_search/results.jsonl")
     parser.add_argument("--progress", type=int, default=0)
+    parser.add_argument("--members", type=int, default=5, help="model_ensemble.py: models per fold")
+    parser.add_argument("--every", type=int, default=100, help="model_curve.py: steps per score")
     return parser.parse_args(argv)
 
 
@@ -112,12 +114,18 @@ def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
     }
 
 
-def main(argv=None) -> None:
-    args = parse_args(argv)
+def load_folds(args: argparse.Namespace) -> tuple[list, list[int], Path]:
+    """The runs, the indices of the runs to hold out in turn, and the (created) output path."""
     runs = load_runs(args.data_dir, args.hz, args.pressure)
     folds = range(len(runs)) if args.folds == "all" else [int(i) for i in args.folds.split(",")]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    return runs, list(folds), out
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    runs, folds, out = load_folds(args)
     rows = []
     for held_out in folds:
         row = run_fold(runs, held_out, args)

@@ -294,6 +294,8 @@ class EnvConfig:
     obs_noise_std: float = 0.0  # m, on the observed position
     action_noise_std: float = 0.0  # kPa, on the commanded pressures (before projection)
     include_last_action: bool = False
+    include_error: bool = False  # also observe (goal - position) / error_scale_m
+    error_scale_m: float = 0.005
     gymnax_name: str = "Pendulum-v1"
     settle_seconds: float = 5.0  # preload held before an episode starts
     reset_bank_size: int = 64  # settled start states computed once per EnvParams

@@ -135,7 +135,8 @@ def _plant_env(cfg: Any, learned_env: SoftArmReachEnv, learned_params: EnvParams
     mocap_hz = float(cfg.robot.mocap.rate_hz)
     frames = round(mocap_hz / float(cfg.dataset.model_hz))
     env = SoftArmReachEnv(sim_plant(mocap_hz, frames), learned_env.control_hz,
-                          float(cfg.env.settle_seconds), learned_env.include_last_action)
+                          float(cfg.env.settle_seconds), learned_env.include_last_action,
+                          learned_env.include_error)
     plant = sim_plant_params(cfg)
     params = make_env_params(
         env, plant, key=key, safe_set=learned_params.safe_set, preload=plant.preload,

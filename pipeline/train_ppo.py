@@ -194,6 +194,7 @@ def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, ti
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib import ticker
 
     path.parent.mkdir(parents=True, exist_ok=True)
     has_distance = evaluation["median_final_distance_m"].notna().any()
@@ -216,13 +217,17 @@ def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, ti
         many = evaluation["seed"].nunique() > 6  # then one thin grey line per seed, no legend
         style = {"color": "0.6", "lw": 0.8} if many else {"marker": "o"}
         for seed, rows in evaluation.groupby("seed"):
-            ax.semilogy(rows["timesteps"], 1000 * rows["median_final_distance_m"], alpha=0.7,
+            ax.plot(rows["timesteps"], 1000 * rows["median_final_distance_m"], alpha=0.7,
                         label=None if many else f"seed {seed}", **style)
         if many:
             across = evaluation.groupby("timesteps")["median_final_distance_m"].median()
-            ax.semilogy(across.index, 1000 * across.to_numpy(), "o-", color="C3",
+            ax.plot(across.index, 1000 * across.to_numpy(), "o-", color="C3",
                         label=f"median over {evaluation['seed'].nunique()} seeds")
         ax.axhline(1.0, color="k", ls="--", lw=1, label="1 mm")
+        distances = 1000 * evaluation["median_final_distance_m"].dropna()
+        if distances.max() > 10 * max(distances.min(), 1e-6):  # a log axis only where needed
+            ax.set_yscale("log")
+            ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
         ax.set(xlabel="environment steps per seed", ylabel="median final distance [mm]",
                title="held-out goals (deterministic policy)")
         ax.legend(fontsize=8)

@@ -30,7 +30,8 @@ NUM_ENVS = 8
 def toy_env(**overrides):
     """Linear-lag plant at 10 Hz, 2 Hz control; goals a few mm around the rest pose."""
     env = SoftArmReachEnv(linear_lag_plant(10.0), control_hz=2.0, settle_seconds=2.0,
-                          include_last_action=overrides.pop("include_last_action", False))
+                          include_last_action=overrides.pop("include_last_action", False),
+                          include_error=overrides.pop("include_error", False))
     goals = REST_POSE + jnp.array([[0.005, 0.0, 0.0], [0.0, 0.0, -0.005], [-0.004, 0.0, 0.003]])
     settings = {"safe_set": SafeSet.from_limits(LIMITS), "preload": 2.0, "rest_pose": REST_POSE,
                 "goal_set": goals, "max_steps": 5, "reset_bank_size": 4}
@@ -172,6 +173,17 @@ def test_last_action_in_the_observation():
     obs, _ = env.reset(jax.random.PRNGKey(0), params)
     assert obs.shape == (9,)
     np.testing.assert_allclose(obs[6:], env.pressure_to_action(params.preload, params))
+
+
+def test_scaled_error_in_the_observation():
+    """The error block is (goal - position) / error_scale, in that order before the action."""
+    env, params = toy_env(include_error=True, include_last_action=True, error_scale_m=0.002)
+    obs, state = env.reset(jax.random.PRNGKey(3), params)
+    assert obs.shape == (12,) == env.observation_space(params).shape
+    error_mm = 1000.0 * np.asarray(state.goal - state.position)
+    assert np.linalg.norm(error_mm) > 1.0  # the goals are mm away from the rest pose
+    np.testing.assert_allclose(obs[6:9], error_mm / 2.0, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(obs[9:], env.pressure_to_action(params.preload, params))
 
 
 def test_one_compiled_env_serves_a_batch_of_models():

@@ -42,10 +42,18 @@ def _common_params(cfg: Any) -> dict[str, Any]:
         "goal_perturbation_m": float(env_cfg.goal_perturbation_m),
         "goal_tolerance_m": float(env_cfg.goal_tolerance_m),
         "obs_noise_std_m": float(env_cfg.obs_noise_std),
+        "error_scale_m": float(env_cfg.error_scale_m),
         "action_noise_std_kpa": float(env_cfg.action_noise_std),
         "max_steps": int(env_cfg.max_steps),
         "reset_bank_size": int(env_cfg.reset_bank_size),
     }
+
+
+def observation_options(env_cfg: Any) -> dict[str, Any]:
+    """The :class:`SoftArmReachEnv` arguments of the env config besides plant and rate."""
+    return {"settle_seconds": float(env_cfg.settle_seconds),
+            "include_last_action": bool(env_cfg.include_last_action),
+            "include_error": bool(env_cfg.include_error)}
 
 
 def _safe_set(cfg: Any) -> SafeSet:
@@ -95,7 +103,7 @@ def make_sim_env(cfg: Any) -> tuple[SoftArmReachEnv, Any, Any]:
     mocap_hz = float(cfg.robot.mocap.rate_hz)
     frames_per_step = round(mocap_hz / float(cfg.dataset.model_hz))
     env = SoftArmReachEnv(sim_plant(mocap_hz, frames_per_step), float(cfg.robot.control_hz),
-                          float(env_cfg.settle_seconds), bool(env_cfg.include_last_action))
+                          **observation_options(env_cfg))
     plant_params = sim_plant_params(cfg)
     safe_set = _safe_set(cfg)
     rest_pose = sim_rest_pose(plant_params)
@@ -159,8 +167,7 @@ def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
     """
     env_cfg = cfg.env
     env = SoftArmReachEnv(learned_plant(float(cfg.dataset.model_hz)),
-                          float(cfg.robot.control_hz), float(env_cfg.settle_seconds),
-                          bool(env_cfg.include_last_action))
+                          float(cfg.robot.control_hz), **observation_options(env_cfg))
     safe_set = _safe_set(cfg)
     preload = float(cfg.robot.limits.preload)
     train_bank_key, eval_bank_key = jax.random.split(jax.random.PRNGKey(int(env_cfg.env_seed)))

@@ -7,9 +7,11 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
 - **Action** ``[3]`` in ``[-1, 1]`` (clipped), mapped linearly onto each valve's range
   ``[p_min, p_max]`` kPa, plus Gaussian action noise (kPa), then projected onto the safe set
   (:func:`pipeline.safety.project`) before it reaches the plant.
-- **Observation** ``[6]`` (``[9]`` with ``include_last_action``): the measured position (plus
-  Gaussian noise, m) and the goal, both standardized with ``obs_mean`` / ``obs_scale``, and
-  optionally the last applied pressure mapped back to ``[-1, 1]``.
+- **Observation** ``[6]``: the measured position (plus Gaussian noise, m) and the goal, both
+  standardized with ``obs_mean`` / ``obs_scale``; with ``include_error`` ``+3``, the error
+  ``goal - measured`` divided by ``error_scale`` (a few mm, so that the last millimetres are not
+  a hundredth of an input's range); with ``include_last_action`` ``+3``, the last applied
+  pressure mapped back to ``[-1, 1]``.
 - **Reward** ``-||goal - position||`` in **millimetres** at the end of the control period.
 - **Terminated** when the distance is within ``goal_tolerance`` (1 mm); **truncated** by gymnax
   at ``max_steps_in_episode`` steps. Both are returned separately (gymnax 1.x).
@@ -76,6 +78,7 @@ class EnvParams:
     goal_tolerance: m, terminate when the distance is within it.
     obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
     obs_noise_std: m, Gaussian noise on the observed position.
+    error_scale: m, divides ``goal - measured`` in the observation (``include_error``).
     action_noise_std: kPa, Gaussian noise on the commanded pressures (before projection).
     max_steps_in_episode: control periods before truncation.
     """
@@ -92,6 +95,7 @@ class EnvParams:
     obs_mean: jax.Array
     obs_scale: jax.Array
     obs_noise_std: jax.Array
+    error_scale: jax.Array
     action_noise_std: jax.Array
     max_steps_in_episode: int = struct.field(pytree_node=False)
 
@@ -105,10 +109,11 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
       settle_seconds: how long the preload is held before an episode (used by
         :func:`make_env_params` to fill the reset bank).
       include_last_action: append the last applied pressure (in ``[-1, 1]``) to the observation.
+      include_error: append ``(goal - measured) / error_scale`` to the observation.
     """
 
     def __init__(self, plant: Plant, control_hz: float = 2.0, settle_seconds: float = 5.0,
-                 include_last_action: bool = False):
+                 include_last_action: bool = False, include_error: bool = False):
         super().__init__()
         ratio = plant.model_hz / control_hz
         if ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
@@ -120,6 +125,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         self.steps_per_action = round(ratio)
         self.settle_steps = max(1, round(settle_seconds * plant.model_hz))
         self.include_last_action = bool(include_last_action)
+        self.include_error = bool(include_error)
 
     # -----------------------------------------------------------------------------------------
     # gymnax API
@@ -139,7 +145,8 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
 
     @property
     def obs_dim(self) -> int:
-        return 2 * POSITION_DIM + (NUM_VALVES if self.include_last_action else 0)
+        return (2 * POSITION_DIM + (POSITION_DIM if self.include_error else 0)
+                + (NUM_VALVES if self.include_last_action else 0))
 
     def action_space(self, params: EnvParams | None = None) -> spaces.Box:
         return spaces.Box(-1.0, 1.0, (NUM_VALVES,), jnp.float32)
@@ -190,11 +197,14 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
 
     def observe(self, key: jax.Array, state: EnvState, action: Any, params: EnvParams
                 ) -> jax.Array:
-        """``[obs_dim]``: standardized noisy position, standardized goal (, last pressure)."""
+        """``[obs_dim]``: standardized noisy position, standardized goal (, scaled error)
+        (, last pressure)."""
         measured = state.position + params.obs_noise_std * jax.random.normal(
             key, (POSITION_DIM,))
         parts = [(measured - params.obs_mean) / params.obs_scale,
                  (state.goal - params.obs_mean) / params.obs_scale]
+        if self.include_error:
+            parts.append((state.goal - measured) / params.error_scale)
         if self.include_last_action:
             parts.append(self.pressure_to_action(state.last_pressure, params))
         return jnp.concatenate(parts).astype(jnp.float32)
@@ -243,6 +253,7 @@ def make_env_params(
     goal_perturbation_m: float | jax.Array = 0.01,
     goal_tolerance_m: float = 0.001,
     obs_noise_std_m: float = 0.0,
+    error_scale_m: float = 0.005,
     action_noise_std_kpa: float = 0.0,
     max_steps: int = 40,
     reset_bank_size: int = 64,
@@ -291,6 +302,7 @@ def make_env_params(
         obs_mean=f32(obs_mean),
         obs_scale=f32(obs_scale),
         obs_noise_std=f32(obs_noise_std_m),
+        error_scale=f32(error_scale_m),
         action_noise_std=f32(action_noise_std_kpa),
         max_steps_in_episode=int(max_steps),
     )

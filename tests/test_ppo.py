@@ -153,14 +153,14 @@ def test_recurrent_ppo_improves_on_a_toy_arm():
 
 
 @pytest.mark.slow
-def test_ppo_reaches_the_published_pendulum_return(make_cfg):
-    # conf/experiment/pendulum.yaml: the gymnax-blines PPO settings; the gymnax README lists PPO
-    # on Pendulum-v1 at a return of about -130 (optimum about -150 +- 80 over start states)
+def test_ppo_learns_pendulum_within_reach_of_the_optimum(make_cfg):
+    # conf/experiment/pendulum.yaml; the optimum mean return is about -136
+    # (experiments/pendulum_optimal.py); 8 seeds of this config scored -146 ... -175
     cfg = make_cfg("experiment=pendulum", "agent.num_seeds=2", "agent.progress=false")
     env, params = gymnax.make(cfg.env.gymnax_name)
     output = train_seeds(PPOConfig.from_any(cfg.agent), env, params)
     final = np.asarray(output.evaluation["mean_return"])[:, -1]
-    assert np.all(final > -250), final
+    assert np.all(final > -200), final
 
 
 @pytest.mark.slow

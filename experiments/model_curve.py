@@ -15,7 +15,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from experiments.model_search import load_folds, model_config, parse_args
+from experiments.model_search import load_folds, model_config, parse_args, split_fold
 from pipeline import train_model
 
 
@@ -23,8 +23,7 @@ def main(argv=None) -> None:
     args = parse_args(argv)
     runs, folds, _ = load_folds(args)
     for held_out in folds:
-        test_run = runs[held_out]
-        train_runs = [run for i, run in enumerate(runs) if i != held_out]
+        train_runs, test_run = split_fold(runs, held_out)
         _, _, table = train_model.fit(
             train_runs, {**model_config(args), "eval_every": args.every}, window=args.window,
             stride=args.stride, order=args.order, val_runs=[test_run], progress=False)

@@ -19,7 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.model_data import load_runs
-from experiments.model_search import model_config, parse_args
+from experiments.model_search import model_config, parse_args, split_fold
 from pipeline import train_model
 
 
@@ -27,8 +27,7 @@ def main() -> None:
     args = parse_args()
     runs = load_runs(args.data_dir, args.hz, args.pressure)
     held_out = int(args.folds)
-    test_run = runs[held_out]
-    train_runs = [run for i, run in enumerate(runs) if i != held_out]
+    train_runs, test_run = split_fold(runs, held_out)
     params, _, _ = train_model.fit(train_runs, model_config(args), window=args.window,
                                    stride=args.stride, order=args.order, progress=False)
     predicted = train_model.predict_run(params, test_run)

@@ -23,7 +23,7 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from experiments.model_search import load_folds, model_config, parse_args
+from experiments.model_search import load_folds, model_config, parse_args, split_fold
 from pipeline import train_model
 
 
@@ -33,8 +33,7 @@ def main(argv=None) -> None:
     runs, folds, out = load_folds(args)
     rows = []
     for held_out in folds:
-        test_run = runs[held_out]
-        train_runs = [run for i, run in enumerate(runs) if i != held_out]
+        train_runs, test_run = split_fold(runs, held_out)
         started = time.process_time()
         predictions = []
         for member in range(members):
@@ -47,8 +46,7 @@ def main(argv=None) -> None:
         errors = [train_model.position_errors_mm(p, truth) for p in predictions]
         average = np.mean(predictions, axis=0)
         ensemble = train_model.position_errors_mm(average, truth)
-        linear = train_model.lagged_features(test_run["p"], args.lags) @ \
-            train_model.fit_linear_lagged(train_runs, args.lags)
+        linear = train_model.predict_linear_lagged(train_runs, test_run, args.lags)
         blend = train_model.position_errors_mm(0.5 * average + 0.5 * linear, truth)
         row = {
             "tag": args.tag, "held_out": test_run["run_id"], "members": members,

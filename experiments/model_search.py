@@ -78,9 +78,13 @@ def model_config(args: argparse.Namespace) -> dict:
     }
 
 
+def split_fold(runs: list, held_out: int) -> tuple[list, dict]:
+    """(the other runs, the held-out run) of one leave-one-run-out fold."""
+    return [run for i, run in enumerate(runs) if i != held_out], runs[held_out]
+
+
 def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
-    test_run = runs[held_out]
-    train_runs = [run for i, run in enumerate(runs) if i != held_out]
+    train_runs, test_run = split_fold(runs, held_out)
     started, started_cpu = time.perf_counter(), time.process_time()
     params, _, _ = train_model.fit(
         train_runs,

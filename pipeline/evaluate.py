@@ -128,15 +128,20 @@ def _plant_env(cfg: Any, learned_env: SoftArmReachEnv, learned_params: EnvParams
                key: jax.Array) -> tuple[SoftArmReachEnv, EnvParams] | None:
     """The ground-truth plant as an environment observed like the learned one (same goals and
     normalization), or None when this robot has no simulator."""
-    from pipeline.envs.factory import _common_params, sim_plant_params, sim_rest_pose
+    from pipeline.envs.factory import (
+        _common_params,
+        observation_options,
+        sim_plant_params,
+        sim_rest_pose,
+    )
 
     if RobotKind(cfg.robot.kind) is not RobotKind.sim or not cfg.evaluation.plant:
         return None
     mocap_hz = float(cfg.robot.mocap.rate_hz)
     frames = round(mocap_hz / float(cfg.dataset.model_hz))
+    # observed exactly like the learned env, which make_learned_env built from the same options
     env = SoftArmReachEnv(sim_plant(mocap_hz, frames), learned_env.control_hz,
-                          float(cfg.env.settle_seconds), learned_env.include_last_action,
-                          learned_env.include_error)
+                          **observation_options(cfg.env))
     plant = sim_plant_params(cfg)
     params = make_env_params(
         env, plant, key=key, safe_set=learned_params.safe_set, preload=plant.preload,

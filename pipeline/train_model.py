@@ -289,10 +289,15 @@ def fit_linear_lagged(train_runs: Sequence[dict], num_lags: int) -> np.ndarray:
     return coefficients
 
 
+def predict_linear_lagged(train_runs: Sequence[dict], run: dict, num_lags: int = 30
+                          ) -> np.ndarray:
+    """[T, 3] positions (m) over ``run`` of the linear model fitted on ``train_runs``."""
+    return lagged_features(run["p"], num_lags) @ fit_linear_lagged(train_runs, num_lags)
+
+
 def baseline_linear_lagged(train_runs: Sequence[dict], run: dict, num_lags: int = 30) -> dict:
     """Errors over ``run`` of the linear model on lagged pressures and their squares."""
-    coefficients = fit_linear_lagged(train_runs, num_lags)
-    return position_errors_mm(lagged_features(run["p"], num_lags) @ coefficients, run["pos"])
+    return position_errors_mm(predict_linear_lagged(train_runs, run, num_lags), run["pos"])
 
 
 # ---------------------------------------------------------------------------------------------

@@ -218,11 +218,11 @@ def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, ti
         style = {"color": "0.6", "lw": 0.8} if many else {"marker": "o"}
         for seed, rows in evaluation.groupby("seed"):
             ax.plot(rows["timesteps"], 1000 * rows["median_final_distance_m"], alpha=0.7,
-                        label=None if many else f"seed {seed}", **style)
+                    label=None if many else f"seed {seed}", **style)
         if many:
             across = evaluation.groupby("timesteps")["median_final_distance_m"].median()
             ax.plot(across.index, 1000 * across.to_numpy(), "o-", color="C3",
-                        label=f"median over {evaluation['seed'].nunique()} seeds")
+                    label=f"median over {evaluation['seed'].nunique()} seeds")
         ax.axhline(1.0, color="k", ls="--", lw=1, label="1 mm")
         distances = 1000 * evaluation["median_final_distance_m"].dropna()
         if distances.max() > 10 * max(distances.min(), 1e-6):  # a log axis only where needed

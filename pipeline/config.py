@@ -297,6 +297,7 @@ class EnvConfig:
     include_error: bool = False  # also observe (goal - position) / error_scale_m
     error_scale_m: float = 0.005
     gymnax_name: str = "Pendulum-v1"
+    scale_observations: bool = False  # gymnax: observations divided by the space's bounds
     settle_seconds: float = 5.0  # preload held before an episode starts
     reset_bank_size: int = 64  # settled start states computed once per EnvParams
     env_seed: int = 0  # draws of the reset bank and (env=sim) of the goal sets
@@ -330,8 +331,10 @@ class AgentConfig:
     hidden: int = 64  # width of the MLP layers
     num_layers: int = 2  # MLP layers of the actor and of the critic (after the GRU if any)
     rnn_hidden: int = 64  # GRU width (recurrent only)
+    rnn_skip: bool = False  # heads read the current embedding beside the GRU output
     activation: str = "tanh"  # tanh | relu
     log_std_init: float = -1.0  # initial log std of the Gaussian policy ([-1, 1] units)
+    state_dependent_std: bool = False  # the actor outputs the log std (else one learned vector)
     reward_scale: float = 0.1  # rewards are multiplied by this for the update only
     num_evals: int = 10  # deterministic evaluations on held-out goals during training
     eval_envs: int = 256  # episodes per evaluation (0: none)

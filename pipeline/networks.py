@@ -52,19 +52,30 @@ class MLP(nn.Module):
 
 
 class GaussianActorCriticHeads(nn.Module):
-    """Separate actor and critic MLPs on the same features; state-independent log std."""
+    """Separate actor and critic MLPs on the same features.
+
+    The log std is one learned vector by default. With ``state_dependent_std`` the actor also
+    outputs it (as gymnax-blines' Gaussian MLP does), so the policy can be precise in some states
+    and explore in others; it starts at ``log_std_init`` everywhere and is kept in [-5, 2]."""
 
     action_dim: int
     width: int
     num_layers: int
     activation: str
     log_std_init: float
+    state_dependent_std: bool = False
 
     @nn.compact
     def __call__(self, features):
-        mean = MLP(self.width, self.num_layers, self.action_dim, 0.01, self.activation,
-                   name="actor")(features)
-        log_std = self.param("log_std", constant(self.log_std_init), (self.action_dim,))
+        if self.state_dependent_std:
+            out = MLP(self.width, self.num_layers, 2 * self.action_dim, 0.01, self.activation,
+                      name="actor")(features)
+            mean, log_std_offset = jnp.split(out, 2, axis=-1)
+            log_std = jnp.clip(self.log_std_init + log_std_offset, -5.0, 2.0)
+        else:
+            mean = MLP(self.width, self.num_layers, self.action_dim, 0.01, self.activation,
+                       name="actor")(features)
+            log_std = self.param("log_std", constant(self.log_std_init), (self.action_dim,))
         value = MLP(self.width, self.num_layers, 1, 1.0, self.activation, name="critic")(features)
         pi = distrax.MultivariateNormalDiag(mean, jnp.exp(log_std) * jnp.ones_like(mean))
         return pi, jnp.squeeze(value, axis=-1)
@@ -78,11 +89,13 @@ class ActorCriticFF(nn.Module):
     num_layers: int = 2
     activation: str = "tanh"
     log_std_init: float = 0.0
+    state_dependent_std: bool = False
 
     @nn.compact
     def __call__(self, hidden, obs, resets):
         pi, value = GaussianActorCriticHeads(self.action_dim, self.width, self.num_layers,
-                                             self.activation, self.log_std_init)(obs)
+                                             self.activation, self.log_std_init,
+                                             self.state_dependent_std)(obs)
         return hidden, pi, value
 
     @staticmethod
@@ -107,7 +120,11 @@ class ResettingGRU(nn.Module):
 
 
 class ActorCriticRNN(nn.Module):
-    """Dense embedding -> GRU (reset at episode starts) -> Gaussian actor and critic heads."""
+    """Dense embedding -> GRU (reset at episode starts) -> Gaussian actor and critic heads.
+
+    With ``skip`` the heads read the GRU output next to the current embedding, so what the
+    present observation decides need not pass through the recurrent state (the GRU then only
+    has to carry what the past adds)."""
 
     action_dim: int
     width: int = 64
@@ -115,6 +132,8 @@ class ActorCriticRNN(nn.Module):
     rnn_hidden: int = 64
     activation: str = "tanh"
     log_std_init: float = 0.0
+    state_dependent_std: bool = False
+    skip: bool = False
 
     @nn.compact
     def __call__(self, hidden, obs, resets):
@@ -122,8 +141,11 @@ class ActorCriticRNN(nn.Module):
         embedding = act(nn.Dense(self.rnn_hidden, kernel_init=orthogonal(np.sqrt(2)),
                                  bias_init=constant(0.0), name="embed")(obs))
         hidden, features = ResettingGRU(self.rnn_hidden, name="gru")(hidden, (embedding, resets))
+        if self.skip:
+            features = jnp.concatenate([features, embedding], axis=-1)
         pi, value = GaussianActorCriticHeads(self.action_dim, self.width, self.num_layers,
-                                             self.activation, self.log_std_init)(features)
+                                             self.activation, self.log_std_init,
+                                             self.state_dependent_std)(features)
         return hidden, pi, value
 
     def initialize_carry(self, batch_size: int) -> jax.Array:
@@ -134,9 +156,11 @@ def make_network(agent, action_dim: int) -> nn.Module:
     """The actor-critic of the ``agent`` config (fields recurrent, hidden, num_layers, ...)."""
     common = {"action_dim": int(action_dim), "width": int(agent.hidden),
               "num_layers": int(agent.num_layers), "activation": str(agent.activation),
-              "log_std_init": float(agent.log_std_init)}
+              "log_std_init": float(agent.log_std_init),
+              "state_dependent_std": bool(agent.state_dependent_std)}
     if agent.recurrent:
-        return ActorCriticRNN(rnn_hidden=int(agent.rnn_hidden), **common)
+        return ActorCriticRNN(rnn_hidden=int(agent.rnn_hidden), skip=bool(agent.rnn_skip),
+                              **common)
     return ActorCriticFF(**common)
 
 

@@ -74,8 +74,10 @@ class PPOConfig:
     hidden: int = 64
     num_layers: int = 2
     rnn_hidden: int = 64
+    rnn_skip: bool = False
     activation: str = "tanh"
     log_std_init: float = -1.0
+    state_dependent_std: bool = False
     reward_scale: float = 0.1
     num_evals: int = 10
     eval_envs: int = 256  # 0: no evaluation

@@ -230,3 +230,27 @@ def test_simulated_arm_plant_reaches_by_feedback_and_rests_at_the_rest_pose(tmp_
     # chamber 0 (at 90 degrees, +z) pressurised bends the arm towards -z
     _, positions = hold(env.plant, plant_params, carry, jnp.array([6.0, 2.0, 2.0]), 10)
     assert float(positions[-1, 2] - position[2]) < -0.005
+
+
+def test_gymnax_observations_scaled_by_the_space_bounds():
+    import gymnax
+
+    from pipeline.envs.factory import BoundsScaledObservation
+
+    raw_env, params = gymnax.make("Pendulum-v1")
+    env = BoundsScaledObservation(raw_env)
+    np.testing.assert_allclose(env.observation_space(params).high, [1.0, 1.0, 1.0])
+    key = jax.random.PRNGKey(3)
+    raw_obs, raw_state = raw_env.reset(key, params)
+    obs, state = env.reset(key, params)
+    # Pendulum-v1: (cos, sin, angular velocity in [-8, 8]) -> velocity / 8
+    np.testing.assert_allclose(obs, raw_obs / jnp.array([1.0, 1.0, 8.0]), rtol=1e-6)
+    action = jnp.array([1.5])
+    raw = raw_env.step(key, raw_state.replace(time=199), action, params)
+    scaled = jax.jit(env.step)(key, state.replace(time=199), action, params)
+    assert bool(scaled[4])  # truncated at 200 steps: the observation is the reset one
+    np.testing.assert_allclose(scaled[0], raw[0] / jnp.array([1.0, 1.0, 8.0]), rtol=1e-6)
+    np.testing.assert_allclose(scaled[5]["final_observation"],
+                               raw[5]["final_observation"] / jnp.array([1.0, 1.0, 8.0]),
+                               rtol=1e-6)
+    np.testing.assert_allclose(scaled[2], raw[2])

@@ -22,6 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
+from gymnax.environments import spaces
+from gymnax.wrappers.purerl import GymnaxWrapper
 
 from pipeline import sim_arm
 from pipeline.envs.learned import SoftArmReachEnv, make_env_params, split_goals
@@ -185,13 +187,51 @@ def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
 # ---------------------------------------------------------------------------------------------
 # standard gymnax environments
 # ---------------------------------------------------------------------------------------------
+class BoundsScaledObservation(GymnaxWrapper):
+    """Observations divided elementwise by the bound of the observation space (``max(|low|,
+    |high|)`` where finite and nonzero, else 1), also in ``info["final_observation"]``.
+
+    Pendulum-v1's angular velocity spans [-8, 8] next to cos and sin in [-1, 1]; a fixed scale
+    (read from the env params at trace time, so nothing varies on ``self``) puts them on one
+    footing without the running statistics that a policy would then have to carry."""
+
+    def _scale(self, params) -> jax.Array:
+        space = self._env.observation_space(params)
+        bound = jnp.maximum(jnp.abs(jnp.asarray(space.low, jnp.float32)),
+                            jnp.abs(jnp.asarray(space.high, jnp.float32)))
+        return jnp.where(jnp.isfinite(bound) & (bound > 0), bound, 1.0)
+
+    def observation_space(self, params) -> spaces.Box:
+        space = self._env.observation_space(params)
+        scale = self._scale(params)
+        return spaces.Box(space.low / scale, space.high / scale, space.shape, space.dtype)
+
+    def reset(self, key: jax.Array, params=None):
+        params = self._env.default_params if params is None else params
+        obs, state = self._env.reset(key, params)
+        return obs / self._scale(params), state
+
+    def step(self, key: jax.Array, state, action, params=None):
+        params = self._env.default_params if params is None else params
+        obs, state, reward, terminated, truncated, info = self._env.step(key, state, action,
+                                                                          params)
+        scale = self._scale(params)
+        if "final_observation" in info:
+            info = {**info, "final_observation": info["final_observation"] / scale}
+        return obs / scale, state, reward, terminated, truncated, info
+
+
 def make_gymnax_env(cfg: Any) -> tuple[Any, Any, Any]:
-    """``gymnax.make(env.gymnax_name)`` with its default parameters (train = eval)."""
+    """``gymnax.make(env.gymnax_name)`` with its default parameters (train = eval); with
+    ``env.scale_observations`` the observations are divided by the space's bounds."""
     env, params = gymnax.make(str(cfg.env.gymnax_name))
+    if cfg.env.scale_observations:
+        env = BoundsScaledObservation(env)
     return env, params, params
 
 
 __all__ = [
+    "BoundsScaledObservation",
     "data_goals_and_rest_pose",
     "make_gymnax_env",
     "make_learned_env",

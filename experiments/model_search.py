@@ -51,6 +51,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--folds", default="all", help="'all' or comma-separated run indices")
     parser.add_argument("--lags", type=int, default=20, help="linear baseline lags (model steps)")
+    parser.add_argument("--train-runs", type=int, default=0,
+                        help="train on this many of the other runs (a seeded random subset; "
+                             "0: all), to see how the held-out error depends on the data")
     parser.add_argument("--tag", default="")
     parser.add_argument("--out", default="outputs/model_search/results.jsonl")
     parser.add_argument("--progress", type=int, default=0)
@@ -83,8 +86,17 @@ def split_fold(runs: list, held_out: int) -> tuple[list, dict]:
     return [run for i, run in enumerate(runs) if i != held_out], runs[held_out]
 
 
+def subset_runs(train_runs: list, count: int, seed: int) -> list:
+    """``count`` of ``train_runs`` drawn without replacement (all of them when count is 0)."""
+    if count <= 0 or count >= len(train_runs):
+        return train_runs
+    chosen = np.random.default_rng(seed).choice(len(train_runs), size=count, replace=False)
+    return [train_runs[i] for i in sorted(chosen)]
+
+
 def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
     train_runs, test_run = split_fold(runs, held_out)
+    train_runs = subset_runs(train_runs, args.train_runs, args.seed * 1000 + held_out)
     started, started_cpu = time.perf_counter(), time.process_time()
     params, _, _ = train_model.fit(
         train_runs,
@@ -102,6 +114,7 @@ def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
     return {
         "tag": args.tag,
         "held_out": test_run["run_id"],
+        "train_runs": [run["run_id"] for run in train_runs],
         "mean_mm": model["mean_mm"],
         "p95_mm": model["p95_mm"],
         "train_s": train_seconds,

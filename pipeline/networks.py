@@ -67,14 +67,13 @@ class GaussianActorCriticHeads(nn.Module):
 
     @nn.compact
     def __call__(self, features):
+        outputs = (2 if self.state_dependent_std else 1) * self.action_dim
+        actor = MLP(self.width, self.num_layers, outputs, 0.01, self.activation,
+                    name="actor")(features)
+        mean = actor[..., :self.action_dim]
         if self.state_dependent_std:
-            out = MLP(self.width, self.num_layers, 2 * self.action_dim, 0.01, self.activation,
-                      name="actor")(features)
-            mean, log_std_offset = jnp.split(out, 2, axis=-1)
-            log_std = jnp.clip(self.log_std_init + log_std_offset, -5.0, 2.0)
+            log_std = jnp.clip(self.log_std_init + actor[..., self.action_dim:], -5.0, 2.0)
         else:
-            mean = MLP(self.width, self.num_layers, self.action_dim, 0.01, self.activation,
-                       name="actor")(features)
             log_std = self.param("log_std", constant(self.log_std_init), (self.action_dim,))
         value = MLP(self.width, self.num_layers, 1, 1.0, self.activation, name="critic")(features)
         pi = distrax.MultivariateNormalDiag(mean, jnp.exp(log_std) * jnp.ones_like(mean))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import gymnax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,6 +14,7 @@ from pipeline.envs import (
     default_linear_lag_params,
     linear_lag_plant,
     make_env_params,
+    make_gymnax_env,
 )
 from pipeline.networks import initial_hidden, make_network
 from pipeline.ppo import (
@@ -192,7 +192,7 @@ def test_ppo_learns_pendulum_within_reach_of_the_optimum(make_cfg):
     # conf/experiment/pendulum.yaml; the optimum mean return is about -136
     # (experiments/pendulum_optimal.py); 8 seeds of this config scored -137 ... -156
     cfg = make_cfg("experiment=pendulum", "agent.num_seeds=2", "agent.progress=false")
-    env, params = gymnax.make(cfg.env.gymnax_name)
+    env, params, _ = make_gymnax_env(cfg)  # as train_ppo builds it (options included)
     output = train_seeds(PPOConfig.from_any(cfg.agent), env, params)
     final = np.asarray(output.evaluation["mean_return"])[:, -1]
     assert np.all(final > -200), final

@@ -202,8 +202,7 @@ class BoundsScaledObservation(GymnaxWrapper):
         return jnp.where(jnp.isfinite(bound) & (bound > 0), bound, 1.0)
 
     def observation_space(self, params) -> spaces.Box:
-        space = self._env.observation_space(params)
-        scale = self._scale(params)
+        space, scale = self._env.observation_space(params), self._scale(params)
         return spaces.Box(space.low / scale, space.high / scale, space.shape, space.dtype)
 
     def reset(self, key: jax.Array, params=None):

@@ -7,9 +7,14 @@ torque levels, 200 steps as in an episode. The greedy policy of that value funct
 on the exact dynamics (``gymnax`` ``Pendulum-v1``) from gymnax's reset distribution (angle uniform
 in [-pi, pi], velocity uniform in [-1, 1]): its mean return is what a near-optimal policy scores.
 
+With ``--policy`` a trained policy (a ``train_ppo`` artifact's ``policy.msgpack``, every seed in
+it) is run, deterministically, from the same start states, and the gap to the optimum is broken
+down by the start angle: where the policy loses return, not only how much.
+
 Example::
 
     .venv/bin/python experiments/pendulum_optimal.py --episodes 2048
+    .venv/bin/python experiments/pendulum_optimal.py --policy outputs/artifacts/train_ppo/<key>/policy.msgpack
 """
 
 from __future__ import annotations
@@ -22,6 +27,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pipeline.envs.factory import BoundsScaledObservation
+from pipeline.networks import initial_hidden
+from pipeline.ppo import deterministic_action, load_policy, to_env_action
+
+ANGLE_BINS = 12  # start-angle bins of the breakdown (0 is upright, +-pi hanging down)
+
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -30,6 +41,8 @@ def main(argv=None) -> None:
     parser.add_argument("--torques", type=int, default=41, help="torque levels over [-2, 2]")
     parser.add_argument("--episodes", type=int, default=2048)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--policy", default=None,
+                        help="a train_ppo policy.msgpack to compare, from the same start states")
     args = parser.parse_args(argv)
 
     env, params = gymnax.make("Pendulum-v1")
@@ -93,14 +106,67 @@ def main(argv=None) -> None:
             return jax.lax.scan(step, state, next_values)[1].sum(), predicted
         return jax.vmap(episode)(keys)
 
-    returns, predicted = map(np.asarray, run(
-        jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)))
+    keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)
+    returns, predicted = map(np.asarray, run(keys))
     print(f"Pendulum-v1, greedy policy of value iteration ({args.angles} x {args.velocities} "
           f"grid, {args.torques} torques), {args.episodes} episodes on the exact dynamics: mean "
           f"return {returns.mean():.1f} (standard error "
           f"{returns.std() / np.sqrt(len(returns)):.1f}), median {np.median(returns):.1f}, "
           f"p5 {np.percentile(returns, 5):.1f}; the grid's own estimate of the optimum "
           f"{predicted.mean():.1f}  [{time.perf_counter() - started:.0f} s]")
+    if args.policy:
+        compare_policy(env, params, args.policy, keys, returns)
+
+
+def policy_returns(env, params, policy_path, keys) -> np.ndarray:
+    """[seeds, episodes] returns of the policy's mean action from ``reset_env(keys[i])``."""
+    network, stacked, meta = load_policy(policy_path)
+    if meta.get("env", {}).get("scale_observations"):
+        env = BoundsScaledObservation(env)  # as the policy was trained (train_ppo)
+    low, high = np.asarray(meta["action_low"], np.float32), np.asarray(meta["action_high"],
+                                                                       np.float32)
+    horizon = int(params.max_steps_in_episode)
+
+    @jax.jit
+    def run(variables):
+        def episode(key):
+            obs, state = env.reset(key, params)  # reset_env(key): the optimum's start state
+
+            def step(carry, _):
+                obs, state, hidden = carry
+                hidden, action = deterministic_action(network, variables, hidden, obs[None],
+                                                      jnp.zeros(1, bool))
+                # 200 steps: the auto-reset of step() comes after the last reward
+                obs, state, reward, _, _, _ = env.step(
+                    key, state, to_env_action(action[0], low, high), params)
+                return (obs, state, hidden), reward
+            carry = (obs, state, initial_hidden(network, 1))
+            return jax.lax.scan(step, carry, None, horizon)[1].sum()
+        return jax.vmap(episode)(keys)
+
+    num_seeds = int(meta.get("num_seeds", 1))
+    return np.stack([np.asarray(run(jax.tree.map(lambda x, i=i: x[i], stacked)))
+                     for i in range(num_seeds)])
+
+
+def compare_policy(env, params, policy_path, keys, optimal) -> None:
+    """Print the policy's returns next to the optimum's, from the same start states."""
+    returns = policy_returns(env, params, policy_path, keys)
+    gap = returns - optimal[None]
+    print(f"policy {policy_path}: {returns.shape[0]} seeds x {returns.shape[1]} episodes, mean "
+          f"return {returns.mean():.1f}, median {np.median(returns):.1f}; per seed "
+          f"{[round(float(x), 1) for x in returns.mean(axis=1)]}")
+    print(f"gap to the optimum from the same start states: mean {gap.mean():.1f}, median "
+          f"{np.median(gap):.1f}")
+    _, start = jax.vmap(env.reset_env, in_axes=(0, None))(keys, params)
+    edges = np.linspace(-np.pi, np.pi, ANGLE_BINS + 1)
+    which = np.clip(np.digitize(np.asarray(start.theta), edges) - 1, 0, ANGLE_BINS - 1)
+    print(f"{'start angle (rad)':>18} {'episodes':>8} {'optimum':>8} {'policy':>8} {'gap':>7}")
+    for b in range(ANGLE_BINS):
+        chosen = which == b
+        print(f"{edges[b]:+8.2f} .. {edges[b + 1]:+5.2f} {chosen.sum():8d} "
+              f"{optimal[chosen].mean():8.1f} {returns[:, chosen].mean():8.1f} "
+              f"{gap[:, chosen].mean():7.1f}")
 
 
 if __name__ == "__main__":

@@ -51,45 +51,12 @@ class MLP(nn.Module):
                         bias_init=constant(0.0))(x)
 
 
-class BinnedActions:
-    """Independent categoricals, one per action dimension, over ``K`` evenly spaced levels in
-    [-1, 1]: ``logits [..., A, K]``; actions are the levels themselves (floats ``[..., A]``).
-
-    A policy that can switch from one level to another between neighbouring states, where a
-    Gaussian's mean moves smoothly (Tang & Agrawal 2020, "Discretizing continuous action space
-    for on-policy optimization"). Same methods as the Gaussian the PPO code uses."""
-
-    def __init__(self, logits: jax.Array):
-        self.num_bins = logits.shape[-1]
-        self.levels = jnp.linspace(-1.0, 1.0, self.num_bins)
-        self.categorical = distrax.Independent(distrax.Categorical(logits=logits), 1)
-
-    def index(self, action: jax.Array) -> jax.Array:
-        """The bin of each action (the nearest level)."""
-        position = (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (self.num_bins - 1)
-        return jnp.round(position).astype(jnp.int32)
-
-    def sample(self, seed: jax.Array) -> jax.Array:
-        return self.levels[self.categorical.sample(seed=seed)]
-
-    def log_prob(self, action: jax.Array) -> jax.Array:
-        return self.categorical.log_prob(self.index(action))
-
-    def entropy(self) -> jax.Array:
-        return self.categorical.entropy()
-
-    def mode(self) -> jax.Array:
-        return self.levels[jnp.argmax(self.categorical.distribution.logits, axis=-1)]
-
-
 class GaussianActorCriticHeads(nn.Module):
     """Separate actor and critic MLPs on the same features.
 
     The log std is one learned vector by default. With ``state_dependent_std`` the actor also
     outputs it (as gymnax-blines' Gaussian MLP does), so the policy can be precise in some states
-    and explore in others; it starts at ``log_std_init`` everywhere and is kept in [-5, 2].
-    With ``action_bins`` K >= 2 the actor outputs K logits per action dimension instead, and the
-    policy is :class:`BinnedActions` (the std settings are then unused)."""
+    and explore in others; it starts at ``log_std_init`` everywhere and is kept in [-5, 2]."""
 
     action_dim: int
     width: int
@@ -97,17 +64,9 @@ class GaussianActorCriticHeads(nn.Module):
     activation: str
     log_std_init: float
     state_dependent_std: bool = False
-    action_bins: int = 0
 
     @nn.compact
     def __call__(self, features):
-        value = MLP(self.width, self.num_layers, 1, 1.0, self.activation, name="critic")(features)
-        value = jnp.squeeze(value, axis=-1)
-        if self.action_bins:
-            logits = MLP(self.width, self.num_layers, self.action_dim * self.action_bins, 0.01,
-                         self.activation, name="actor")(features)
-            return BinnedActions(logits.reshape(*logits.shape[:-1], self.action_dim,
-                                                self.action_bins)), value
         outputs = (2 if self.state_dependent_std else 1) * self.action_dim
         actor = MLP(self.width, self.num_layers, outputs, 0.01, self.activation,
                     name="actor")(features)
@@ -116,8 +75,9 @@ class GaussianActorCriticHeads(nn.Module):
             log_std = jnp.clip(self.log_std_init + actor[..., self.action_dim:], -5.0, 2.0)
         else:
             log_std = self.param("log_std", constant(self.log_std_init), (self.action_dim,))
+        value = MLP(self.width, self.num_layers, 1, 1.0, self.activation, name="critic")(features)
         pi = distrax.MultivariateNormalDiag(mean, jnp.exp(log_std) * jnp.ones_like(mean))
-        return pi, value
+        return pi, jnp.squeeze(value, axis=-1)
 
 
 class ActorCriticFF(nn.Module):
@@ -129,13 +89,12 @@ class ActorCriticFF(nn.Module):
     activation: str = "tanh"
     log_std_init: float = 0.0
     state_dependent_std: bool = False
-    action_bins: int = 0
 
     @nn.compact
     def __call__(self, hidden, obs, resets):
         pi, value = GaussianActorCriticHeads(self.action_dim, self.width, self.num_layers,
                                              self.activation, self.log_std_init,
-                                             self.state_dependent_std, self.action_bins)(obs)
+                                             self.state_dependent_std)(obs)
         return hidden, pi, value
 
     @staticmethod
@@ -173,7 +132,6 @@ class ActorCriticRNN(nn.Module):
     activation: str = "tanh"
     log_std_init: float = 0.0
     state_dependent_std: bool = False
-    action_bins: int = 0
     skip: bool = False
 
     @nn.compact
@@ -186,8 +144,7 @@ class ActorCriticRNN(nn.Module):
             features = jnp.concatenate([features, embedding], axis=-1)
         pi, value = GaussianActorCriticHeads(self.action_dim, self.width, self.num_layers,
                                              self.activation, self.log_std_init,
-                                             self.state_dependent_std,
-                                             self.action_bins)(features)
+                                             self.state_dependent_std)(features)
         return hidden, pi, value
 
     def initialize_carry(self, batch_size: int) -> jax.Array:
@@ -199,8 +156,7 @@ def make_network(agent, action_dim: int) -> nn.Module:
     common = {"action_dim": int(action_dim), "width": int(agent.hidden),
               "num_layers": int(agent.num_layers), "activation": str(agent.activation),
               "log_std_init": float(agent.log_std_init),
-              "state_dependent_std": bool(agent.state_dependent_std),
-              "action_bins": int(agent.action_bins)}
+              "state_dependent_std": bool(agent.state_dependent_std)}
     if agent.recurrent:
         return ActorCriticRNN(rnn_hidden=int(agent.rnn_hidden), skip=bool(agent.rnn_skip),
                               **common)

@@ -78,7 +78,6 @@ class PPOConfig:
     activation: str = "tanh"
     log_std_init: float = -1.0
     state_dependent_std: bool = False
-    action_bins: int = 0
     reward_scale: float = 0.1
     num_evals: int = 10
     eval_envs: int = 256  # 0: no evaluation

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import gymnax
 import jax
@@ -34,24 +36,26 @@ from pipeline.ppo import deterministic_action, load_policy, to_env_action
 ANGLE_BINS = 12  # start-angle bins of the breakdown (0 is upright, +-pi hanging down)
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--angles", type=int, default=512, help="grid points over [-pi, pi)")
-    parser.add_argument("--velocities", type=int, default=321, help="grid points over [-8, 8]")
-    parser.add_argument("--torques", type=int, default=41, help="torque levels over [-2, 2]")
-    parser.add_argument("--episodes", type=int, default=2048)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--policy", default=None,
-                        help="a train_ppo policy.msgpack to compare, from the same start states")
-    args = parser.parse_args(argv)
+class Optimum(NamedTuple):
+    """The value-iteration solution: ``values[t]`` [A, V], the optimal return from step t."""
 
+    env: Any
+    params: Any
+    torques: jax.Array  # [K] torque levels
+    values: jax.Array  # [horizon, A, V]
+    q_values: Callable  # (value [A, V], theta [...], theta_dot [...]) -> [..., K]
+    interpolate: Callable  # (value [A, V], theta [...], theta_dot [...]) -> [...]
+
+
+def solve(num_angles: int = 512, num_velocities: int = 321, num_torques: int = 41) -> Optimum:
+    """Backward value iteration over 200 steps on a (angle, velocity) grid."""
     env, params = gymnax.make("Pendulum-v1")
     horizon = int(params.max_steps_in_episode)
-    angles = jnp.linspace(-jnp.pi, jnp.pi, args.angles, endpoint=False)
-    angle_step = 2 * jnp.pi / args.angles
-    velocities = jnp.linspace(-params.max_speed, params.max_speed, args.velocities)
+    angles = jnp.linspace(-jnp.pi, jnp.pi, num_angles, endpoint=False)
+    angle_step = 2 * jnp.pi / num_angles
+    velocities = jnp.linspace(-params.max_speed, params.max_speed, num_velocities)
     velocity_step = velocities[1] - velocities[0]
-    torques = jnp.linspace(-params.max_torque, params.max_torque, args.torques)
+    torques = jnp.linspace(-params.max_torque, params.max_torque, num_torques)
 
     def dynamics(theta, theta_dot, torque):
         """gymnax Pendulum-v1: reward and next state (the same equations as ``step_env``)."""
@@ -65,11 +69,11 @@ def main(argv=None) -> None:
     def interpolate(value, theta, theta_dot):
         """Bilinear in (angle, periodic; velocity, clamped) on the grid; value [A, V]."""
         a = ((theta + jnp.pi) % (2 * jnp.pi)) / angle_step
-        v = jnp.clip((theta_dot + params.max_speed) / velocity_step, 0, args.velocities - 1.001)
+        v = jnp.clip((theta_dot + params.max_speed) / velocity_step, 0, num_velocities - 1.001)
         a0, v0 = jnp.floor(a).astype(int), jnp.floor(v).astype(int)
         fa, fv = a - a0, v - v0
-        a1 = (a0 + 1) % args.angles
-        a0 = a0 % args.angles
+        a1 = (a0 + 1) % num_angles
+        a0 = a0 % num_angles
         return ((1 - fa) * (1 - fv) * value[a0, v0] + fa * (1 - fv) * value[a1, v0]
                 + (1 - fa) * fv * value[a0, v0 + 1] + fa * fv * value[a1, v0 + 1])
 
@@ -88,26 +92,49 @@ def main(argv=None) -> None:
         _, values = jax.lax.scan(sweep, jnp.zeros_like(theta_grid), None, length=horizon)
         return values[::-1]  # values[t]: optimal return from step t to the end
 
-    started = time.perf_counter()
-    values = backward(0)
+    return Optimum(env, params, torques, backward(0), q_values, interpolate)
+
+
+def optimal_returns(optimum: Optimum, keys: jax.Array) -> tuple[np.ndarray, np.ndarray]:
+    """Returns of the greedy (time-dependent) policy from ``reset_env(keys[i])`` on the exact
+    dynamics, and the grid's own prediction of them."""
+    env, params, torques, values = optimum.env, optimum.params, optimum.torques, optimum.values
 
     @jax.jit
-    def run(keys):
+    def run(keys, values):  # values an argument, not a constant XLA would fold
         def episode(key):
             _, state = env.reset_env(key, params)
 
             def step(state, value):
-                torque = torques[jnp.argmax(q_values(value, state.theta, state.theta_dot))]
+                torque = torques[jnp.argmax(optimum.q_values(value, state.theta,
+                                                             state.theta_dot))]
                 _, state, reward, _, _ = env.step_env(key, state, jnp.array([torque]), params)
                 return state, reward
-            predicted = interpolate(values[0], state.theta, state.theta_dot)
+            predicted = optimum.interpolate(values[0], state.theta, state.theta_dot)
             # the value to go from step t+1 decides the action at step t
             next_values = jnp.concatenate([values[1:], jnp.zeros_like(values[:1])])
             return jax.lax.scan(step, state, next_values)[1].sum(), predicted
         return jax.vmap(episode)(keys)
 
+    returns, predicted = run(keys, values)
+    return np.asarray(returns), np.asarray(predicted)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--angles", type=int, default=512, help="grid points over [-pi, pi)")
+    parser.add_argument("--velocities", type=int, default=321, help="grid points over [-8, 8]")
+    parser.add_argument("--torques", type=int, default=41, help="torque levels over [-2, 2]")
+    parser.add_argument("--episodes", type=int, default=2048)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--policy", default=None,
+                        help="a train_ppo policy.msgpack to compare, from the same start states")
+    args = parser.parse_args(argv)
+
+    started = time.perf_counter()
+    optimum = solve(args.angles, args.velocities, args.torques)
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)
-    returns, predicted = map(np.asarray, run(keys))
+    returns, predicted = optimal_returns(optimum, keys)
     print(f"Pendulum-v1, greedy policy of value iteration ({args.angles} x {args.velocities} "
           f"grid, {args.torques} torques), {args.episodes} episodes on the exact dynamics: mean "
           f"return {returns.mean():.1f} (standard error "
@@ -115,7 +142,7 @@ def main(argv=None) -> None:
           f"p5 {np.percentile(returns, 5):.1f}; the grid's own estimate of the optimum "
           f"{predicted.mean():.1f}  [{time.perf_counter() - started:.0f} s]")
     if args.policy:
-        compare_policy(env, params, args.policy, keys, returns)
+        compare_policy(optimum.env, optimum.params, args.policy, keys, returns)
 
 
 def policy_returns(env, params, policy_path, keys) -> np.ndarray:

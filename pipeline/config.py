@@ -339,6 +339,11 @@ class AgentConfig:
     num_evals: int = 10  # deterministic evaluations on held-out goals during training
     eval_envs: int = 256  # episodes per evaluation (0: none)
     progress: bool = True  # a progress bar on the host (jax.debug.callback, throttled)
+    # warm start: a train_ppo policy.msgpack of the same network; seed i starts from its seed i,
+    # or every seed from init_policy_seed; its log std, or init_policy_log_std where given
+    init_policy: str | None = None
+    init_policy_seed: int | None = None
+    init_policy_log_std: float | None = None
 
 
 @dataclass

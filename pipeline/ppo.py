@@ -82,6 +82,9 @@ class PPOConfig:
     num_evals: int = 10
     eval_envs: int = 256  # 0: no evaluation
     progress: bool = True
+    init_policy: str | None = None  # warm start from this policy.msgpack (train_ppo stage)
+    init_policy_seed: int | None = None
+    init_policy_log_std: float | None = None  # replaces the warm-start policy's log std
 
     @classmethod
     def from_any(cls, config: Any, **overrides: Any) -> PPOConfig:
@@ -259,7 +262,9 @@ def make_train(
     eval_steps: int | None = None,
     progress: Callable[[Any, Any], None] | None = None,
 ) -> Callable[..., TrainOutput]:
-    """Build ``train(rng, env_params=None, eval_env_params=None) -> TrainOutput``.
+    """Build ``train(rng, env_params=None, eval_env_params=None, init_params=None)
+    -> TrainOutput``; ``init_params`` (network variables of this agent's network) replace the
+    random initialisation: a warm start.
 
     Args:
       agent: the agent config (``PPOConfig`` or anything :meth:`PPOConfig.from_any` reads).
@@ -298,13 +303,16 @@ def make_train(
         return jax.vmap(env.step, in_axes=(0, 0, 0, None))(
             keys, state, to_env_action(action, low, high), params)
 
-    def train(rng: jax.Array, env_params=env_params, eval_env_params=eval_env_params
-              ) -> TrainOutput:
+    def train(rng: jax.Array, env_params=env_params, eval_env_params=eval_env_params,
+              init_params=None) -> TrainOutput:
         # ---------------------------------------------------------------- init network, optimizer
         init_key, reset_key, runner_key = jax.random.split(rng, 3)
         hidden0 = initial_hidden(network, num_envs)
         variables = network.init(init_key, hidden0, jnp.zeros((1, num_envs, *obs_shape)),
                                  jnp.zeros((1, num_envs), bool))
+        if init_params is not None:  # warm start (e.g. a policy trained on another model)
+            check_same_variables(variables, init_params, "init_params")
+            variables = jax.tree.map(jnp.asarray, init_params)
         lr = learning_rate if config.anneal_lr else config.lr
         tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
                          optax.adam(learning_rate=lr, eps=1e-5))
@@ -507,6 +515,23 @@ def make_train(
     return train
 
 
+def check_same_variables(expected: Any, given: Any, what: str) -> None:
+    """Raise a ValueError naming ``what`` unless ``given`` has ``expected``'s tree and shapes."""
+    expected_leaves = jax.tree_util.tree_leaves_with_path(expected)
+    given_leaves = jax.tree_util.tree_leaves_with_path(given)
+    expected_shapes = {jax.tree_util.keystr(k): tuple(np.shape(v)) for k, v in expected_leaves}
+    given_shapes = {jax.tree_util.keystr(k): tuple(np.shape(v)) for k, v in given_leaves}
+    if expected_shapes != given_shapes:
+        missing = sorted(set(expected_shapes) - set(given_shapes))
+        extra = sorted(set(given_shapes) - set(expected_shapes))
+        wrong = sorted(f"{k}: {given_shapes[k]}, expected {v}" for k, v in expected_shapes.items()
+                       if k in given_shapes and given_shapes[k] != v)
+        raise ValueError(f"{what} do not fit the agent's network (same agent hidden, "
+                         f"num_layers, recurrent, rnn_hidden, rnn_skip, state_dependent_std and "
+                         f"environment spaces needed): missing {missing[:4]}, unexpected "
+                         f"{extra[:4]}, wrong shapes {wrong[:4]}")
+
+
 def _has_distance(env: Any, env_params: Any) -> bool:
     """Whether the environment reports ``info["distance_m"]`` (abstract evaluation only)."""
 
@@ -527,9 +552,12 @@ def seed_keys(seed: int, num_seeds: int) -> jax.Array:
 
 def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = None,
                 seed: int = 0, progress: bool | None = None, desc: str = "ppo",
-                timings: dict[str, float] | None = None) -> TrainOutput:
+                timings: dict[str, float] | None = None, init_params: Any = None
+                ) -> TrainOutput:
     """Train ``agent.num_seeds`` seeds at once (one jit, vmap over seeds); arrays come back with
-    a leading [num_seeds] axis. ``timings`` (if given) receives ``compile_s`` and ``run_s``."""
+    a leading [num_seeds] axis. ``timings`` (if given) receives ``compile_s`` and ``run_s``.
+    ``init_params`` (optional): starting network variables, stacked over seeds
+    (``[num_seeds, ...]`` leaves, as :func:`load_policy` returns them)."""
     config = PPOConfig.from_any(agent)
     show = config.progress if progress is None else progress
     bar = ThrottledProgress(config.num_updates, desc=desc, disable=not show) if show else None
@@ -537,11 +565,17 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
     train = make_train(config, env, env_params, eval_env_params, progress=bar)
     try:
         keys = seed_keys(seed, config.num_seeds)
+        if init_params is not None:
+            sizes = {int(np.shape(x)[0]) if np.ndim(x) else 0
+                     for x in jax.tree.leaves(init_params)}
+            if sizes != {config.num_seeds}:
+                raise ValueError(f"init_params must be stacked over agent.num_seeds="
+                                 f"{config.num_seeds} seeds; leading sizes {sorted(sizes)}")
         started = time.perf_counter()
-        compiled = jax.jit(jax.vmap(train, in_axes=(0, None, None))).lower(
-            keys, env_params, eval_env_params).compile()
+        compiled = jax.jit(jax.vmap(train, in_axes=(0, None, None, 0))).lower(
+            keys, env_params, eval_env_params, init_params).compile()
         compiled_at = time.perf_counter()
-        output = jax.block_until_ready(compiled(keys, env_params, eval_env_params))
+        output = jax.block_until_ready(compiled(keys, env_params, eval_env_params, init_params))
         if timings is not None:
             timings.update(compile_s=compiled_at - started,
                            run_s=time.perf_counter() - compiled_at)
@@ -590,3 +624,55 @@ def load_policy(path: str | Path, seed_index: int | None = None) -> tuple[Any, A
         params = jax.tree.map(lambda x: x[seed_index], params)
     network = make_network(PPOConfig.from_any(meta["agent"]), int(meta["action_dim"]))
     return network, params, meta
+
+
+# network fields a warm-start policy must share with the agent (the shapes do not show them all)
+_NETWORK_FIELDS = ("recurrent", "hidden", "num_layers", "rnn_hidden", "rnn_skip", "activation",
+                   "state_dependent_std")
+
+
+def warm_start_params(agent: Any, obs_dim: int, action_dim: int) -> Any:
+    """Starting variables for ``agent.num_seeds`` seeds from ``agent.init_policy`` (a
+    :func:`save_policy` file), stacked over seeds: seed i takes the file's seed i, or every seed
+    ``agent.init_policy_seed``, or the file's only seed. ``agent.init_policy_log_std`` replaces
+    the learned log std (e.g. to explore less when fine-tuning). Errors name the file and the
+    mismatch."""
+    config = PPOConfig.from_any(agent)
+    path = Path(str(config.init_policy))
+    if not path.is_file():
+        raise FileNotFoundError(f"agent.init_policy: no policy file at {path}")
+    _, params, meta = load_policy(path)
+    theirs = PPOConfig.from_any(meta["agent"])
+    differing = {name: (getattr(theirs, name), getattr(config, name)) for name in _NETWORK_FIELDS
+                 if getattr(theirs, name) != getattr(config, name)}
+    if differing:
+        raise ValueError(f"agent.init_policy {path}: its network differs from the agent's "
+                         f"(field: (file, agent)): {differing}")
+    dims = {"obs_dim": (int(meta["obs_dim"]), obs_dim),
+            "action_dim": (int(meta["action_dim"]), action_dim)}
+    if any(a != b for a, b in dims.values()):
+        raise ValueError(f"agent.init_policy {path}: trained for another environment "
+                         f"(field: (file, this env)): {dims}")
+    available = int(meta.get("num_seeds", 1))
+    if config.init_policy_seed is not None:
+        if not 0 <= config.init_policy_seed < available:
+            raise ValueError(f"agent.init_policy_seed={config.init_policy_seed}: {path} holds "
+                             f"seeds 0..{available - 1}")
+        chosen = np.full(config.num_seeds, config.init_policy_seed)
+    elif available == config.num_seeds:
+        chosen = np.arange(config.num_seeds)
+    elif available == 1:
+        chosen = np.zeros(config.num_seeds, int)
+    else:
+        raise ValueError(f"agent.init_policy {path} holds {available} seeds, the agent trains "
+                         f"{config.num_seeds}: set agent.init_policy_seed to start every seed "
+                         f"from one of them")
+    params = jax.tree.map(lambda x: x[jnp.asarray(chosen)], params)
+    if config.init_policy_log_std is not None:
+        if config.state_dependent_std:
+            raise ValueError("agent.init_policy_log_std needs the learned log-std vector; with "
+                             "agent.state_dependent_std the actor outputs it")
+        params = jax.tree_util.tree_map_with_path(
+            lambda key, x: jnp.full_like(x, config.init_policy_log_std)
+            if jax.tree_util.keystr(key).endswith("['log_std']") else x, params)
+    return params

@@ -21,6 +21,7 @@ seeds).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 from pathlib import Path
@@ -39,7 +40,13 @@ from pipeline.envs.factory import (
     make_learned_env,
     make_sim_env,
 )
-from pipeline.ppo import PPOConfig, action_bounds, save_policy, train_seeds
+from pipeline.ppo import (
+    PPOConfig,
+    action_bounds,
+    save_policy,
+    train_seeds,
+    warm_start_params,
+)
 from pipeline.schemas import METADATA_KEY
 from pipeline.tracking import tracking
 
@@ -68,8 +75,16 @@ def train_ppo_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
     agent = OmegaConf.to_container(cfg.agent, resolve=True)
     for name in _NON_DETERMINING_AGENT_KEYS:
         agent.pop(name, None)
+    for name in ("init_policy", "init_policy_seed", "init_policy_log_std"):
+        if agent.get(name) is None:  # cold starts keep the keys they had before warm starts
+            agent.pop(name, None)
     spec: dict[str, Any] = {"env": OmegaConf.to_container(cfg.env, resolve=True), "agent": agent,
                             "seed": int(cfg.seed)}
+    if agent.get("init_policy"):  # a warm start: the starting policy's content decides too
+        path = Path(str(agent["init_policy"]))
+        if not path.is_file():
+            raise FileNotFoundError(f"agent.init_policy: no policy file at {path}")
+        spec["init_policy_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
     inputs: dict[str, str] = {}
     if env_name == "sim":
         spec["robot"] = OmegaConf.to_container(cfg.robot, resolve=True)
@@ -248,11 +263,17 @@ def train_ppo(cfg: Any) -> Artifact:
 
     def build(writer):
         env, train_params, eval_params = learned_env_for(cfg)
+        low, high = action_bounds(env, train_params)
+        obs_dim = int(np.prod(env.observation_space(train_params).shape))
+        init_params = (warm_start_params(agent, obs_dim, int(np.prod(low.shape)))
+                       if agent.init_policy else None)
         timings: dict[str, float] = {}
         output = train_seeds(agent, env, train_params, eval_params, seed=int(cfg.seed),
-                             desc=f"{STAGE} {agent.name} on {env.name}", timings=timings)
+                             desc=f"{STAGE} {agent.name} on {env.name}", timings=timings,
+                             init_params=init_params)
         steps = agent.num_seeds * agent.num_updates * agent.steps_per_update
-        config = {"env": spec["env"], "agent": spec["agent"], "seed": spec["seed"]}
+        config = {"env": spec["env"], "agent": spec["agent"], "seed": spec["seed"],
+                  "init_policy_sha256": spec.get("init_policy_sha256")}
 
         metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()})
         summary, episodes = evaluation_tables(
@@ -261,10 +282,9 @@ def train_ppo(cfg: Any) -> Artifact:
         _write_parquet(summary, writer.file("evaluation.parquet"), config)
         _write_parquet(episodes, writer.file("episodes.parquet"), config)
 
-        low, high = action_bounds(env, train_params)
         save_policy(writer.file("policy.msgpack"), output.params, {
             "agent": spec["agent"], "env": spec["env"], "env_name": env.name,
-            "obs_dim": int(np.prod(env.observation_space(train_params).shape)),
+            "obs_dim": obs_dim, "init_policy_sha256": spec.get("init_policy_sha256"),
             "action_dim": int(np.prod(low.shape)), "action_low": low.tolist(),
             "action_high": high.tolist(), "num_seeds": agent.num_seeds,
         })

@@ -24,6 +24,7 @@ from pipeline.ppo import (
     load_policy,
     save_policy,
     train_seeds,
+    warm_start_params,
 )
 from pipeline.safety import SafeSet
 from tests.conftest import compose_config
@@ -173,6 +174,99 @@ def test_tiny_ppo_run_improves_on_a_toy_arm():
     assert last > first + 0.3 * abs(first), (first, last)
     assert np.nanmean(distance[-5:]) < 0.7 * np.nanmean(distance[:5])
     assert np.asarray(output.evaluation["median_final_distance_m"]).shape == (1, 2)
+
+
+def stacked_policy(path, config, num_seeds, obs_dim=6, action_dim=3, log_std=-0.3):
+    """A policy file of ``num_seeds`` freshly initialised networks (log std set to ``log_std``)."""
+    network = make_network(config, action_dim)
+    hidden = initial_hidden(network, 1)
+    stacked = jax.vmap(lambda k: network.init(k, hidden, jnp.zeros((1, 1, obs_dim)),
+                                              jnp.ones((1, 1), bool)))(
+        jax.random.split(jax.random.PRNGKey(7), num_seeds))
+    stacked = jax.tree_util.tree_map_with_path(
+        lambda p, x: jnp.full_like(x, log_std) if "log_std" in jax.tree_util.keystr(p) else x,
+        stacked)
+    save_policy(path, stacked, {"agent": config.__dict__, "obs_dim": obs_dim,
+                                "action_dim": action_dim, "num_seeds": num_seeds})
+    return stacked
+
+
+def test_warm_start_maps_seeds_and_names_what_does_not_fit(tmp_path):
+    config = PPOConfig(hidden=8, num_seeds=2)
+    path = tmp_path / "policy.msgpack"
+    stacked = stacked_policy(path, config, num_seeds=2)
+    agent = {**config.__dict__, "init_policy": str(path)}
+
+    same = warm_start_params(agent, 6, 3)  # seed i from seed i
+    for expected, actual in zip(jax.tree.leaves(stacked), jax.tree.leaves(same)):
+        np.testing.assert_array_equal(actual, expected)
+    chosen = warm_start_params({**agent, "num_seeds": 3, "init_policy_seed": 1}, 6, 3)
+    for expected, actual in zip(jax.tree.leaves(stacked), jax.tree.leaves(chosen)):
+        assert actual.shape[0] == 3
+        for i in range(3):
+            np.testing.assert_array_equal(actual[i], expected[1])
+
+    quieter = warm_start_params({**agent, "init_policy_log_std": -2.0}, 6, 3)
+    log_std = quieter["params"]["GaussianActorCriticHeads_0"]["log_std"]
+    np.testing.assert_array_equal(log_std, np.full((2, 3), -2.0))
+    np.testing.assert_array_equal(  # nothing else changes
+        quieter["params"]["GaussianActorCriticHeads_0"]["actor"]["Dense_0"]["kernel"],
+        stacked["params"]["GaussianActorCriticHeads_0"]["actor"]["Dense_0"]["kernel"])
+    assert float(same["params"]["GaussianActorCriticHeads_0"]["log_std"][0, 0]) == np.float32(-0.3)
+
+    with pytest.raises(ValueError, match=r"holds 2 seeds.*init_policy_seed"):
+        warm_start_params({**agent, "num_seeds": 3}, 6, 3)
+    with pytest.raises(ValueError, match=r"init_policy_seed=2.*seeds 0..1"):
+        warm_start_params({**agent, "init_policy_seed": 2}, 6, 3)
+    with pytest.raises(ValueError, match=r"policy.msgpack: its network differs.*'hidden': \(8, 16\)"):
+        warm_start_params({**agent, "hidden": 16}, 6, 3)
+    with pytest.raises(ValueError, match=r"policy.msgpack: trained for another environment"):
+        warm_start_params(agent, 5, 3)
+    with pytest.raises(FileNotFoundError, match=r"no policy file at .*missing.msgpack"):
+        warm_start_params({**agent, "init_policy": str(tmp_path / "missing.msgpack")}, 6, 3)
+
+
+def test_warm_start_begins_training_from_the_given_policy():
+    env, params = toy_reaching()
+    obs_dim = int(np.prod(env.observation_space(params).shape))
+    # lr 0: training must hand back exactly the starting variables, the log std included
+    agent = PPOConfig(num_seeds=2, num_envs=8, num_steps=4, total_timesteps=8 * 4 * 2,
+                      num_evals=1, eval_envs=0, hidden=8, lr=0.0, progress=False)
+    network = make_network(agent, 3)
+    hidden = initial_hidden(network, 1)
+    start = jax.vmap(lambda k: network.init(k, hidden, jnp.zeros((1, 1, obs_dim)),
+                                            jnp.ones((1, 1), bool)))(
+        jax.random.split(jax.random.PRNGKey(3), 2))
+    start = jax.tree.map(lambda x: x + 0.5, start)  # unlike any random initialisation
+    output = train_seeds(agent, env, params, init_params=start)
+    for expected, actual in zip(jax.tree.leaves(start), jax.tree.leaves(output.params)):
+        np.testing.assert_array_equal(actual, expected)
+    cold = train_seeds(agent, env, params)
+    assert not np.allclose(jax.tree.leaves(cold.params)[0], jax.tree.leaves(start)[0])
+
+    wider = jax.vmap(lambda k: make_network(PPOConfig(hidden=16), 3).init(
+        k, hidden, jnp.zeros((1, 1, obs_dim)), jnp.ones((1, 1), bool)))(
+        jax.random.split(jax.random.PRNGKey(3), 2))
+    with pytest.raises(ValueError, match=r"init_params do not fit the agent's network"):
+        train_seeds(agent, env, params, init_params=wider)
+    with pytest.raises(ValueError, match=r"stacked over agent.num_seeds=2"):
+        train_seeds(agent, env, params, init_params=jax.tree.map(lambda x: x[:1], start))
+
+
+def test_warm_start_policy_content_is_part_of_the_train_ppo_key(make_cfg, tmp_path):
+    from pipeline.train_ppo import train_ppo_key, train_ppo_spec
+
+    path = tmp_path / "start.msgpack"
+    stacked_policy(path, PPOConfig(), num_seeds=1, log_std=-0.3)
+    cold = train_ppo_key(make_cfg("env=gymnax"))
+    # cold starts keep the keys they had before the option existed (cached artifacts stay valid)
+    assert "init_policy" not in train_ppo_spec(make_cfg("env=gymnax"))[0]["agent"]
+    warm = train_ppo_key(make_cfg("env=gymnax", f"agent.init_policy={path}"))
+    stacked_policy(path, PPOConfig(), num_seeds=1, log_std=-0.4)  # same path, new content
+    rewritten = train_ppo_key(make_cfg("env=gymnax", f"agent.init_policy={path}"))
+    assert len({cold, warm, rewritten}) == 3
+    with pytest.raises(FileNotFoundError, match="no policy file"):
+        train_ppo_key(make_cfg("env=gymnax", f"agent.init_policy={tmp_path / 'none.msgpack'}"))
 
 
 @pytest.mark.slow

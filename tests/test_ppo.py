@@ -294,12 +294,13 @@ def test_ppo_learns_pendulum_within_reach_of_the_optimum(make_cfg):
 
 
 @pytest.mark.slow
-def test_train_ppo_stage_writes_metrics_policy_and_figure_and_reuses_it(make_cfg):
+def test_train_ppo_stage_writes_reuses_and_warm_starts(make_cfg):
     from pipeline.train_ppo import train_ppo, training_curves
 
-    cfg = make_cfg("stage=train_ppo", "env=gymnax", "agent.num_seeds=2", "agent.num_envs=8",
-                   "agent.num_steps=16", "agent.total_timesteps=2560", "agent.num_evals=2",
-                   "agent.eval_envs=4", "agent.progress=false")
+    cfg_overrides = ("stage=train_ppo", "env=gymnax", "agent.num_seeds=2", "agent.num_envs=8",
+                     "agent.num_steps=16", "agent.total_timesteps=2560", "agent.num_evals=2",
+                     "agent.eval_envs=4", "agent.progress=false")
+    cfg = make_cfg(*cfg_overrides)
     artifact = train_ppo(cfg)
     for name in ("metrics.parquet", "evaluation.parquet", "episodes.parquet", "policy.msgpack",
                  "figures/returns.png"):
@@ -310,3 +311,12 @@ def test_train_ppo_stage_writes_metrics_policy_and_figure_and_reuses_it(make_cfg
     _, params, meta = load_policy(artifact.file("policy.msgpack"))
     assert jax.tree.leaves(params)[0].shape[0] == 2 and meta["action_dim"] == 1
     assert train_ppo(cfg).path == artifact.path  # same config: reused
+
+    # a warm start from that policy with lr 0 writes the same policy under a new key
+    warm = train_ppo(make_cfg(*cfg_overrides, "agent.lr=0.0",
+                              f"agent.init_policy={artifact.file('policy.msgpack')}"))
+    assert warm.path != artifact.path
+    _, warm_params, warm_meta = load_policy(warm.file("policy.msgpack"))
+    for expected, actual in zip(jax.tree.leaves(params), jax.tree.leaves(warm_params)):
+        np.testing.assert_array_equal(actual, expected)
+    assert len(warm_meta["init_policy_sha256"]) == 64

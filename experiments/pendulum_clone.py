@@ -129,7 +129,7 @@ def main(argv=None) -> None:
         return jnp.mean(jnp.square(pi.mean()[0, :, 0] - target))
 
     @jax.jit
-    def fit(variables, key):
+    def fit(variables, key, inputs, labels):  # data as arguments, not constants in the program
         def step(carry, key):
             variables, opt_state = carry
             index = jax.random.randint(key, (args.batch,), 0, inputs.shape[0])
@@ -140,7 +140,7 @@ def main(argv=None) -> None:
                                               jax.random.split(key, args.fit_steps))
         return variables, losses
 
-    variables, losses = fit(variables, fit_key)  # the log std stays at agent.log_std_init
+    variables, losses = fit(variables, fit_key, inputs, labels)  # the log std stays at agent.log_std_init
     print(f"clone: {inputs.shape[0]} states, regression MSE {float(losses[:100].mean()):.4f} "
           f"(first 100 steps) -> {float(losses[-100:].mean()):.4f} (last 100)")
 

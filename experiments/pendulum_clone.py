@@ -25,11 +25,11 @@ import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
+from gymnax.environments.classic_control.pendulum import EnvState
 
 # beside this script: on sys.path when it runs
-from pendulum_optimal import optimal_returns, policy_returns, solve
+from pendulum_optimal import greedy_torque, optimal_returns, policy_returns, solve
 
 from pipeline.networks import initial_hidden, make_network
 from pipeline.ppo import PPOConfig, save_policy
@@ -46,11 +46,6 @@ def pendulum_agent(overrides: list[str]) -> PPOConfig:
     with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["experiment=pendulum", *overrides])
     return PPOConfig.from_any(OmegaConf.to_container(cfg.agent, resolve=True))
-
-
-def observation(theta: jax.Array, theta_dot: jax.Array) -> jax.Array:
-    """gymnax Pendulum-v1's observation [..., 3]: cos, sin, angular velocity."""
-    return jnp.stack([jnp.cos(theta), jnp.sin(theta), theta_dot], axis=-1)
 
 
 def main(argv=None) -> None:
@@ -79,8 +74,7 @@ def main(argv=None) -> None:
 
     def greedy(theta, theta_dot):
         """The stationary greedy policy, [-1, 1] units."""
-        q = optimum.q_values(stationary_value, theta, theta_dot)
-        return optimum.torques[jnp.argmax(q, axis=-1)] / max_torque
+        return greedy_torque(optimum, stationary_value, theta, theta_dot) / max_torque
 
     # ------------------------------------------------------------------ states and labels
     rollout_key, uniform_key, init_key, fit_key = jax.random.split(
@@ -113,7 +107,9 @@ def main(argv=None) -> None:
     dots.append(jax.random.uniform(velocity_key, (args.uniform,), minval=-params.max_speed,
                                    maxval=params.max_speed))
     theta, theta_dot = jnp.concatenate(thetas), jnp.concatenate(dots)
-    inputs = observation(theta, theta_dot)
+    inputs = jax.vmap(env.get_obs)(EnvState(theta=theta, theta_dot=theta_dot,
+                                            last_u=jnp.zeros_like(theta),
+                                            time=jnp.zeros(theta.shape, int)))
     labels = jax.jit(greedy)(theta, theta_dot)
 
     # ------------------------------------------------------------------ regression of the actor mean
@@ -156,21 +152,7 @@ def main(argv=None) -> None:
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)
     optimal, _ = optimal_returns(optimum, keys)
     cloned = policy_returns(env, params, out, keys)[0]
-
-    @jax.jit
-    def stationary_returns(keys, value):
-        def episode(key):
-            _, state = env.reset_env(key, params)
-
-            def step(state, _):
-                q = optimum.q_values(value, state.theta, state.theta_dot)
-                torque = optimum.torques[jnp.argmax(q, axis=-1)]
-                _, state, reward, _, _ = env.step_env(key, state, jnp.array([torque]), params)
-                return state, reward
-            return jax.lax.scan(step, state, None, int(params.max_steps_in_episode))[1].sum()
-        return jax.vmap(episode)(keys)
-
-    stationary = np.asarray(stationary_returns(keys, stationary_value))
+    stationary, _ = optimal_returns(optimum, keys, stationary=True)
     print(f"{args.episodes} episodes from the common start states: optimum {optimal.mean():.1f}, "
           f"its stationary greedy policy (the label) {stationary.mean():.1f}, clone "
           f"{cloned.mean():.1f} (gap to the optimum {float((cloned - optimal).mean()):.1f}); "

@@ -95,10 +95,21 @@ def solve(num_angles: int = 512, num_velocities: int = 321, num_torques: int = 4
     return Optimum(env, params, torques, backward(0), q_values, interpolate)
 
 
-def optimal_returns(optimum: Optimum, keys: jax.Array) -> tuple[np.ndarray, np.ndarray]:
-    """Returns of the greedy (time-dependent) policy from ``reset_env(keys[i])`` on the exact
-    dynamics, and the grid's own prediction of them."""
-    env, params, torques, values = optimum.env, optimum.params, optimum.torques, optimum.values
+def greedy_torque(optimum: Optimum, value: jax.Array, theta: jax.Array, theta_dot: jax.Array
+                  ) -> jax.Array:
+    """[...] the torque level that is greedy with respect to ``value`` [A, V] (value to go from
+    the next step)."""
+    return optimum.torques[jnp.argmax(optimum.q_values(value, theta, theta_dot), axis=-1)]
+
+
+def optimal_returns(optimum: Optimum, keys: jax.Array, stationary: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Returns of the greedy policy from ``reset_env(keys[i])`` on the exact dynamics, and the
+    grid's own prediction of them. The policy is time-dependent (the optimum), or with
+    ``stationary`` greedy with respect to ``values[1]`` at every step (what a policy that does not
+    see the time can copy)."""
+    env, params, values = optimum.env, optimum.params, optimum.values
+    horizon = int(params.max_steps_in_episode)
 
     @jax.jit
     def run(keys, values):  # values an argument, not a constant XLA would fold
@@ -106,14 +117,15 @@ def optimal_returns(optimum: Optimum, keys: jax.Array) -> tuple[np.ndarray, np.n
             _, state = env.reset_env(key, params)
 
             def step(state, value):
-                torque = torques[jnp.argmax(optimum.q_values(value, state.theta,
-                                                             state.theta_dot))]
+                value = values[1] if stationary else value
+                torque = greedy_torque(optimum, value, state.theta, state.theta_dot)
                 _, state, reward, _, _ = env.step_env(key, state, jnp.array([torque]), params)
                 return state, reward
             predicted = optimum.interpolate(values[0], state.theta, state.theta_dot)
             # the value to go from step t+1 decides the action at step t
-            next_values = jnp.concatenate([values[1:], jnp.zeros_like(values[:1])])
-            return jax.lax.scan(step, state, next_values)[1].sum(), predicted
+            next_values = (None if stationary else
+                           jnp.concatenate([values[1:], jnp.zeros_like(values[:1])]))
+            return jax.lax.scan(step, state, next_values, horizon)[1].sum(), predicted
         return jax.vmap(episode)(keys)
 
     returns, predicted = run(keys, values)

@@ -631,6 +631,14 @@ _NETWORK_FIELDS = ("recurrent", "hidden", "num_layers", "rnn_hidden", "rnn_skip"
                    "state_dependent_std")
 
 
+def init_policy_file(init_policy: str | Path) -> Path:
+    """``agent.init_policy`` as a path; a clear error where no file is there."""
+    path = Path(str(init_policy))
+    if not path.is_file():
+        raise FileNotFoundError(f"agent.init_policy: no policy file at {path}")
+    return path
+
+
 def warm_start_params(agent: Any, obs_dim: int, action_dim: int) -> Any:
     """Starting variables for ``agent.num_seeds`` seeds from ``agent.init_policy`` (a
     :func:`save_policy` file), stacked over seeds: seed i takes the file's seed i, or every seed
@@ -638,9 +646,7 @@ def warm_start_params(agent: Any, obs_dim: int, action_dim: int) -> Any:
     the learned log std (e.g. to explore less when fine-tuning). Errors name the file and the
     mismatch."""
     config = PPOConfig.from_any(agent)
-    path = Path(str(config.init_policy))
-    if not path.is_file():
-        raise FileNotFoundError(f"agent.init_policy: no policy file at {path}")
+    path = init_policy_file(config.init_policy)
     _, params, meta = load_policy(path)
     theirs = PPOConfig.from_any(meta["agent"])
     differing = {name: (getattr(theirs, name), getattr(config, name)) for name in _NETWORK_FIELDS

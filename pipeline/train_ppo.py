@@ -43,6 +43,7 @@ from pipeline.envs.factory import (
 from pipeline.ppo import (
     PPOConfig,
     action_bounds,
+    init_policy_file,
     save_policy,
     train_seeds,
     warm_start_params,
@@ -81,9 +82,7 @@ def train_ppo_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
     spec: dict[str, Any] = {"env": OmegaConf.to_container(cfg.env, resolve=True), "agent": agent,
                             "seed": int(cfg.seed)}
     if agent.get("init_policy"):  # a warm start: the starting policy's content decides too
-        path = Path(str(agent["init_policy"]))
-        if not path.is_file():
-            raise FileNotFoundError(f"agent.init_policy: no policy file at {path}")
+        path = init_policy_file(agent["init_policy"])
         spec["init_policy_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
     inputs: dict[str, str] = {}
     if env_name == "sim":

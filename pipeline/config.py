@@ -335,10 +335,6 @@ class AgentConfig:
     activation: str = "tanh"  # tanh | relu
     log_std_init: float = -1.0  # initial log std of the Gaussian policy ([-1, 1] units)
     state_dependent_std: bool = False  # the actor outputs the log std (else one learned vector)
-    # gSDE: noise = actor features @ (held standard-normal matrix * learned std matrix), smooth
-    # in time; drawn anew at episode starts and every gsde_sample_freq steps (0: never between)
-    gsde: bool = False
-    gsde_sample_freq: int = 0
     reward_scale: float = 0.1  # rewards are multiplied by this for the update only
     num_evals: int = 10  # deterministic evaluations on held-out goals during training
     eval_envs: int = 256  # episodes per evaluation (0: none)

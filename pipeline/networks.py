@@ -8,8 +8,7 @@ with ``obs [T, B, obs_dim]``, ``resets [T, B]`` (True where ``obs[t]`` starts a 
 GRU state is zeroed before it is read), ``hidden_0 [B, H]``; ``pi`` is a diagonal Gaussian over
 ``[T, B, action_dim]`` (actions in ``[-1, 1]`` units, clipped by the caller) and ``value [T, B]``.
 The feed-forward network ignores ``hidden`` and ``resets`` (its hidden state is a dummy
-``[B, 1]``), so the PPO code has one path for both. With ``gsde`` the policy is a
-:class:`GSDEGaussian`, whose exploration noise can be held over several steps.
+``[B, 1]``), so the PPO code has one path for both.
 """
 
 from __future__ import annotations
@@ -41,7 +40,6 @@ class MLP(nn.Module):
     out: int
     out_scale: float
     activation: str = "tanh"
-    return_features: bool = False  # also return the last hidden layer [..., width]
 
     @nn.compact
     def __call__(self, x):
@@ -49,32 +47,8 @@ class MLP(nn.Module):
         for _ in range(self.num_layers):
             x = act(nn.Dense(self.width, kernel_init=orthogonal(np.sqrt(2)),
                              bias_init=constant(0.0))(x))
-        out = nn.Dense(self.out, kernel_init=orthogonal(self.out_scale),
-                       bias_init=constant(0.0))(x)
-        return (out, x) if self.return_features else out
-
-
-class GSDEGaussian(distrax.MultivariateNormalDiag):
-    """The policy of generalized state-dependent exploration (gSDE; Raffin, Kober and Stulp 2022,
-    "Smooth exploration for robotic reinforcement learning").
-
-    An action is ``loc + features @ (noise * std_matrix)``: ``features [..., F]`` is the actor's
-    last hidden layer (without gradient), ``std_matrix [F, A]`` is learned, and ``noise
-    [..., F, A]`` is a standard-normal matrix the caller holds for several steps, so consecutive
-    actions explore in the same direction where white noise would average out. Given the state
-    the action is Gaussian with variance ``features**2 @ std_matrix**2`` per action dimension:
-    that is what ``log_prob``, ``entropy`` and ``mode`` use.
-    """
-
-    def __init__(self, loc: jax.Array, features: jax.Array, std_matrix: jax.Array):
-        variance = jnp.square(features) @ jnp.square(std_matrix)
-        super().__init__(loc, jnp.sqrt(variance + 1e-6))  # 1e-6: where all features are 0
-        self.features = features
-        self.std_matrix = std_matrix
-
-    def sample_with_noise(self, noise: jax.Array) -> jax.Array:
-        """The action for held standard-normal ``noise [..., F, A]`` (broadcast over ``loc``)."""
-        return self.loc + jnp.einsum("...f,...fa->...a", self.features, noise * self.std_matrix)
+        return nn.Dense(self.out, kernel_init=orthogonal(self.out_scale),
+                        bias_init=constant(0.0))(x)
 
 
 class GaussianActorCriticHeads(nn.Module):
@@ -82,10 +56,7 @@ class GaussianActorCriticHeads(nn.Module):
 
     The log std is one learned vector by default. With ``state_dependent_std`` the actor also
     outputs it (as gymnax-blines' Gaussian MLP does), so the policy can be precise in some states
-    and explore in others; it starts at ``log_std_init`` everywhere and is kept in [-5, 2]. With
-    ``gsde`` the policy is a :class:`GSDEGaussian` and ``log_std`` a learned ``[width,
-    action_dim]`` matrix (starting at ``log_std_init``; the action's std is then about
-    ``|features| * exp(log_std_init)``)."""
+    and explore in others; it starts at ``log_std_init`` everywhere and is kept in [-5, 2]."""
 
     action_dim: int
     width: int
@@ -93,21 +64,9 @@ class GaussianActorCriticHeads(nn.Module):
     activation: str
     log_std_init: float
     state_dependent_std: bool = False
-    gsde: bool = False
 
     @nn.compact
     def __call__(self, features):
-        if self.gsde:
-            mean, actor_features = MLP(self.width, self.num_layers, self.action_dim, 0.01,
-                                       self.activation, return_features=True,
-                                       name="actor")(features)
-            log_std = self.param("log_std", constant(self.log_std_init),
-                                 (actor_features.shape[-1], self.action_dim))
-            value = MLP(self.width, self.num_layers, 1, 1.0, self.activation,
-                        name="critic")(features)
-            # the noise scale should not train the features (gSDE's default)
-            pi = GSDEGaussian(mean, jax.lax.stop_gradient(actor_features), jnp.exp(log_std))
-            return pi, jnp.squeeze(value, axis=-1)
         outputs = (2 if self.state_dependent_std else 1) * self.action_dim
         actor = MLP(self.width, self.num_layers, outputs, 0.01, self.activation,
                     name="actor")(features)
@@ -130,13 +89,12 @@ class ActorCriticFF(nn.Module):
     activation: str = "tanh"
     log_std_init: float = 0.0
     state_dependent_std: bool = False
-    gsde: bool = False
 
     @nn.compact
     def __call__(self, hidden, obs, resets):
         pi, value = GaussianActorCriticHeads(self.action_dim, self.width, self.num_layers,
                                              self.activation, self.log_std_init,
-                                             self.state_dependent_std, self.gsde)(obs)
+                                             self.state_dependent_std)(obs)
         return hidden, pi, value
 
     @staticmethod
@@ -174,7 +132,6 @@ class ActorCriticRNN(nn.Module):
     activation: str = "tanh"
     log_std_init: float = 0.0
     state_dependent_std: bool = False
-    gsde: bool = False
     skip: bool = False
 
     @nn.compact
@@ -187,7 +144,7 @@ class ActorCriticRNN(nn.Module):
             features = jnp.concatenate([features, embedding], axis=-1)
         pi, value = GaussianActorCriticHeads(self.action_dim, self.width, self.num_layers,
                                              self.activation, self.log_std_init,
-                                             self.state_dependent_std, self.gsde)(features)
+                                             self.state_dependent_std)(features)
         return hidden, pi, value
 
     def initialize_carry(self, batch_size: int) -> jax.Array:
@@ -199,8 +156,7 @@ def make_network(agent, action_dim: int) -> nn.Module:
     common = {"action_dim": int(action_dim), "width": int(agent.hidden),
               "num_layers": int(agent.num_layers), "activation": str(agent.activation),
               "log_std_init": float(agent.log_std_init),
-              "state_dependent_std": bool(agent.state_dependent_std),
-              "gsde": bool(agent.gsde)}
+              "state_dependent_std": bool(agent.state_dependent_std)}
     if agent.recurrent:
         return ActorCriticRNN(rnn_hidden=int(agent.rnn_hidden), skip=bool(agent.rnn_skip),
                               **common)

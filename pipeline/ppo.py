@@ -22,9 +22,7 @@ when ``terminated[t]`` nothing is bootstrapped.
 
 Actions: the Gaussian policy acts in ``[-1, 1]`` units; samples are clipped and mapped linearly to
 the environment's ``Box`` bounds (identity for the soft-arm environment, whose own action is
-``[-1, 1]``). Log-probabilities are of the unclipped samples. With ``agent.gsde`` the noise is
-gSDE's (:class:`pipeline.networks.GSDEGaussian`): each environment holds a standard-normal noise
-matrix, drawn anew where an episode starts and every ``agent.gsde_sample_freq`` steps of it.
+``[-1, 1]``). Log-probabilities are of the unclipped samples.
 """
 
 from __future__ import annotations
@@ -80,8 +78,6 @@ class PPOConfig:
     activation: str = "tanh"
     log_std_init: float = -1.0
     state_dependent_std: bool = False
-    gsde: bool = False  # generalized state-dependent exploration: noise held over steps
-    gsde_sample_freq: int = 0  # gSDE noise drawn anew every this many steps (0: per episode)
     reward_scale: float = 0.1
     num_evals: int = 10
     eval_envs: int = 256  # 0: no evaluation
@@ -114,15 +110,6 @@ class PPOConfig:
             raise ValueError(f"recurrent PPO minibatches over environments: num_envs="
                              f"{self.num_envs} must be divisible by num_minibatches="
                              f"{self.num_minibatches}")
-        if self.gsde and self.state_dependent_std:
-            raise ValueError("agent.gsde and agent.state_dependent_std are two ways to make the "
-                             "noise depend on the state: choose one")
-        if self.gsde and self.num_layers < 1:
-            raise ValueError(f"agent.gsde needs a hidden actor layer for its features, got "
-                             f"agent.num_layers={self.num_layers}")
-        if self.gsde_sample_freq < 0:
-            raise ValueError(f"agent.gsde_sample_freq must be >= 0 (0: once per episode), got "
-                             f"{self.gsde_sample_freq}")
         if self.steps_per_update % self.num_minibatches:
             raise ValueError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
                              f"by num_minibatches={self.num_minibatches}")
@@ -151,7 +138,6 @@ class RunnerState(NamedTuple):
     obs: jax.Array  # [B, obs_dim] the next observation
     reset: jax.Array  # [B] bool: obs starts an episode
     hidden: jax.Array  # [B, H] policy hidden state before obs
-    noise: jax.Array  # [B, F, A] gSDE's held standard-normal noise ([B, 1, 1] unused without)
     episode_return: jax.Array  # [B] unscaled return of the running episodes
     episode_length: jax.Array  # [B] int32
     rng: jax.Array
@@ -213,16 +199,6 @@ def compute_gae(
 # ---------------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------------
-def held_noise(key: jax.Array, noise: jax.Array, episode_step: jax.Array,
-               sample_freq: int) -> jax.Array:
-    """gSDE's noise for the next step: ``noise [B, F, A]`` held, except where a fresh standard-
-    normal draw is due: at an episode's first step (``episode_step [B]`` is 0) and, with
-    ``sample_freq > 0``, every ``sample_freq`` steps of the episode."""
-    chex.assert_rank([noise, episode_step], [3, 1])
-    due = episode_step == 0 if sample_freq <= 0 else episode_step % sample_freq == 0
-    return jnp.where(due[:, None, None], jax.random.normal(key, noise.shape, noise.dtype), noise)
-
-
 def action_bounds(env: Any, env_params: Any) -> tuple[np.ndarray, np.ndarray]:
     """The environment's Box action bounds as float32 numpy arrays of the action shape."""
     space = env.action_space(env_params)
@@ -345,10 +321,8 @@ def make_train(
         # ---------------------------------------------------------------- init environments
         obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(
             jax.random.split(reset_key, num_envs), env_params)
-        noise_shape = (config.hidden, action_dim) if config.gsde else (1, 1)
         runner = RunnerState(train_state, env_state, obs, jnp.ones(num_envs, bool), hidden0,
-                             jnp.zeros((num_envs, *noise_shape)), jnp.zeros(num_envs),
-                             jnp.zeros(num_envs, jnp.int32), runner_key)
+                             jnp.zeros(num_envs), jnp.zeros(num_envs, jnp.int32), runner_key)
 
         # ---------------------------------------------------------------- one update
         def update_step(runner: RunnerState, update_index):
@@ -357,13 +331,7 @@ def make_train(
                 rng, action_key, step_key = jax.random.split(runner.rng, 3)
                 params = runner.train_state.params
                 hidden, pi, value = apply_step(params, runner.hidden, runner.obs, runner.reset)
-                noise = runner.noise
-                if config.gsde:
-                    noise = held_noise(action_key, noise, runner.episode_length,
-                                       config.gsde_sample_freq)
-                    action = pi.sample_with_noise(noise)[0]
-                else:
-                    action = pi.sample(seed=action_key)[0]
+                action = pi.sample(seed=action_key)[0]
                 log_prob = pi.log_prob(action[None])[0]
                 obs, env_state, reward, terminated, truncated, info = env_step(
                     jax.random.split(step_key, num_envs), runner.env_state, action, env_params)
@@ -383,7 +351,7 @@ def make_train(
                     "distance": info["distance_m"] if has_distance else jnp.zeros(num_envs),
                 }
                 runner = RunnerState(
-                    runner.train_state, env_state, obs, done, hidden, noise,
+                    runner.train_state, env_state, obs, done, hidden,
                     jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length),
                     rng)
                 return runner, (transition, episode)
@@ -559,8 +527,8 @@ def check_same_variables(expected: Any, given: Any, what: str) -> None:
         wrong = sorted(f"{k}: {given_shapes[k]}, expected {v}" for k, v in expected_shapes.items()
                        if k in given_shapes and given_shapes[k] != v)
         raise ValueError(f"{what} do not fit the agent's network (same agent hidden, "
-                         f"num_layers, recurrent, rnn_hidden, rnn_skip, state_dependent_std, "
-                         f"gsde and environment spaces needed): missing {missing[:4]}, unexpected "
+                         f"num_layers, recurrent, rnn_hidden, rnn_skip, state_dependent_std and "
+                         f"environment spaces needed): missing {missing[:4]}, unexpected "
                          f"{extra[:4]}, wrong shapes {wrong[:4]}")
 
 
@@ -660,7 +628,7 @@ def load_policy(path: str | Path, seed_index: int | None = None) -> tuple[Any, A
 
 # network fields a warm-start policy must share with the agent (the shapes do not show them all)
 _NETWORK_FIELDS = ("recurrent", "hidden", "num_layers", "rnn_hidden", "rnn_skip", "activation",
-                   "state_dependent_std", "gsde")
+                   "state_dependent_std")
 
 
 def init_policy_file(init_policy: str | Path) -> Path:

@@ -79,9 +79,6 @@ def train_ppo_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
     for name in ("init_policy", "init_policy_seed", "init_policy_log_std"):
         if agent.get(name) is None:  # cold starts keep the keys they had before warm starts
             agent.pop(name, None)
-    if not agent.get("gsde"):  # Gaussian noise keeps the keys it had before gSDE
-        agent.pop("gsde", None)
-        agent.pop("gsde_sample_freq", None)
     spec: dict[str, Any] = {"env": OmegaConf.to_container(cfg.env, resolve=True), "agent": agent,
                             "seed": int(cfg.seed)}
     if agent.get("init_policy"):  # a warm start: the starting policy's content decides too

@@ -16,12 +16,11 @@ from pipeline.envs import (
     make_env_params,
     make_gymnax_env,
 )
-from pipeline.networks import GSDEGaussian, initial_hidden, make_network
+from pipeline.networks import initial_hidden, make_network
 from pipeline.ppo import (
     PPOConfig,
     compute_gae,
     deterministic_action,
-    held_noise,
     load_policy,
     save_policy,
     train_seeds,
@@ -95,8 +94,7 @@ def test_update_count_is_a_multiple_of_the_evaluations():
 
 @pytest.mark.parametrize("recurrent, options", [
     (False, {}), (True, {}), (False, {"state_dependent_std": True}),
-    (True, {"rnn_skip": True, "state_dependent_std": True}), (False, {"gsde": True}),
-    (True, {"rnn_skip": True, "gsde": True})])
+    (True, {"rnn_skip": True, "state_dependent_std": True})])
 def test_checkpoint_round_trip_acts_the_same(tmp_path, recurrent, options):
     config = PPOConfig(recurrent=recurrent, hidden=8, rnn_hidden=8, **options)
     network = make_network(config, 3)
@@ -134,66 +132,6 @@ def test_state_dependent_std_starts_at_log_std_init_and_varies_with_the_state():
     assert "log_std" not in variables["params"]["GaussianActorCriticHeads_0"]
 
 
-def test_gsde_policy_by_hand():
-    # features [1, 2] (F = 2), std matrix [F, A = 2]: variance features**2 @ std**2 per action
-    loc, features = jnp.array([0.1, -0.2]), jnp.array([1.0, 2.0])
-    std_matrix = jnp.array([[0.5, 1.0], [0.1, 0.0]])
-    pi = GSDEGaussian(loc, features, std_matrix)
-    np.testing.assert_allclose(pi.variance(), [0.25 + 4 * 0.01 + 1e-6, 1.0 + 1e-6], rtol=1e-6)
-    np.testing.assert_allclose(pi.mode(), loc)
-    # held noise [[1, 2], [3, 4]] * std = [[0.5, 2], [0.3, 0]]; features @ that = [1.1, 2.0]
-    action = pi.sample_with_noise(jnp.array([[1.0, 2.0], [3.0, 4.0]]))
-    np.testing.assert_allclose(action, [0.1 + 1.1, -0.2 + 2.0], rtol=1e-6)
-    # over fresh noise draws the actions have the distribution log_prob describes
-    noise = jax.random.normal(jax.random.PRNGKey(0), (200_000, 2, 2))
-    actions = pi.sample_with_noise(noise)
-    np.testing.assert_allclose(actions.mean(0), loc, atol=0.01)
-    np.testing.assert_allclose(actions.var(0), pi.variance(), rtol=0.02)
-    expected = -0.5 * jnp.sum(jnp.square(action - loc) / pi.variance()
-                              + jnp.log(2 * jnp.pi * pi.variance()))
-    np.testing.assert_allclose(pi.log_prob(action), expected, rtol=1e-5)
-
-
-def test_gsde_network_learns_a_std_matrix_and_its_noise_does_not_train_the_features():
-    config = PPOConfig(hidden=16, log_std_init=-1.0, gsde=True)
-    network = make_network(config, 3)
-    hidden = initial_hidden(network, 4)
-    obs = jax.random.normal(jax.random.PRNGKey(1), (1, 4, 6))
-    resets = jnp.ones((1, 4), bool)
-    variables = network.init(jax.random.PRNGKey(0), hidden, obs, resets)
-    heads = variables["params"]["GaussianActorCriticHeads_0"]
-    np.testing.assert_allclose(heads["log_std"], np.full((16, 3), -1.0))
-
-    def entropy(variables):
-        return network.apply(variables, hidden, obs, resets)[1].entropy().sum()
-
-    grads = jax.grad(entropy)(variables)["params"]["GaussianActorCriticHeads_0"]
-    assert float(jnp.abs(grads["log_std"]).sum()) > 0
-    assert float(jnp.abs(grads["actor"]["Dense_0"]["kernel"]).sum()) == 0
-    # the std depends on the state through the features
-    _, pi, _ = network.apply(variables, hidden, obs, resets)
-    assert float(jnp.std(pi.stddev()[0, :, 0])) > 1e-3
-
-
-@pytest.mark.parametrize("sample_freq, drawn", [(0, [True, False, False, False]),
-                                                (4, [True, False, True, False])])
-def test_gsde_noise_is_held_between_draws(sample_freq, drawn):
-    held = jnp.full((4, 2, 3), 7.0)
-    episode_step = jnp.array([0, 1, 4, 5])
-    noise = held_noise(jax.random.PRNGKey(0), held, episode_step, sample_freq)
-    assert np.asarray(jnp.any(noise != 7.0, axis=(1, 2))).tolist() == drawn
-    assert np.all(np.asarray(noise)[~np.array(drawn)] == 7.0)
-
-
-@pytest.mark.parametrize("options, message", [
-    ({"gsde": True, "state_dependent_std": True}, "choose one"),
-    ({"gsde": True, "num_layers": 0}, "num_layers=0"),
-    ({"gsde": True, "gsde_sample_freq": -1}, "gsde_sample_freq")])
-def test_gsde_options_that_do_not_fit_are_errors(options, message):
-    with pytest.raises(ValueError, match=message):
-        PPOConfig(**options).check()
-
-
 def test_rnn_skip_feeds_the_embedding_beside_the_gru_to_the_heads():
     def first_head_kernel(skip):
         config = PPOConfig(recurrent=True, hidden=8, rnn_hidden=5, rnn_skip=skip)
@@ -222,14 +160,12 @@ def toy_reaching():
     return env, params
 
 
-@pytest.mark.parametrize("exploration", [
-    {}, {"gsde": True, "gsde_sample_freq": 4, "log_std_init": -2.0}])
-def test_tiny_ppo_run_improves_on_a_toy_arm(exploration):
+def test_tiny_ppo_run_improves_on_a_toy_arm():
     env, params = toy_reaching()
     # eval_envs=0: no evaluation rollouts, which roughly halves the compile time
     agent = PPOConfig(num_seeds=1, num_envs=16, num_steps=10, total_timesteps=16 * 10 * 60,
-                      num_evals=2, eval_envs=0, hidden=32, lr=1e-3, reward_scale=0.1,
-                      progress=False, **{"log_std_init": -1.0, **exploration})
+                      num_evals=2, eval_envs=0, hidden=32, lr=1e-3, log_std_init=-1.0,
+                      reward_scale=0.1, progress=False)
     output = train_seeds(agent, env, params)
     returns = np.asarray(output.metrics["mean_return"])[0]
     distance = np.asarray(output.metrics["final_distance_m"])[0]
@@ -324,10 +260,7 @@ def test_warm_start_policy_content_is_part_of_the_train_ppo_key(make_cfg, tmp_pa
     stacked_policy(path, PPOConfig(), num_seeds=1, log_std=-0.3)
     cold = train_ppo_key(make_cfg("env=gymnax"))
     # cold starts keep the keys they had before the option existed (cached artifacts stay valid)
-    cold_agent = train_ppo_spec(make_cfg("env=gymnax"))[0]["agent"]
-    assert not {"init_policy", "gsde", "gsde_sample_freq"} & set(cold_agent)
-    gsde_agent = train_ppo_spec(make_cfg("env=gymnax", "agent.gsde=true"))[0]["agent"]
-    assert gsde_agent["gsde"] is True and gsde_agent["gsde_sample_freq"] == 0
+    assert "init_policy" not in train_ppo_spec(make_cfg("env=gymnax"))[0]["agent"]
     warm = train_ppo_key(make_cfg("env=gymnax", f"agent.init_policy={path}"))
     stacked_policy(path, PPOConfig(), num_seeds=1, log_std=-0.4)  # same path, new content
     rewritten = train_ppo_key(make_cfg("env=gymnax", f"agent.init_policy={path}"))

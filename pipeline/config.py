@@ -333,7 +333,9 @@ class AgentConfig:
     rnn_hidden: int = 64  # GRU width (recurrent only)
     rnn_skip: bool = False  # heads read the current embedding beside the GRU output
     activation: str = "tanh"  # tanh | relu
-    log_std_init: float = -1.0  # initial log std of the Gaussian policy ([-1, 1] units)
+    # initial log std of the Gaussian policy ([-1, 1] units): -2 (std 0.14); on the arm, -1
+    # ended 0.2 mm less precise (experiments/PPO_RESULTS.md)
+    log_std_init: float = -2.0
     state_dependent_std: bool = False  # the actor outputs the log std (else one learned vector)
     reward_scale: float = 0.1  # rewards are multiplied by this for the update only
     num_evals: int = 10  # deterministic evaluations on held-out goals during training

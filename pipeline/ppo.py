@@ -76,7 +76,7 @@ class PPOConfig:
     rnn_hidden: int = 64
     rnn_skip: bool = False
     activation: str = "tanh"
-    log_std_init: float = -1.0
+    log_std_init: float = -2.0
     state_dependent_std: bool = False
     reward_scale: float = 0.1
     num_evals: int = 10

@@ -526,10 +526,9 @@ def check_same_variables(expected: Any, given: Any, what: str) -> None:
         extra = sorted(set(given_shapes) - set(expected_shapes))
         wrong = sorted(f"{k}: {given_shapes[k]}, expected {v}" for k, v in expected_shapes.items()
                        if k in given_shapes and given_shapes[k] != v)
-        raise ValueError(f"{what} do not fit the agent's network (same agent hidden, "
-                         f"num_layers, recurrent, rnn_hidden, rnn_skip, state_dependent_std and "
-                         f"environment spaces needed): missing {missing[:4]}, unexpected "
-                         f"{extra[:4]}, wrong shapes {wrong[:4]}")
+        raise ValueError(f"{what} do not fit the agent's network (the same agent "
+                         f"{', '.join(_NETWORK_FIELDS)} and environment spaces needed): missing "
+                         f"{missing[:4]}, unexpected {extra[:4]}, wrong shapes {wrong[:4]}")
 
 
 def _has_distance(env: Any, env_params: Any) -> bool:

@@ -264,7 +264,8 @@ def train_ppo(cfg: Any) -> Artifact:
         env, train_params, eval_params = learned_env_for(cfg)
         low, high = action_bounds(env, train_params)
         obs_dim = int(np.prod(env.observation_space(train_params).shape))
-        init_params = (warm_start_params(agent, obs_dim, int(np.prod(low.shape)))
+        action_dim = int(np.prod(low.shape))
+        init_params = (warm_start_params(agent, obs_dim, action_dim)
                        if agent.init_policy else None)
         timings: dict[str, float] = {}
         output = train_seeds(agent, env, train_params, eval_params, seed=int(cfg.seed),
@@ -284,7 +285,7 @@ def train_ppo(cfg: Any) -> Artifact:
         save_policy(writer.file("policy.msgpack"), output.params, {
             "agent": spec["agent"], "env": spec["env"], "env_name": env.name,
             "obs_dim": obs_dim, "init_policy_sha256": spec.get("init_policy_sha256"),
-            "action_dim": int(np.prod(low.shape)), "action_low": low.tolist(),
+            "action_dim": action_dim, "action_low": low.tolist(),
             "action_high": high.tolist(), "num_seeds": agent.num_seeds,
         })
         plot_returns(writer.file("figures/returns.png"), metrics, summary,

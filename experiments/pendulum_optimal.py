@@ -141,6 +141,8 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--policy", default=None,
                         help="a train_ppo policy.msgpack to compare, from the same start states")
+    parser.add_argument("--sampled", action="store_true",
+                        help="with --policy, also run it with actions sampled from its Gaussian")
     args = parser.parse_args(argv)
 
     started = time.perf_counter()
@@ -154,11 +156,13 @@ def main(argv=None) -> None:
           f"p5 {np.percentile(returns, 5):.1f}; the grid's own estimate of the optimum "
           f"{predicted.mean():.1f}  [{time.perf_counter() - started:.0f} s]")
     if args.policy:
-        compare_policy(optimum.env, optimum.params, args.policy, keys, returns)
+        compare_policy(optimum.env, optimum.params, args.policy, keys, returns, args.sampled)
 
 
-def policy_returns(env, params, policy_path, keys) -> np.ndarray:
-    """[seeds, episodes] returns of the policy's mean action from ``reset_env(keys[i])``."""
+def policy_returns(env, params, policy_path, keys, sampled: bool = False) -> np.ndarray:
+    """[seeds, episodes] returns of the policy's mean action from ``reset_env(keys[i])``, or with
+    ``sampled`` of actions drawn from its distribution (as in training, and as the gymnax-blines
+    evaluation that the published figure comes from)."""
     network, stacked, meta = load_policy(policy_path)
     if meta.get("env", {}).get("scale_observations"):
         env = BoundsScaledObservation(env)  # as the policy was trained (train_ppo)
@@ -171,16 +175,22 @@ def policy_returns(env, params, policy_path, keys) -> np.ndarray:
         def episode(key):
             obs, state = env.reset(key, params)  # reset_env(key): the optimum's start state
 
-            def step(carry, _):
+            def step(carry, noise_key):
                 obs, state, hidden = carry
-                hidden, action = deterministic_action(network, variables, hidden, obs[None],
-                                                      jnp.zeros(1, bool))
+                if sampled:
+                    hidden, pi, _ = network.apply(variables, hidden, obs[None, None],
+                                                  jnp.zeros((1, 1), bool))
+                    action = pi.sample(seed=noise_key)[0]
+                else:
+                    hidden, action = deterministic_action(network, variables, hidden, obs[None],
+                                                          jnp.zeros(1, bool))
                 # 200 steps: the auto-reset of step() comes after the last reward
                 obs, state, reward, _, _, _ = env.step(
                     key, state, to_env_action(action[0], low, high), params)
                 return (obs, state, hidden), reward
             carry = (obs, state, initial_hidden(network, 1))
-            return jax.lax.scan(step, carry, None, horizon)[1].sum()
+            noise_keys = jax.random.split(jax.random.fold_in(key, 1), horizon)
+            return jax.lax.scan(step, carry, noise_keys)[1].sum()
         return jax.vmap(episode)(keys)
 
     num_seeds = int(meta.get("num_seeds", 1))
@@ -188,8 +198,15 @@ def policy_returns(env, params, policy_path, keys) -> np.ndarray:
                      for i in range(num_seeds)])
 
 
-def compare_policy(env, params, policy_path, keys, optimal) -> None:
+def compare_policy(env, params, policy_path, keys, optimal, sampled: bool = False) -> None:
     """Print the policy's returns next to the optimum's, from the same start states."""
+    if sampled:
+        noisy = policy_returns(env, params, policy_path, keys, sampled=True)
+        # what one published-style figure (the mean of 164 episodes) spreads over
+        chunks = noisy[:, : noisy.shape[1] // 164 * 164].reshape(noisy.shape[0], -1, 164)
+        print(f"policy {policy_path}, actions sampled: mean return {noisy.mean():.1f}; per seed "
+              f"{[round(float(x), 1) for x in noisy.mean(axis=1)]}; means of 164 episodes range "
+              f"{chunks.mean(axis=2).min():.1f} .. {chunks.mean(axis=2).max():.1f}")
     returns = policy_returns(env, params, policy_path, keys)
     gap = returns - optimal[None]
     print(f"policy {policy_path}: {returns.shape[0]} seeds x {returns.shape[1]} episodes, mean "

@@ -136,7 +136,8 @@ def main(argv=None) -> None:
                                               jax.random.split(key, args.fit_steps))
         return variables, losses
 
-    variables, losses = fit(variables, fit_key, inputs, labels)  # the log std stays at agent.log_std_init
+    # the log std stays at agent.log_std_init
+    variables, losses = fit(variables, fit_key, inputs, labels)
     print(f"clone: {inputs.shape[0]} states, regression MSE {float(losses[:100].mean()):.4f} "
           f"(first 100 steps) -> {float(losses[-100:].mean()):.4f} (last 100)")
 

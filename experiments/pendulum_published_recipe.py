@@ -35,12 +35,15 @@ import argparse
 import time
 from typing import NamedTuple
 
+import distrax
 import flax.linen as nn
 import gymnax
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+
+from pipeline.ppo import compute_gae
 
 NUM_ENVS = 32
 ROLLOUT = 16  # transitions per environment that train; one more is collected to bootstrap
@@ -55,7 +58,7 @@ MIN_STD = 0.001
 
 
 class ActorCritic(nn.Module):
-    """Separate MLPs: ``obs [..., 3] -> (value [...], mean [..., 1], std [..., 1])``."""
+    """Separate MLPs: ``obs [..., 3] -> (value [...], Gaussian over the torque [..., 1])``."""
 
     hidden: int = 64
     layers: int = 2
@@ -72,39 +75,41 @@ class ActorCritic(nn.Module):
         features = mlp(obs, "actor")
         mean = nn.Dense(1, bias_init=bias, name="mean")(features)
         std = jax.nn.softplus(nn.Dense(1, bias_init=bias, name="scale")(features)) + MIN_STD
-        return value, mean, std
-
-
-def log_prob(mean, std, action):
-    """Diagonal Gaussian log density, summed over the action dimension: [...]."""
-    z = (action - mean) / std
-    return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * jnp.log(2 * jnp.pi), axis=-1)
-
-
-def entropy(std):
-    return jnp.sum(0.5 + 0.5 * jnp.log(2 * jnp.pi) + jnp.log(std), axis=-1)
+        return value, distrax.MultivariateNormalDiag(mean, std)
 
 
 class Rollout(NamedTuple):
     obs: jax.Array  # [T+1, N, 3]
     action: jax.Array  # [T+1, N, 1]
     reward: jax.Array  # [T+1, N]
-    done: jax.Array  # [T+1, N], the episode ended with this step (time limit included)
+    done: jax.Array  # [T+1, N] bool, the episode ended with this step (time limit included)
     log_prob: jax.Array  # [T+1, N]
     value: jax.Array  # [T+1, N]
 
 
 def gae(rollout: Rollout) -> tuple[jax.Array, jax.Array]:
-    """Advantages and value targets [T, N] for the first T steps; step T only bootstraps."""
-    def backward(advantage, t):
-        not_done = 1.0 - rollout.done[t]
-        delta = (rollout.reward[t] + GAMMA * rollout.value[t + 1] * not_done
-                 - rollout.value[t])
-        advantage = delta + GAMMA * LAMBDA * not_done * advantage
-        return advantage, advantage
-    _, advantages = jax.lax.scan(backward, jnp.zeros(NUM_ENVS), jnp.arange(ROLLOUT),
-                                 reverse=True)
-    return advantages, advantages + rollout.value[:-1]
+    """Advantages and value targets [T, N] for the first T steps; step T only bootstraps. Every
+    episode end, the time limit included, is terminal (no bootstrap), as in the recipe."""
+    never = jnp.zeros_like(rollout.done[:-1])
+    return compute_gae(rollout.reward[:-1], rollout.value[:-1], rollout.done[:-1], never, never,
+                       rollout.value[-1], GAMMA, LAMBDA)
+
+
+def episode_returns(env, env_params, network, params, keys, sample: bool) -> jax.Array:
+    """[episodes] returns of whole episodes from ``env.reset(keys[i])``, with the Gaussian's mean
+    as the action or a sample of it."""
+    def episode(key):
+        obs, state = env.reset(key, env_params)
+
+        def step(carry, noise_key):
+            obs, state = carry
+            _, pi = network.apply(params, obs)
+            action = pi.sample(seed=noise_key) if sample else pi.mode()
+            obs, state, reward, *_ = env.step(key, state, action, env_params)
+            return (obs, state), reward
+        noise = jax.random.split(jax.random.fold_in(key, 1), env_params.max_steps_in_episode)
+        return jax.lax.scan(step, (obs, state), noise)[1].sum()
+    return jax.vmap(episode)(keys)
 
 
 def make_train(env, env_params, reward_scale: float = 1.0):
@@ -116,36 +121,19 @@ def make_train(env, env_params, reward_scale: float = 1.0):
 
     def evaluate(params, key):
         """The published protocol: mean return of EVAL_ROLLOUTS sampled episodes."""
-        reset_key, episode_key = jax.random.split(key)
-        obs, state = jax.vmap(env.reset, (0, None))(
-            jax.random.split(reset_key, EVAL_ROLLOUTS), env_params)
-
-        def step(carry, key):
-            obs, state, total, alive = carry
-            noise_key, step_key = jax.random.split(key)
-            _, mean, std = network.apply(params, obs)
-            action = mean + std * jax.random.normal(noise_key, mean.shape)
-            obs, state, reward, terminated, truncated, _ = jax.vmap(
-                env.step, (0, 0, 0, None))(jax.random.split(step_key, EVAL_ROLLOUTS), state,
-                                          action, env_params)
-            total = total + reward * alive
-            alive = alive * (1.0 - jnp.logical_or(terminated, truncated))
-            return (obs, state, total, alive), None
-        carry = (obs, state, jnp.zeros(EVAL_ROLLOUTS), jnp.ones(EVAL_ROLLOUTS))
-        (_, _, total, _), _ = jax.lax.scan(
-            step, carry, jax.random.split(episode_key, env_params.max_steps_in_episode))
-        return total.mean()
+        return episode_returns(env, env_params, network, params,
+                               jax.random.split(key, EVAL_ROLLOUTS), sample=True).mean()
 
     def loss_fn(params, obs, action, old_log_prob, old_value, target, advantage):
-        value, mean, std = network.apply(params, obs)
+        value, pi = network.apply(params, obs)
         clipped_value = old_value + jnp.clip(value - old_value, -CLIP_EPS, CLIP_EPS)
         value_loss = 0.5 * jnp.maximum((value - target) ** 2,
                                        (clipped_value - target) ** 2).mean()
-        ratio = jnp.exp(log_prob(mean, std, action) - old_log_prob)
+        ratio = jnp.exp(pi.log_prob(action) - old_log_prob)
         advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
         actor_loss = -jnp.minimum(ratio * advantage,
                                   jnp.clip(ratio, 1 - CLIP_EPS, 1 + CLIP_EPS) * advantage).mean()
-        return actor_loss + VF_COEF * value_loss - ENT_COEF * entropy(std).mean()
+        return actor_loss + VF_COEF * value_loss - ENT_COEF * pi.entropy().mean()
 
     def train(key):
         init_key, reset_key, key = jax.random.split(key, 3)
@@ -157,14 +145,13 @@ def make_train(env, env_params, reward_scale: float = 1.0):
         def env_step(carry, key):
             params, obs, state = carry
             noise_key, step_key = jax.random.split(key)
-            value, mean, std = network.apply(params, obs)
-            action = mean + std * jax.random.normal(noise_key, mean.shape)
+            value, pi = network.apply(params, obs)
+            action, action_log_prob = pi.sample_and_log_prob(seed=noise_key)
             next_obs, state, reward, terminated, truncated, _ = jax.vmap(
                 env.step, (0, 0, 0, None))(jax.random.split(step_key, NUM_ENVS), state, action,
                                           env_params)
-            done = jnp.logical_or(terminated, truncated).astype(jnp.float32)
-            transition = Rollout(obs, action, reward * reward_scale, done,
-                                 log_prob(mean, std, action), value)
+            done = jnp.logical_or(terminated, truncated)
+            transition = Rollout(obs, action, reward * reward_scale, done, action_log_prob, value)
             return (params, next_obs, state), transition
 
         def update(carry, key):
@@ -207,22 +194,6 @@ def make_train(env, env_params, reward_scale: float = 1.0):
     return network, train
 
 
-def common_start_returns(env, env_params, network, params, keys, sample: bool) -> jax.Array:
-    """[episodes] returns from ``env.reset(keys[i])``, the mean action or a sampled one."""
-    def episode(key):
-        obs, state = env.reset(key, env_params)
-
-        def step(carry, noise_key):
-            obs, state = carry
-            _, mean, std = network.apply(params, obs)
-            action = mean + std * jax.random.normal(noise_key, mean.shape) if sample else mean
-            obs, state, reward, *_ = env.step(key, state, action, env_params)
-            return (obs, state), reward
-        noise = jax.random.split(jax.random.fold_in(key, 1), env_params.max_steps_in_episode)
-        return jax.lax.scan(step, (obs, state), noise)[1].sum()
-    return jax.vmap(episode)(keys)
-
-
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=16)
@@ -243,8 +214,8 @@ def main(argv=None) -> None:
 
     @jax.jit
     def scores(params):
-        return (common_start_returns(env, env_params, network, params, keys, sample=False),
-                common_start_returns(env, env_params, network, params, keys, sample=True))
+        return (episode_returns(env, env_params, network, params, keys, sample=False),
+                episode_returns(env, env_params, network, params, keys, sample=True))
     deterministic, sampled = (np.asarray(x) for x in jax.vmap(scores)(params))
     evaluations = np.asarray(evaluations)
     final, best = evaluations[:, -1], evaluations.max(axis=1)

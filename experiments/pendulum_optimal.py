@@ -29,9 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline.envs.factory import BoundsScaledObservation
-from pipeline.networks import initial_hidden
-from pipeline.ppo import deterministic_action, load_policy, to_env_action
+from pipeline.rl.envs.factory import BoundsScaledObservation
+from pipeline.rl.networks import initial_hidden
+from pipeline.rl.policy_io import deterministic_action, load_policy
+from pipeline.rl.ppo import to_env_action
 
 ANGLE_BINS = 12  # start-angle bins of the breakdown (0 is upright, +-pi hanging down)
 

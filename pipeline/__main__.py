@@ -17,35 +17,28 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from pipeline import keys
 from pipeline.config import RobotKind, Stage, register_configs
 
 log = logging.getLogger("pipeline")
 
-# stage -> "module:function"; a stage whose module is not there yet is skipped by `all`.
+# stage -> "module:function"
 STAGES: dict[Stage, str] = {
-    Stage.collect: "pipeline.collect:collect",
-    Stage.align: "pipeline.align:align",
-    Stage.fit_model: "pipeline.fit_model:fit_model",
-    Stage.train_ppo: "pipeline.train_ppo:train_ppo",
-    Stage.evaluate: "pipeline.evaluate:evaluate",
-    Stage.twin: "pipeline.ros2.twin:twin",
+    Stage.collect: "pipeline.stages.collect:collect",
+    Stage.align: "pipeline.stages.align:align",
+    Stage.fit_model: "pipeline.stages.fit_model:fit_model",
+    Stage.train_ppo: "pipeline.stages.train_ppo:train_ppo",
+    Stage.evaluate: "pipeline.stages.evaluate:evaluate",
+    Stage.twin: "pipeline.stages.twin:twin",
 }
 # what `stage=all` runs, in order (the digital twin is a server, started on its own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
-# evaluate trains the other policy types it compares when they are missing
-CHAIN_OPTIONS: dict[Stage, dict[str, Any]] = {Stage.evaluate: {"train_missing": True}}
 
 
-def stage_function(stage: Stage) -> Callable[[Any], Any] | None:
-    """The function that runs ``stage``, or None if this version does not implement it."""
+def stage_function(stage: Stage) -> Callable[[Any], Any]:
+    """The function that runs ``stage``."""
     module_name, function_name = STAGES[stage].split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as err:
-        if err.name == module_name:
-            return None
-        raise
-    return getattr(module, function_name)
+    return getattr(importlib.import_module(module_name), function_name)
 
 
 def stages_to_run(cfg: Any) -> list[Stage]:
@@ -77,16 +70,15 @@ def run(cfg: Any) -> dict[str, Any]:
         upstream_cfg.force = False
     results = {}
     for name in stages_to_run(cfg):
-        function = stage_function(name)
-        if function is None:
-            if stage is Stage.all:
-                log.warning("stage %s is not implemented in this version; the chain stops here",
-                            name.value)
-                break
-            raise NotImplementedError(f"stage={name.value} is not implemented in this version")
         started = time.perf_counter()
         stage_cfg = cfg if name is stage else upstream_cfg
-        results[name.value] = function(stage_cfg, **CHAIN_OPTIONS.get(name, {}))
+        function = stage_function(name)
+        if name is Stage.evaluate and stage is Stage.all:
+            # the chain trains every policy type evaluate compares (reused when there)
+            train = stage_function(Stage.train_ppo)
+            for variant in keys.policy_configs(stage_cfg).values():
+                train(variant)
+        results[name.value] = function(stage_cfg)
         log.info("stage %s done in %.1f s", name.value, time.perf_counter() - started)
     return results
 

@@ -21,7 +21,17 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 
-class Stage(str, Enum):
+class Choice(str, Enum):
+    """A closed set of options: compares equal to, prints and formats as its value."""
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
+class Stage(Choice):
     collect = "collect"
     align = "align"
     fit_model = "fit_model"
@@ -31,7 +41,7 @@ class Stage(str, Enum):
     all = "all"
 
 
-class RobotKind(str, Enum):
+class RobotKind(Choice):
     sim = "sim"
     ros2 = "ros2"
     sorolex_csv = "sorolex_csv"
@@ -39,9 +49,20 @@ class RobotKind(str, Enum):
     rosbag = "rosbag"
 
 
-class GapPolicy(str, Enum):
+class GapPolicy(Choice):
     error = "error"  # a mocap gap longer than max_gap_s aborts align, naming the run and time
     split = "split"  # the run is split at the gap into runs '<id>#0', '<id>#1', ... (counted)
+
+
+class EnvName(Choice):
+    learned = "learned"  # the fitted model of the fit_model artifact
+    sim = "sim"  # the simulated arm itself
+    gymnax = "gymnax"  # a standard gymnax environment (env.gymnax_name), to check the PPO
+
+
+class GoalSource(Choice):
+    predicted = "predicted"  # the model's open-loop predictions along the runs: reachable in it
+    measured = "measured"  # the runs' recorded positions
 
 
 # --------------------------------------------------------------------------------------------
@@ -74,7 +95,7 @@ class MocapConfig:
 
 @dataclass
 class SimPhysics:
-    """Parameters of the simulated 3-chamber bellows arm (see ``pipeline/sim_arm.py``).
+    """Parameters of the simulated 3-chamber bellows arm (see ``pipeline/arm/sim_arm.py``).
 
     Calibrated by hand to the magnitudes of the real arm in ``shared/data/sorolex``.
     """
@@ -129,12 +150,12 @@ class ImportRobotConfig(RobotConfig):
     files: list[str] = field(default_factory=list)  # explicit names inside data_dir; empty = glob
 
 
-class QosReliability(str, Enum):
+class QosReliability(Choice):
     reliable = "reliable"
     best_effort = "best_effort"
 
 
-class QosDurability(str, Enum):
+class QosDurability(Choice):
     volatile = "volatile"
     transient_local = "transient_local"
 
@@ -255,7 +276,7 @@ class DatasetConfig:
 # --------------------------------------------------------------------------------------------
 @dataclass
 class ModelConfig:
-    """The LSTM forward-dynamics model and its training (see ``pipeline/train_model.py``)."""
+    """The LSTM forward-dynamics model and its training (see ``pipeline/dynamics/training.py``)."""
 
     name: str = "lstm"
     hidden: int = 64
@@ -286,7 +307,7 @@ class EnvConfig:
     gymnax environment, ``gymnax_name``, to check the PPO against published returns).
     """
 
-    name: str = "learned"
+    name: EnvName = EnvName.learned
     max_steps: int = 40  # control periods per episode (truncation)
     goal_tolerance_m: float = 0.001  # terminate within this distance of the goal
     goal_mode: str = "data"  # data (uniform over positions seen) | perturb (paper: N(0,1)*pert.)
@@ -304,12 +325,12 @@ class EnvConfig:
     num_goals: int = 2048  # env=sim: goals drawn from the simulated arm's reachable set
     held_out_fraction: float = 0.25  # env=sim: share of the goals kept for evaluation
     goal_every: int = 1  # env=learned: use every n-th row (at model_hz) as a goal
-    goal_source: str = "predicted"  # env=learned: predicted (model along the runs) | measured
+    goal_source: GoalSource = GoalSource.predicted  # env=learned
 
 
 @dataclass
 class AgentConfig:
-    """PPO (``pipeline/ppo.py``); ``recurrent`` selects the GRU actor-critic."""
+    """PPO (``pipeline/rl/ppo.py``); ``recurrent`` selects the GRU actor-critic."""
 
     name: str = "ppo_ff"
     recurrent: bool = False
@@ -346,6 +367,34 @@ class AgentConfig:
     init_policy: str | None = None
     init_policy_seed: int | None = None
     init_policy_log_std: float | None = None
+
+    @classmethod
+    def from_any(cls, config: Any, **overrides: Any) -> AgentConfig:
+        """From a mapping, a dataclass or an OmegaConf node (plus ``overrides``); unknown keys
+        fail, naming them."""
+        return cls(**dataclass_values(cls, config, "agent", overrides))
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_steps * self.num_envs
+
+    @property
+    def updates_per_eval(self) -> int:
+        return max(1, self.total_timesteps // self.steps_per_update // self.num_evals)
+
+    @property
+    def num_updates(self) -> int:
+        """Updates actually run: a multiple of ``num_evals`` (total_timesteps rounded down)."""
+        return self.updates_per_eval * self.num_evals
+
+    def check(self) -> None:
+        if self.recurrent and self.num_envs % self.num_minibatches:
+            raise ValueError(f"recurrent PPO minibatches over environments: num_envs="
+                             f"{self.num_envs} must be divisible by num_minibatches="
+                             f"{self.num_minibatches}")
+        if self.steps_per_update % self.num_minibatches:
+            raise ValueError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
+                             f"by num_minibatches={self.num_minibatches}")
 
 
 @dataclass

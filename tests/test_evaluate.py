@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline import rollouts
 from pipeline.__main__ import run
-from pipeline.envs.factory import make_sim_env
-from pipeline.metrics import episode_metrics
+from pipeline.evaluation import rollouts
+from pipeline.evaluation.metrics import episode_metrics
+from pipeline.rl.envs.factory import make_sim_env
 
 
 def test_plant_rollouts_under_vmap_match_single_ones(make_cfg):

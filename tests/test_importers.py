@@ -8,9 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.align import align_run
-from pipeline.importers import read_plotjuggler_csv, read_sorolex_csv
-from pipeline.schemas import DataError
+from pipeline.data.alignment import align_run
+from pipeline.data.importers import read_plotjuggler_csv, read_sorolex_csv
+from pipeline.data.schemas import DataError
 
 LIMITS = SimpleNamespace(p_min=-3.0, p_max=7.0, sum_max=13.0, preload=2.0)
 SETTINGS = SimpleNamespace(max_match_dt_s=0.05, max_gap_s=0.25, gap_policy="error",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from pipeline.report import Figure, Section, Table, write_report
+from pipeline.evaluation.report import Figure, Section, Table, write_report
 
 
 def test_report_has_every_section_table_and_figure(tmp_path):

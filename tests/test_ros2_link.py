@@ -19,11 +19,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.align import align
-from pipeline.artifacts import ArtifactStore
-from pipeline.collect import STAGE, collect_key
-from pipeline.ros2.collector import exploration_plan
-from pipeline.schemas import CMD_COLUMNS, DataError
+from pipeline.arm.exploration import exploration_plan
+from pipeline.data.schemas import CMD_COLUMNS, DataError
+from pipeline.infra.artifacts import ArtifactStore
+from pipeline.keys import key
+from pipeline.stages.align import align
+from pipeline.stages.collect import STAGE
 from tests.conftest import compose_config
 
 pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
@@ -113,14 +114,16 @@ def test_twin_collect_align_end_to_end(tmp_path, ros_domain):
         assert stop(twin) == 0, pipe.log("twin")
 
     cfg = pipe.cfg()
-    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, collect_key(cfg))
+    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, key("collect", cfg))
     commands = pd.read_parquet(artifact.file("commands.parquet"))
     mocap = pd.read_parquet(artifact.file("mocap.parquet"))
     runs = pd.read_parquet(artifact.file("runs.parquet"))
     summary = artifact.manifest["summary"]
 
     # the commands: the exploration walk, projected onto the limits, at 2 Hz of the arm's time
-    (run_id, planned), = exploration_plan(cfg)
+    (planned,) = exploration_plan(cfg.exploration, cfg.robot.limits, cfg.robot.n_valves,
+                                  cfg.robot.num_runs).commands
+    run_id = "ros2-000"
     assert runs.to_dict("records") == [{
         "run_id": run_id, "source": f"{cfg.robot.pose_topic} [sorolearn_twin]", "complete": True,
         "n_commands": len(planned), "n_frames": len(mocap)}]
@@ -170,7 +173,7 @@ def _interrupted_collect(pipe: Pipeline, interrupt) -> tuple[int, str]:
 def _partial_artifact(pipe: Pipeline):
     """The collect artifact of this config: one run, cut short, every chunk in it."""
     cfg = pipe.cfg()
-    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, collect_key(cfg))
+    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, key("collect", cfg))
     runs = pd.read_parquet(artifact.file("runs.parquet"))
     commands = pd.read_parquet(artifact.file("commands.parquet"))
     assert not runs.loc[0, "complete"]

@@ -2,8 +2,8 @@ import jax
 import numpy as np
 import pytest
 
-from pipeline import train_model
-from pipeline.train_model import ModelTrainConfig
+from pipeline.dynamics import training as train_model
+from pipeline.dynamics.training import ModelTrainConfig
 
 
 def first_order_runs(num_runs=3, num_steps=60, seed=0):

@@ -1,7 +1,7 @@
 """The safety gate every pressure command passes on its way to the valves.
 
-First the same projection onto the safe set as the exploration (:func:`pipeline.safety.project`),
-then the float64 check :func:`pipeline.safety.assert_safe` right before it is published: a bug
+First the same projection onto the safe set as the exploration (:func:`pipeline.arm.safety.project`),
+then the float64 check :func:`pipeline.arm.safety.assert_safe` right before it is published: a bug
 upstream can stop the collection but never send a command outside ``robot.limits``.
 """
 
@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline.safety import SafeSet, assert_safe, project
+from pipeline.arm.safety import SafeSet, assert_safe, project
 
 
 class CommandGate:

@@ -3,7 +3,7 @@
 It listens to the valve commands on ``robot.command_topic`` and publishes the marker pose on
 ``robot.pose_topic`` (``robot.pose_type``, stamped, frame ``robot.twin.frame_id``) at
 ``robot.twin.mocap.rate_hz`` of the arm's time, with the mocap noise, timestamp jitter and dropped
-frames of ``pipeline/sim_arm.py`` (a dropped frame is simply not published, as a mocap driver
+frames of ``pipeline/arm/sim_arm.py`` (a dropped frame is simply not published, as a mocap driver
 does). With ``robot.time_scale`` > 1 the arm's time runs that much faster than the wall clock
 (collect must use the same value), so a rehearsal or a test of the ROS 2 path takes seconds.
 
@@ -30,19 +30,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline import sim_arm
+from pipeline.arm import sim_arm
+from pipeline.arm.safety import assert_safe, validate_limits
 from pipeline.config import RobotKind
-from pipeline.ros2 import require_rclpy
-from pipeline.ros2.gate import CommandGate
-from pipeline.ros2.messages import (
+from pipeline.data.ros_messages import (
     NS_PER_S,
     message_class,
     read_pressures,
     write_position,
     write_stamp_ns,
 )
-from pipeline.ros2.node import StopSignals, qos_profile, ros_node
-from pipeline.safety import assert_safe, validate_limits
+from pipeline.ros2.gate import CommandGate
+from pipeline.ros2.node import StopSignals, qos_profile, require_rclpy, ros_node
 
 log = logging.getLogger(__name__)
 NODE_NAME = "sorolearn_twin"
@@ -201,7 +200,7 @@ class TwinNode:
         return f"{signals.received} received"
 
 
-def twin(cfg: Any) -> None:
+def serve(cfg: Any) -> None:
     """Serve the digital twin on ``cfg.robot``'s topics (``robot=ros2``) until stopped."""
     robot = cfg.robot
     if RobotKind(robot.kind) is not RobotKind.ros2:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,11 +29,12 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from pipeline.infra.parquet import METADATA_KEY, encode_metadata, write_parquet
+
 N_VALVES = 3
 CMD_COLUMNS = [f"p_cmd_{j}" for j in range(N_VALVES)]
 P_COLUMNS = [f"p_{j}" for j in range(N_VALVES)]
 XYZ = ["x", "y", "z"]
-METADATA_KEY = b"sorolearn"
 
 
 class DataError(ValueError):
@@ -83,7 +83,7 @@ class TableSchema:
                      metadata={"unit": c.unit, "description": c.description})
             for c in self.columns
         ]
-        return pa.schema(fields, metadata={METADATA_KEY: json.dumps(metadata, default=str)})
+        return pa.schema(fields, metadata=encode_metadata(metadata))
 
 
 _RUN = Column("run_id", "str", "", "run identifier")
@@ -244,17 +244,7 @@ def write_table(
         "config": dict(config or {}),
         "provenance": dict(provenance or {}),
     }
-    table = pa.Table.from_pandas(df, schema=schema.arrow_schema(metadata), preserve_index=False)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        pq.write_table(table, tmp)
-        with open(tmp, "rb") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return write_parquet(df, path, metadata, schema.arrow_schema(metadata))
 
 
 def read_table(

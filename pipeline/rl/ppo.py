@@ -10,7 +10,7 @@
           └ agent.update_epochs x agent.num_minibatches clipped-PPO gradient steps
       └ deterministic evaluation: agent.eval_envs episodes on the evaluation parameters
 
-Feed-forward and recurrent (GRU) actor-critics share one code path (``pipeline.networks``); the
+Feed-forward and recurrent (GRU) actor-critics share one code path (``pipeline.rl.networks``); the
 recurrent one is trained on whole rollout sequences, minibatched over environments, starting from
 the hidden state at the start of the rollout.
 
@@ -27,12 +27,8 @@ the environment's ``Box`` bounds (identity for the soft-arm environment, whose o
 
 from __future__ import annotations
 
-import json
-import os
 import time
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from pathlib import Path
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import chex
@@ -40,79 +36,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from flax import serialization
 from flax.training.train_state import TrainState
 
-from pipeline.config import dataclass_values
-from pipeline.networks import initial_hidden, make_network
-
-
-# ---------------------------------------------------------------------------------------------
-# configuration
-# ---------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class PPOConfig:
-    """The ``agent`` config group as a frozen dataclass (see ``pipeline.config.AgentConfig``)."""
-
-    name: str = "ppo_ff"
-    recurrent: bool = False
-    num_seeds: int = 4
-    num_envs: int = 64
-    num_steps: int = 32
-    total_timesteps: int = 1_200_000
-    update_epochs: int = 4
-    num_minibatches: int = 4
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip_eps: float = 0.2
-    clip_value: bool = True
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    lr: float = 3.0e-4
-    anneal_lr: bool = True
-    hidden: int = 64
-    num_layers: int = 2
-    rnn_hidden: int = 64
-    rnn_skip: bool = False
-    activation: str = "tanh"
-    log_std_init: float = -2.0
-    state_dependent_std: bool = False
-    reward_scale: float = 0.1
-    num_evals: int = 10
-    eval_envs: int = 256  # 0: no evaluation
-    progress: bool = True
-    init_policy: str | None = None  # warm start from this policy.msgpack (train_ppo stage)
-    init_policy_seed: int | None = None
-    init_policy_log_std: float | None = None  # replaces the warm-start policy's log std
-
-    @classmethod
-    def from_any(cls, config: Any, **overrides: Any) -> PPOConfig:
-        """From a mapping, a dataclass or an OmegaConf node; unknown keys fail."""
-        values = dataclass_values(cls, config, "agent", overrides)
-        return cls(**values)
-
-    @property
-    def steps_per_update(self) -> int:
-        return self.num_steps * self.num_envs
-
-    @property
-    def updates_per_eval(self) -> int:
-        return max(1, self.total_timesteps // self.steps_per_update // self.num_evals)
-
-    @property
-    def num_updates(self) -> int:
-        """Updates actually run: a multiple of ``num_evals`` (total_timesteps rounded down)."""
-        return self.updates_per_eval * self.num_evals
-
-    def check(self) -> None:
-        if self.recurrent and self.num_envs % self.num_minibatches:
-            raise ValueError(f"recurrent PPO minibatches over environments: num_envs="
-                             f"{self.num_envs} must be divisible by num_minibatches="
-                             f"{self.num_minibatches}")
-        if self.steps_per_update % self.num_minibatches:
-            raise ValueError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
-                             f"by num_minibatches={self.num_minibatches}")
+from pipeline.config import AgentConfig
+from pipeline.rl.networks import initial_hidden, make_network
+from pipeline.rl.policy_io import NETWORK_FIELDS
 
 
 # ---------------------------------------------------------------------------------------------
@@ -267,7 +195,7 @@ def make_train(
     random initialisation: a warm start.
 
     Args:
-      agent: the agent config (``PPOConfig`` or anything :meth:`PPOConfig.from_any` reads).
+      agent: the agent config (``AgentConfig`` or anything :meth:`AgentConfig.from_any` reads).
       env: a gymnax environment with a ``Box`` action space.
       env_params: training parameters; ``eval_env_params`` (default: the same) are used for the
         deterministic evaluations. Both may be passed to ``train`` instead, as arguments, so large
@@ -277,7 +205,7 @@ def make_train(
       progress: host function ``(update_index, mean_return)`` called every update through
         ``jax.debug.callback`` (e.g. :class:`ThrottledProgress`).
     """
-    config = PPOConfig.from_any(agent)
+    config = AgentConfig.from_any(agent)
     config.check()
     eval_env_params = env_params if eval_env_params is None else eval_env_params
     if eval_steps is None:
@@ -527,7 +455,7 @@ def check_same_variables(expected: Any, given: Any, what: str) -> None:
         wrong = sorted(f"{k}: {given_shapes[k]}, expected {v}" for k, v in expected_shapes.items()
                        if k in given_shapes and given_shapes[k] != v)
         raise ValueError(f"{what} do not fit the agent's network (the same agent "
-                         f"{', '.join(_NETWORK_FIELDS)} and environment spaces needed): missing "
+                         f"{', '.join(NETWORK_FIELDS)} and environment spaces needed): missing "
                          f"{missing[:4]}, unexpected {extra[:4]}, wrong shapes {wrong[:4]}")
 
 
@@ -557,7 +485,7 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
     a leading [num_seeds] axis. ``timings`` (if given) receives ``compile_s`` and ``run_s``.
     ``init_params`` (optional): starting network variables, stacked over seeds
     (``[num_seeds, ...]`` leaves, as :func:`load_policy` returns them)."""
-    config = PPOConfig.from_any(agent)
+    config = AgentConfig.from_any(agent)
     show = config.progress if progress is None else progress
     bar = ThrottledProgress(config.num_updates, desc=desc, disable=not show) if show else None
     eval_env_params = env_params if eval_env_params is None else eval_env_params
@@ -582,102 +510,3 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
         if bar is not None:
             bar.close()
     return output
-
-
-# ---------------------------------------------------------------------------------------------
-# policies: acting and checkpoints
-# ---------------------------------------------------------------------------------------------
-def deterministic_action(network, params, hidden, obs, reset):
-    """Mean action (``[-1, 1]`` units, clipped) for a batch: returns (hidden, action [B, A])."""
-    hidden, pi, _ = network.apply(params, hidden, obs[None], reset[None])
-    return hidden, jnp.clip(pi.mode()[0], -1.0, 1.0)
-
-
-def save_policy(path: str | Path, params: Any, meta: Mapping[str, Any]) -> Path:
-    """Write network variables (any pytree, e.g. stacked over seeds) and ``meta`` (JSON-able:
-    the agent config, observation and action sizes...) to one msgpack file, atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = serialization.msgpack_serialize({
-        "meta": json.dumps(dict(meta), default=str),
-        "params": serialization.to_state_dict(jax.device_get(params)),
-    })
-    temporary = path.with_name(path.name + ".tmp")
-    with open(temporary, "wb") as handle:
-        handle.write(payload)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
-    return path
-
-
-def load_policy(path: str | Path, seed_index: int | None = None) -> tuple[Any, Any, dict]:
-    """Read :func:`save_policy`'s file: ``(network, params, meta)``.
-
-    With ``seed_index`` the parameters of that seed are taken from a stack over seeds.
-    """
-    state = serialization.msgpack_restore(Path(path).read_bytes())
-    meta = json.loads(state["meta"])
-    params = jax.tree.map(jnp.asarray, state["params"])
-    if seed_index is not None:
-        params = jax.tree.map(lambda x: x[seed_index], params)
-    network = make_network(PPOConfig.from_any(meta["agent"]), int(meta["action_dim"]))
-    return network, params, meta
-
-
-# network fields a warm-start policy must share with the agent (the shapes do not show them all)
-_NETWORK_FIELDS = ("recurrent", "hidden", "num_layers", "rnn_hidden", "rnn_skip", "activation",
-                   "state_dependent_std")
-
-
-def init_policy_file(init_policy: str | Path) -> Path:
-    """``agent.init_policy`` as a path; a clear error where no file is there."""
-    path = Path(str(init_policy))
-    if not path.is_file():
-        raise FileNotFoundError(f"agent.init_policy: no policy file at {path}")
-    return path
-
-
-def warm_start_params(agent: Any, obs_dim: int, action_dim: int) -> Any:
-    """Starting variables for ``agent.num_seeds`` seeds from ``agent.init_policy`` (a
-    :func:`save_policy` file), stacked over seeds: seed i takes the file's seed i, or every seed
-    ``agent.init_policy_seed``, or the file's only seed. ``agent.init_policy_log_std`` replaces
-    the learned log std (e.g. to explore less when fine-tuning). Errors name the file and the
-    mismatch."""
-    config = PPOConfig.from_any(agent)
-    path = init_policy_file(config.init_policy)
-    _, params, meta = load_policy(path)
-    theirs = PPOConfig.from_any(meta["agent"])
-    differing = {name: (getattr(theirs, name), getattr(config, name)) for name in _NETWORK_FIELDS
-                 if getattr(theirs, name) != getattr(config, name)}
-    if differing:
-        raise ValueError(f"agent.init_policy {path}: its network differs from the agent's "
-                         f"(field: (file, agent)): {differing}")
-    dims = {"obs_dim": (int(meta["obs_dim"]), obs_dim),
-            "action_dim": (int(meta["action_dim"]), action_dim)}
-    if any(a != b for a, b in dims.values()):
-        raise ValueError(f"agent.init_policy {path}: trained for another environment "
-                         f"(field: (file, this env)): {dims}")
-    available = int(meta.get("num_seeds", 1))
-    if config.init_policy_seed is not None:
-        if not 0 <= config.init_policy_seed < available:
-            raise ValueError(f"agent.init_policy_seed={config.init_policy_seed}: {path} holds "
-                             f"seeds 0..{available - 1}")
-        chosen = np.full(config.num_seeds, config.init_policy_seed)
-    elif available == config.num_seeds:
-        chosen = np.arange(config.num_seeds)
-    elif available == 1:
-        chosen = np.zeros(config.num_seeds, int)
-    else:
-        raise ValueError(f"agent.init_policy {path} holds {available} seeds, the agent trains "
-                         f"{config.num_seeds}: set agent.init_policy_seed to start every seed "
-                         f"from one of them")
-    params = jax.tree.map(lambda x: x[jnp.asarray(chosen)], params)
-    if config.init_policy_log_std is not None:
-        if config.state_dependent_std:
-            raise ValueError("agent.init_policy_log_std needs the learned log-std vector; with "
-                             "agent.state_dependent_std the actor outputs it")
-        params = jax.tree_util.tree_map_with_path(
-            lambda key, x: jnp.full_like(x, config.init_policy_log_std)
-            if jax.tree_util.keystr(key).endswith("['log_std']") else x, params)
-    return params

@@ -19,66 +19,38 @@ from __future__ import annotations
 import datetime as _dt
 import logging
 import os
-from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 
-from pipeline import sim_arm
-from pipeline.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
+from pipeline import keys
+from pipeline.arm import sim_arm
+from pipeline.arm.exploration import exploration_plan, plot_walks
+from pipeline.arm.safety import validate_limits
 from pipeline.config import RobotKind
-from pipeline.exploration import exploration_run, plot_walks
-from pipeline.importers import READERS, list_recordings, recording_digest, recording_id
-from pipeline.safety import validate_limits
-from pipeline.schemas import CMD_COLUMNS, COMMANDS, MOCAP, RUNS, XYZ, write_table
+from pipeline.data.importers import READERS, list_recordings, recording_id
+from pipeline.data.raw import write_raw
+from pipeline.data.schemas import CMD_COLUMNS, XYZ
+from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
-_IMPORT_KINDS = (RobotKind.sorolex_csv, RobotKind.plotjuggler_csv, RobotKind.rosbag)
-
-
-# How a ROS 2 session runs, not what it records: kept out of the key (so that, e.g.,
-# robot.reuse_incomplete=true finds the interrupted artifact it is meant to reuse).
-_ROS2_OPERATIONAL = ("node_name", "domain_id", "startup_timeout_s", "flush_every_s",
-                     "stop_timeout_s", "reuse_incomplete")
 
 
 class CollectionInterrupted(RuntimeError):
     """A recording was cut short; what was recorded is in an artifact, marked incomplete."""
 
 
-def collect_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
-    """What determines the raw data: the robot and, where it is driven, the exploration."""
-    robot = OmegaConf.to_container(cfg.robot, resolve=True)
-    kind = RobotKind(cfg.robot.kind)
-    if kind in _IMPORT_KINDS:
-        # Imported data is keyed by its content, not by where it lies.
-        for where in ("data_dir", "pattern", "files"):
-            robot.pop(where, None)
-        files = {p.name: recording_digest(p) for p in list_recordings(cfg.robot)}
-        return {"robot": robot, "files": files}, {}
-    if kind is RobotKind.ros2:
-        for setting in _ROS2_OPERATIONAL:
-            robot.pop(setting, None)
-    exploration = OmegaConf.to_container(cfg.exploration, resolve=True)
-    return {"robot": robot, "exploration": exploration}, {}
-
-
-def collect_key(cfg: Any) -> str:
-    return artifact_key(*collect_spec(cfg))
-
-
 def collect(cfg: Any) -> Artifact:
     validate_limits(cfg.robot.limits, cfg.robot.n_valves)
     store = ArtifactStore(cfg.paths.artifact_dir)
-    spec, inputs = collect_spec(cfg)
+    spec, inputs = keys.collect_spec(cfg)
     kind = RobotKind(cfg.robot.kind)
     if kind is RobotKind.sim:
         build = lambda writer: _collect_sim(cfg, writer, spec)  # noqa: E731
-    elif kind in _IMPORT_KINDS:
+    elif kind in keys.IMPORT_KINDS:
         build = lambda writer: _import_recordings(cfg, writer, spec)  # noqa: E731
     else:
         return _collect_ros2(cfg, store, spec, inputs)
@@ -87,7 +59,7 @@ def collect(cfg: Any) -> Artifact:
 
 def _collect_ros2(cfg: Any, store: ArtifactStore, spec: dict[str, Any],
                   inputs: dict[str, str]) -> Artifact:
-    from pipeline.ros2 import collect_ros2  # optional extra: imported only for robot=ros2
+    from pipeline.ros2.collector import collect_ros2  # the optional ros extra
 
     _set_aside_incomplete(store, artifact_key(spec, inputs), bool(cfg.robot.reuse_incomplete))
     interruptions = []
@@ -130,15 +102,12 @@ def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None
     robot, exploration = cfg.robot, cfg.exploration
     params = sim_arm.SimParams.from_config(robot)
     preload = np.full(robot.n_valves, float(robot.limits.preload))
-    walk_key, session_key, figure_key = jax.random.split(
-        jax.random.key(int(exploration.seed)), 3)
-    walk_keys = jax.random.split(walk_key, robot.num_runs)
-    commands = np.stack([exploration_run(k, exploration, robot.limits, robot.n_valves)
-                         for k in walk_keys])  # [runs, N, valves]
+    plan = exploration_plan(exploration, robot.limits, robot.n_valves, robot.num_runs)
+    commands = plan.commands  # [runs, N, valves]
     frame_command = sim_arm.frame_command_index(commands.shape[1], robot.control_hz,
                                                 params.mocap_hz)
     simulate = jax.jit(jax.vmap(sim_arm.simulate_run, in_axes=(None, 0, 0, None, None)))
-    recorded = jax.device_get(simulate(params, jax.random.split(session_key, robot.num_runs),
+    recorded = jax.device_get(simulate(params, jax.random.split(plan.session_key, robot.num_runs),
                                        commands, frame_command, preload))
 
     run_ids = [f"sim-{i:03d}" for i in range(robot.num_runs)]
@@ -156,7 +125,7 @@ def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None
                             "n_commands": commands.shape[1],
                             "n_frames": len(frame_command)})
     write_raw(writer, cfg, spec, commands_df, mocap_df, runs_df)
-    plot_walks(writer.file("figures/exploration_alphas.png"), figure_key, exploration,
+    plot_walks(writer.file("figures/exploration_alphas.png"), plan.figure_key, exploration,
                robot.limits, robot.control_hz, robot.n_valves)
     writer.summary["true_position_range_mm"] = {
         a: [float(np.nanmin(recorded["true_position"][..., k]) * 1e3),
@@ -176,59 +145,3 @@ def _import_recordings(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -
                  len(run_mocap))
     write_raw(writer, cfg, spec, pd.concat(commands, ignore_index=True),
               pd.concat(mocap, ignore_index=True), pd.DataFrame(runs))
-
-
-def write_raw(writer: ArtifactWriter, cfg: Any, spec: dict[str, Any], commands: pd.DataFrame,
-               mocap: pd.DataFrame, runs: pd.DataFrame) -> None:
-    provenance = {"stage": STAGE, "robot": cfg.robot.name}
-    write_table(commands, writer.file("commands.parquet"), COMMANDS, spec, provenance)
-    write_table(mocap, writer.file("mocap.parquet"), MOCAP, spec, provenance)
-    write_table(runs, writer.file("runs.parquet"), RUNS, spec, provenance)
-    plot_runs(writer.file("figures/runs.png"), commands, mocap)
-    writer.summary = {
-        "runs": len(runs), "commands": len(commands), "frames": len(mocap),
-        "dropped_frames": int((~mocap["valid"]).sum()),
-        "incomplete_runs": runs.loc[~runs["complete"], "run_id"].tolist(),
-    }
-    log.info("collect: %d runs, %d commands, %d mocap frames (%d dropped)", len(runs),
-             len(commands), len(mocap), writer.summary["dropped_frames"])
-
-
-def plot_runs(path: Path, commands: pd.DataFrame, mocap: pd.DataFrame) -> Path:
-    """Commands and positions of the first run over time, and every run's x-z footprint."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    first = commands["run_id"].iloc[0]
-    cmd = commands[commands["run_id"] == first]
-    pos = mocap[mocap["run_id"] == first]
-    t0 = cmd["t"].iloc[0]
-    fig = plt.figure(figsize=(12, 6.5))
-    grid = fig.add_gridspec(4, 2, width_ratios=[2.2, 1])
-    ax = fig.add_subplot(grid[0, 0])
-    for j, column in enumerate(CMD_COLUMNS):
-        ax.step(cmd["t"] - t0, cmd[column], where="post", lw=0.9, label=f"valve {j}")
-    ax.set_ylabel("p_cmd [kPa]")
-    ax.legend(fontsize=7, ncol=3, loc="upper right")
-    ax.set_title(f"run {first}: commands and motion capture", fontsize=10)
-    for k, axis in enumerate(XYZ):
-        ax_k = fig.add_subplot(grid[k + 1, 0], sharex=ax)
-        ax_k.plot(pos["t"] - t0, pos[axis] * 1e3, lw=0.6, color=f"C{k + 3}")
-        ax_k.set_ylabel(f"{axis} [mm]")
-    ax_k.set_xlabel("time [s]")
-    ax_xz = fig.add_subplot(grid[:, 1])
-    for i, (run_id, run) in enumerate(mocap.groupby("run_id", sort=False)):
-        ax_xz.plot(run["x"] * 1e3, run["z"] * 1e3, lw=0.3, alpha=0.7, color=f"C{i % 10}",
-                   label=str(run_id))
-        ax_xz.plot(run["x"].iloc[:20].mean() * 1e3, run["z"].iloc[:20].mean() * 1e3, "k+", ms=8)
-    ax_xz.set_xlabel("x [mm]")
-    ax_xz.set_ylabel("z [mm]")
-    ax_xz.set_aspect("equal", adjustable="datalim")
-    ax_xz.set_title("footprint of every run (+: rest pose)", fontsize=10)
-    ax_xz.legend(fontsize=6, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path

@@ -16,7 +16,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from pipeline.envs.learned import EnvParams, EnvState, SoftArmReachEnv
+from pipeline.rl.envs.learned import EnvParams, EnvState, SoftArmReachEnv
 
 # A controller: (key, observation [obs_dim], state, controller_carry) -> (carry, action [3])
 Controller = Callable[[chex.PRNGKey, chex.Array, EnvState, Any], tuple[Any, chex.Array]]
@@ -55,7 +55,7 @@ def rollout(
 
 def policy_controller(network: Any, policy_params: Any) -> Controller:
     """A trained actor-critic acting deterministically (its mean action); carry: hidden state."""
-    from pipeline.ppo import deterministic_action
+    from pipeline.rl.policy_io import deterministic_action
 
     def act(key, obs, state, carry):
         hidden, first = carry  # hidden [1, H]; first: True before the first step

@@ -1,6 +1,6 @@
 """Environments: goal reaching with a soft arm on a learned model, the simulated arm or a toy."""
 
-from pipeline.envs.factory import (
+from pipeline.rl.envs.factory import (
     data_goals_and_rest_pose,
     make_gymnax_env,
     make_learned_env,
@@ -9,14 +9,14 @@ from pipeline.envs.factory import (
     sim_reachable_positions,
     sim_rest_pose,
 )
-from pipeline.envs.learned import (
+from pipeline.rl.envs.learned import (
     EnvParams,
     EnvState,
     SoftArmReachEnv,
     make_env_params,
     split_goals,
 )
-from pipeline.envs.plants import (
+from pipeline.rl.envs.plants import (
     LinearLagParams,
     Plant,
     SimPlantParams,

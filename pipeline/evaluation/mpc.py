@@ -20,8 +20,8 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from pipeline.envs.plants import Plant, hold
-from pipeline.safety import SafeSet, project
+from pipeline.arm.safety import SafeSet, project
+from pipeline.rl.envs.plants import Plant, hold
 
 
 class CEMSettings(NamedTuple):
@@ -79,7 +79,7 @@ def mpc_controller(
     model_params: Any,
     settings: CEMSettings = DEFAULT_SETTINGS,
 ):
-    """The MPC as a :data:`pipeline.rollouts.Controller` for ``env`` (any plant).
+    """The MPC as a :data:`pipeline.evaluation.rollouts.Controller` for ``env`` (any plant).
 
     Its carry is ``(model_carry, model_position [3], last_command [3])``: the learned model run
     open loop on the commands the controller sends; build the first one with

@@ -11,7 +11,7 @@ freshly drawn p* is both rescaled and summed, so the rescaled pressures sum exac
 ``P_max * sigmoid(beta * S)`` < P_max. The rescaling is undefined for S near 0 and flips the signs
 for S < 0 (possible because the normal draw can go negative); for S <= ``_MIN_SUM`` the step keeps
 p* unscaled. Every step then goes through the hard projection onto the robot's safe set
-(:func:`pipeline.safety.project` with the sum ceiling ``min(P_max, sum_max)``), so each command is
+(:func:`pipeline.arm.safety.project` with the sum ceiling ``min(P_max, sum_max)``), so each command is
 within its per-valve bounds and the sum within P_max whatever alpha, beta and the draws are.
 
 A run is ``pad_steps`` commands at the preload, the walk starting from the preload, then
@@ -22,14 +22,14 @@ from __future__ import annotations
 
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline.safety import SafeSet, project
+from pipeline.arm.safety import SafeSet, project
 
 _MIN_SUM = 1e-3  # kPa; below this the sigmoid rescaling is skipped (see module docstring)
 
@@ -90,6 +90,23 @@ def exploration_run(key: chex.PRNGKey, exploration: Any, limits: Any, n_valves: 
     )
     pad = np.full((int(exploration.pad_steps), n_valves), float(limits.preload))
     return np.concatenate([pad, np.asarray(walk, np.float64), pad], axis=0)
+
+
+class ExplorationPlan(NamedTuple):
+    """A session's draws from ``exploration.seed``: one key per purpose, never one for two."""
+
+    commands: np.ndarray  # [runs, pad + num_steps + pad, n_valves] kPa
+    session_key: chex.PRNGKey  # the simulated sessions (rest poses, mocap noise)
+    figure_key: chex.PRNGKey  # the walks of the several-alpha figure
+
+
+def exploration_plan(exploration: Any, limits: Any, n_valves: int, num_runs: int
+                     ) -> ExplorationPlan:
+    """The walks of ``num_runs`` runs: the same for the simulated arm and a ROS 2 arm."""
+    walk_key, session_key, figure_key = jax.random.split(jax.random.key(int(exploration.seed)), 3)
+    commands = np.stack([exploration_run(k, exploration, limits, n_valves)
+                         for k in jax.random.split(walk_key, int(num_runs))])
+    return ExplorationPlan(commands, session_key, figure_key)
 
 
 def plot_walks(path: Path, key: chex.PRNGKey, exploration: Any, limits: Any,

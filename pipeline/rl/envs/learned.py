@@ -1,4 +1,4 @@
-"""Goal-reaching with a soft arm as a gymnax environment, on any :class:`~pipeline.envs.Plant`.
+"""Goal-reaching with a soft arm as a gymnax environment, on any :class:`~pipeline.rl.envs.Plant`.
 
 One environment step is one control period (``1 / control_hz`` s, 2 Hz as in the recorded data):
 the action is held while the plant advances ``plant.model_hz / control_hz`` of its own steps
@@ -6,7 +6,7 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
 
 - **Action** ``[3]`` in ``[-1, 1]`` (clipped), mapped linearly onto each valve's range
   ``[p_min, p_max]`` kPa, plus Gaussian action noise (kPa), then projected onto the safe set
-  (:func:`pipeline.safety.project`) before it reaches the plant.
+  (:func:`pipeline.arm.safety.project`) before it reaches the plant.
 - **Observation** ``[6]``: the measured position (plus Gaussian noise, m) and the goal, both
   standardized with ``obs_mean`` / ``obs_scale``; with ``include_error`` ``+3``, the error
   ``goal - measured`` divided by ``error_scale`` (a few mm, so that the last millimetres are not
@@ -38,8 +38,8 @@ import numpy as np
 from flax import struct
 from gymnax.environments import environment, spaces
 
-from pipeline.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
-from pipeline.safety import SafeSet, project
+from pipeline.arm.safety import SafeSet, project
+from pipeline.rl.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
 
 GOAL_MODES = ("data", "perturb")
 MM_PER_M = 1000.0
@@ -141,7 +141,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
     @property
     def default_params(self) -> EnvParams:
         raise ValueError("SoftArmReachEnv has no default parameters: build them with "
-                         "pipeline.envs.make_env_params(env, plant_params, ...)")
+                         "pipeline.rl.envs.make_env_params(env, plant_params, ...)")
 
     @property
     def obs_dim(self) -> int:

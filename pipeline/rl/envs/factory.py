@@ -15,6 +15,7 @@ in their goal set (held-out goals).
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import gymnax
@@ -25,19 +26,24 @@ import pandas as pd
 from gymnax.environments import spaces
 from gymnax.wrappers.purerl import GymnaxWrapper
 
-from pipeline import sim_arm
-from pipeline.envs.learned import SoftArmReachEnv, make_env_params, split_goals
-from pipeline.envs.plants import (
+from pipeline.arm import sim_arm
+from pipeline.arm.safety import SafeSet, project, validate_limits
+from pipeline.config import EnvName, GoalSource
+from pipeline.data.alignment import runs_at_model_rate
+from pipeline.data.schemas import ALIGNED, read_table
+from pipeline.dynamics.training import load_dynamics, predict_run
+from pipeline.infra.artifacts import Artifact
+from pipeline.rl.envs.learned import SoftArmReachEnv, make_env_params, split_goals
+from pipeline.rl.envs.plants import (
     NUM_VALVES,
     SimPlantParams,
     hold,
     learned_plant,
     sim_plant,
 )
-from pipeline.safety import SafeSet, project, validate_limits
 
 
-def _common_params(cfg: Any) -> dict[str, Any]:
+def common_params(cfg: Any) -> dict[str, Any]:
     env_cfg = cfg.env
     return {
         "goal_mode": str(env_cfg.goal_mode),
@@ -118,7 +124,7 @@ def make_sim_env(cfg: Any) -> tuple[SoftArmReachEnv, Any, Any]:
                                           num_goals - num_held_out)
     held_out_goals = sim_reachable_positions(env, plant_params, safe_set, rest_pose,
                                              held_out_key, num_held_out)
-    common = _common_params(cfg)
+    common = common_params(cfg)
     train_params = make_env_params(
         env, plant_params, key=train_bank_key, safe_set=safe_set,
         preload=plant_params.preload, rest_pose=rest_pose, rest_pose_std=rest_pose_std,
@@ -162,7 +168,7 @@ def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
     """The reaching environment on a fitted model (``env=learned``).
 
     Args:
-      dynamics_params: a ``pipeline.dynamics.DynamicsParams`` (the fit_model artifact).
+      dynamics_params: a ``pipeline.dynamics.model.DynamicsParams`` (the fit_model artifact).
       train_goals, held_out_goals: [G, 3] m goals for training and evaluation (``goal_mode=data``);
         e.g. positions of the training and test runs of the aligned data.
       rest_pose, rest_pose_std: [3] m, the observed pose at rest at the preload and its spread.
@@ -173,7 +179,7 @@ def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
     safe_set = _safe_set(cfg)
     preload = float(cfg.robot.limits.preload)
     train_bank_key, eval_bank_key = jax.random.split(jax.random.PRNGKey(int(env_cfg.env_seed)))
-    common = _common_params(cfg)
+    common = common_params(cfg)
     train_params = make_env_params(
         env, dynamics_params, key=train_bank_key, safe_set=safe_set, preload=preload,
         rest_pose=rest_pose, rest_pose_std=rest_pose_std, goal_set=train_goals, **common)
@@ -240,3 +246,43 @@ __all__ = [
     "sim_rest_pose",
     "split_goals",
 ]
+
+
+def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | None = None
+                ) -> tuple[Any, Any, Any]:
+    """``(env, train_params, eval_params)`` of this config's environment.
+
+    ``env=learned`` reads the ``model`` (a fit_model artifact: the model and its run split) and
+    the ``aligned`` data it was fitted to; the other environments need neither.
+    """
+    env_name = EnvName(cfg.env.name)
+    if env_name is EnvName.gymnax:
+        return make_gymnax_env(cfg)
+    if env_name is EnvName.sim:
+        return make_sim_env(cfg)
+    if model is None or aligned is None:
+        raise ValueError("env=learned needs the fit_model artifact and its aligned data")
+    dynamics_params = load_dynamics(model.file("model.msgpack"))
+    split = json.loads(model.file("split.json").read_text())
+    table, _ = read_table(aligned.file("aligned.parquet"), ALIGNED)
+    runs = runs_at_model_rate(table, float(cfg.dataset.model_hz), str(cfg.dataset.model_grid))
+    if GoalSource(cfg.env.goal_source) is GoalSource.predicted:
+        # the model's open-loop predictions along the recorded commands: reachable in its world
+        goal_paths = {run["run_id"]: predict_run(dynamics_params, run) for run in runs}
+    else:
+        goal_paths = {run["run_id"]: run["pos"] for run in runs}
+    at_model_rate = pd.concat(
+        [pd.DataFrame({"run_id": run["run_id"], "x": goal_paths[run["run_id"]][:, 0],
+                       "y": goal_paths[run["run_id"]][:, 1],
+                       "z": goal_paths[run["run_id"]][:, 2]}) for run in runs],
+        ignore_index=True)
+    first_poses = pd.DataFrame([{"run_id": run["run_id"], "x": run["pos"][0, 0],
+                                 "y": run["pos"][0, 1], "z": run["pos"][0, 2]} for run in runs])
+    test_ids = list(split["test"]) or list(split["train"])  # one run only: evaluate on it
+    data = data_goals_and_rest_pose(at_model_rate, test_ids, every=int(cfg.env.goal_every))
+    rest = data_goals_and_rest_pose(first_poses, [])  # rest pose from the measured first poses
+    data["rest_pose"], data["rest_pose_std"] = rest["rest_pose"], rest["rest_pose_std"]
+    if not split["test"]:
+        data["train_goals"] = data["held_out_goals"]
+    return make_learned_env(cfg, dynamics_params, data["train_goals"], data["held_out_goals"],
+                            data["rest_pose"], data["rest_pose_std"])

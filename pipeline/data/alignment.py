@@ -1,4 +1,4 @@
-"""Stage ``align``: put the 2 Hz pressure commands onto the ~100 Hz motion-capture rows.
+"""Alignment: put the 2 Hz pressure commands onto the ~100 Hz motion-capture rows.
 
 Per run:
 
@@ -28,26 +28,16 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 
-from pipeline import collect as collect_stage
-from pipeline.artifacts import Artifact, ArtifactStore, artifact_key, produce
 from pipeline.config import GapPolicy
-from pipeline.schemas import (
-    ALIGNED,
+from pipeline.data.schemas import (
     CMD_COLUMNS,
-    COMMANDS,
-    MOCAP,
     P_COLUMNS,
-    RUNS,
     XYZ,
     DataError,
-    read_table,
-    write_table,
 )
 
 log = logging.getLogger(__name__)
-STAGE = "align"
 COUNT_FIELDS = (
     "commands", "matched", "unmatched", "overridden", "frames", "dropped_frames", "interpolated",
     "gaps", "before_first_command", "filled", "rows",
@@ -222,42 +212,25 @@ def align_tables(commands: pd.DataFrame, mocap: pd.DataFrame, settings: Any,
     return aligned, pd.DataFrame(reports)
 
 
-# --------------------------------------------------------------------------------------------
-# the stage
-# --------------------------------------------------------------------------------------------
-def align_spec(cfg: Any) -> tuple[dict[str, Any], dict[str, str]]:
-    spec = {"align": OmegaConf.to_container(cfg.dataset.align, resolve=True)}
-    return spec, {"collect": collect_stage.collect_key(cfg)}
+def runs_at_model_rate(aligned: pd.DataFrame, model_hz: float, grid: str = "clock"
+                       ) -> list[dict[str, Any]]:
+    """Aligned rows as the model's runs: ``{run_id, t [T], p [T, 3] kPa, pos [T, 3] m}``.
 
-
-def align_key(cfg: Any) -> str:
-    return artifact_key(*align_spec(cfg))
-
-
-def align(cfg: Any) -> Artifact:
-    """Align the collected raw streams of this config (``collect`` must have run)."""
-    store = ArtifactStore(cfg.paths.artifact_dir)
-    spec, inputs = align_spec(cfg)
-    raw = store.require("collect", inputs["collect"])
-    settings = cfg.dataset.align
-
-    def build(writer):
-        commands, _ = read_table(raw.file("commands.parquet"), COMMANDS, cfg.robot.limits)
-        mocap, _ = read_table(raw.file("mocap.parquet"), MOCAP)
-        runs, _ = read_table(raw.file("runs.parquet"), RUNS)
-        incomplete = runs.loc[~runs["complete"], "run_id"].tolist()
-        if incomplete and not settings.accept_incomplete:
-            raise DataError(str(raw.file("runs.parquet")), f"runs {incomplete} were interrupted "
-                            "(marked incomplete); set dataset.align.accept_incomplete=true to "
-                            "use them", "complete")
-        aligned, report = align_tables(commands, mocap, settings, str(raw.path))
-        config = {"dataset.align": spec["align"], "robot": cfg.robot.name}
-        provenance = {"stage": STAGE, "inputs": inputs}
-        write_table(aligned, writer.file("aligned.parquet"), ALIGNED, config, provenance)
-        report.to_parquet(writer.file("align_report.parquet"), index=False)
-        totals = {k: int(report[k].sum()) for k in COUNT_FIELDS}
-        writer.summary = {"runs": len(report), **totals}
-        log.info("align: %d runs, %s", len(report),
-                 ", ".join(f"{k}={v}" for k, v in totals.items()))
-
-    return produce(store, STAGE, spec, inputs, build, force=cfg.force)
+    ``grid``: ``clock`` (a regular grid) or ``commands`` (locked to the command times, see
+    :func:`resample_command_locked`).
+    """
+    if grid == "clock":
+        resampled = resample(aligned, model_hz)
+    elif grid == "commands":
+        resampled = resample_command_locked(aligned, model_hz)
+    else:
+        raise ValueError(f"dataset.model_grid must be clock or commands, got {grid!r}")
+    return [
+        {
+            "run_id": str(run_id),
+            "t": run["t"].to_numpy(np.float64),
+            "p": run[P_COLUMNS].to_numpy(np.float32),
+            "pos": run[XYZ].to_numpy(np.float32),
+        }
+        for run_id, run in resampled.groupby("run_id", sort=True)
+    ]

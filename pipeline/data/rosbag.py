@@ -21,8 +21,8 @@ import pandas as pd
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from pipeline.ros2.messages import NS_PER_S, read_position, read_pressures, read_stamp_ns
-from pipeline.schemas import CMD_COLUMNS, COMMANDS, MOCAP, XYZ, DataError, validate
+from pipeline.data.ros_messages import NS_PER_S, read_position, read_pressures, read_stamp_ns
+from pipeline.data.schemas import CMD_COLUMNS, COMMANDS, MOCAP, XYZ, DataError, validate
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,8 @@ before an episode starts.
 
 Three plants:
 
-- :func:`learned_plant` — the learned LSTM of :mod:`pipeline.dynamics` (``DynamicsParams``).
-- :func:`sim_plant` — the simulated arm of :mod:`pipeline.sim_arm` (the ground-truth plant).
+- :func:`learned_plant` — the learned LSTM of :mod:`pipeline.dynamics.model` (``DynamicsParams``).
+- :func:`sim_plant` — the simulated arm of :mod:`pipeline.arm.sim_arm` (the ground-truth plant).
 - :func:`linear_lag_plant` — a tiny linear first-order lag from pressures to position (tests).
 """
 
@@ -29,7 +29,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from pipeline import dynamics, sim_arm
+from pipeline.arm import sim_arm
+from pipeline.dynamics import model as dynamics
 
 NUM_VALVES = 3
 POSITION_DIM = 3
@@ -66,7 +67,7 @@ def hold(plant: Plant, plant_params: Any, carry: Any, pressure: jax.Array, num_s
 # the learned model
 # ---------------------------------------------------------------------------------------------
 def learned_plant(model_hz: float) -> Plant:
-    """The LSTM of :mod:`pipeline.dynamics`; ``plant_params`` is a ``DynamicsParams``."""
+    """The LSTM of :mod:`pipeline.dynamics.model`; ``plant_params`` is a ``DynamicsParams``."""
     return Plant(dynamics.init_carry, dynamics.step, float(model_hz), "learned")
 
 

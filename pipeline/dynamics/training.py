@@ -23,7 +23,6 @@ import dataclasses
 import functools
 import json
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -38,10 +37,11 @@ import pandas as pd
 from flax import serialization
 from tqdm.auto import tqdm
 
-from pipeline import dynamics
 from pipeline.config import dataclass_values
-from pipeline.dynamics import DynamicsConfig, DynamicsParams, Normalizer
-from pipeline.windows import gather_windows, make_windows, sample_batch
+from pipeline.data.windows import gather_windows, make_windows, sample_batch
+from pipeline.dynamics import model as dynamics
+from pipeline.dynamics.model import DynamicsConfig, DynamicsParams, Normalizer
+from pipeline.infra.parquet import atomic_write
 
 CHECKPOINT_PREFIX = "step_"
 CHECKPOINT_SUFFIX = ".msgpack"
@@ -328,12 +328,8 @@ def _model_from_state_dict(state: dict) -> DynamicsParams:
 
 
 def _write_atomically(path: Path, payload: bytes) -> None:
-    temporary = path.with_name(path.name + ".tmp")
-    with open(temporary, "wb") as file:
-        file.write(payload)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(temporary, path)
+    with atomic_write(path) as tmp:
+        tmp.write_bytes(payload)
 
 
 def save_dynamics(path: str | Path, params: DynamicsParams) -> None:
@@ -553,3 +549,18 @@ def fit(
     bar.close()
     params = template.replace(network=state.network)
     return params, normalizer, _loss_table(history)
+
+
+def evaluation_table(params, train_runs: list[dict], test_runs: list[dict]) -> pd.DataFrame:
+    """Open-loop errors over entire runs for the model and the baselines, per run and split."""
+    rows = []
+    for split, runs in (("train", train_runs), ("test", test_runs)):
+        for run in runs:
+            for model, errors in (
+                ("lstm", evaluate_open_loop(params, run)),
+                ("mean_position", baseline_mean_position(train_runs, run)),
+                ("linear_lagged", baseline_linear_lagged(train_runs, run)),
+            ):
+                rows.append({"run_id": run["run_id"], "split": split, "model": model,
+                             "steps": len(run["p"]), **errors})
+    return pd.DataFrame(rows)

@@ -10,7 +10,7 @@
   columns end in ``/pose/position/x`` (``y``, ``z``); pressure columns end in ``p_d.<j>`` or
   ``data.<j>``.
 - **ROS 2 bags** (``robot=rosbag``): a recording is a bag *folder* (``metadata.yaml`` plus sqlite3
-  or MCAP storage) holding the command and pose topics (``pipeline/ros2/bag.py``).
+  or MCAP storage) holding the command and pose topics (``pipeline/data/rosbag.py``).
 
 Rows in errors are 0-based data rows; the CSV line is ``row + 2`` (the header is line 1).
 """
@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.schemas import (
+from pipeline.data.schemas import (
     CMD_COLUMNS,
     COMMANDS,
     MOCAP,
@@ -226,7 +226,7 @@ def read_plotjuggler_csv(path: Path, limits: Any, run_id: str | None = None
 
 
 def _read_rosbag(path: Path, robot: Any) -> tuple[pd.DataFrame, pd.DataFrame]:
-    from pipeline.ros2.bag import read_rosbag  # rosbags loads only for bags
+    from pipeline.data.rosbag import read_rosbag  # rosbags loads only for bags
 
     return read_rosbag(path, robot)
 

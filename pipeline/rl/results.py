@@ -1,0 +1,120 @@
+"""Training results as tables and figures: per seed and update, per evaluation, per episode.
+
+Every table is written with its units and the producing config (:func:`write_results`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.infra.artifacts import Artifact
+from pipeline.infra.parquet import write_parquet
+
+UNITS = {
+    "timesteps": "environment steps per seed",
+    "mean_return": "sum of rewards (env=learned/sim: -mm per control period)",
+    "final_distance_m": "m",
+    "median_final_distance_m": "m",
+    "episode_final_distance_m": "m",
+}
+
+
+
+def write_results(frame: pd.DataFrame, path: Path, config: dict[str, Any], stage: str) -> Path:
+    """``frame`` as Parquet with the units of its columns and the producing config."""
+    return write_parquet(frame, path, {"schema": path.stem,
+                                       "units": {k: v for k, v in UNITS.items() if k in frame},
+                                       "config": config, "provenance": {"stage": stage}})
+
+
+def metrics_table(metrics: dict[str, np.ndarray]) -> pd.DataFrame:
+    """Per seed and update: the [num_seeds, num_updates] arrays of ``TrainOutput.metrics``."""
+    num_seeds, num_updates = np.asarray(metrics["timesteps"]).shape
+    frame = pd.DataFrame({
+        "seed": np.repeat(np.arange(num_seeds), num_updates),
+        "update": np.tile(np.arange(num_updates), num_seeds),
+    })
+    for name, values in metrics.items():
+        frame[name] = np.asarray(values).reshape(-1)
+    return frame
+
+
+def evaluation_tables(evaluation: dict[str, np.ndarray]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(per seed and evaluation, the last evaluation's episodes per seed)."""
+    summary_names = ["timesteps", "mean_return", "median_final_distance_m", "success_rate"]
+    num_seeds, num_evals = np.asarray(evaluation["timesteps"]).shape
+    summary = pd.DataFrame({"seed": np.repeat(np.arange(num_seeds), num_evals),
+                            "evaluation": np.tile(np.arange(num_evals), num_seeds)})
+    for name in summary_names:
+        summary[name] = np.asarray(evaluation[name]).reshape(-1)
+    last = {name: np.asarray(values)[:, -1] for name, values in evaluation.items()
+            if name.startswith("episode_")}
+    num_episodes = last["episode_return"].shape[-1]
+    episodes = pd.DataFrame({"seed": np.repeat(np.arange(num_seeds), num_episodes),
+                             "episode": np.tile(np.arange(num_episodes), num_seeds)})
+    for name, values in last.items():
+        episodes[name.removeprefix("episode_")] = values.reshape(-1)
+    return summary, episodes
+
+
+def training_curves(artifact: Artifact) -> pd.DataFrame:
+    """Columns timesteps, seed, return: the training return curve of every seed."""
+    frame = pd.read_parquet(artifact.file("metrics.parquet"),
+                            columns=["timesteps", "seed", "mean_return"])
+    return frame.rename(columns={"mean_return": "return"})
+
+
+def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, title: str
+                 ) -> Path:
+    """Training return (mean ± std over seeds) and held-out final distance per evaluation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib import ticker
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    has_distance = evaluation["median_final_distance_m"].notna().any()
+    fig, axes = plt.subplots(1, 2 if has_distance else 1, figsize=(11 if has_distance else 6, 4),
+                             squeeze=False)
+    # episodes end only now and then: carry each seed's last finished-episode return forward
+    filled = metrics.assign(mean_return=metrics.groupby("seed")["mean_return"].ffill())
+    stats = filled.groupby("timesteps")["mean_return"].agg(["mean", "std"]).reset_index()
+    ax = axes[0, 0]
+    ax.plot(stats["timesteps"], stats["mean"], color="C0",
+            label=f"training, mean ± std over {metrics['seed'].nunique()} seeds")
+    ax.fill_between(stats["timesteps"], stats["mean"] - stats["std"].fillna(0),
+                    stats["mean"] + stats["std"].fillna(0), color="C0", alpha=0.25)
+    held_out = evaluation.groupby("timesteps")["mean_return"].mean()
+    ax.plot(held_out.index, held_out.to_numpy(), "o-", color="C1", label="evaluation (mean)")
+    ax.set(xlabel="environment steps per seed", ylabel="episodic return", title=title)
+    ax.legend()
+    if has_distance:
+        ax = axes[0, 1]
+        many = evaluation["seed"].nunique() > 6  # then one thin grey line per seed, no legend
+        style = {"color": "0.6", "lw": 0.8} if many else {"marker": "o"}
+        for seed, rows in evaluation.groupby("seed"):
+            ax.plot(rows["timesteps"], 1000 * rows["median_final_distance_m"], alpha=0.7,
+                    label=None if many else f"seed {seed}", **style)
+        if many:
+            across = evaluation.groupby("timesteps")["median_final_distance_m"].median()
+            ax.plot(across.index, 1000 * across.to_numpy(), "o-", color="C3",
+                    label=f"median over {evaluation['seed'].nunique()} seeds")
+        ax.axhline(1.0, color="k", ls="--", lw=1, label="1 mm")
+        distances = 1000 * evaluation["median_final_distance_m"].dropna()
+        if distances.max() > 10 * max(distances.min(), 1e-6):  # a log axis only where needed
+            ax.set_yscale("log")
+            ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+        ax.set(xlabel="environment steps per seed", ylabel="median final distance [mm]",
+               title="held-out goals (deterministic policy)")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+

@@ -19,6 +19,7 @@ from omegaconf import DictConfig
 
 from pipeline import keys
 from pipeline.config import RobotKind, Stage, register_configs
+from pipeline.infra.compile_cache import use_compilation_cache
 
 log = logging.getLogger("pipeline")
 
@@ -88,6 +89,7 @@ register_configs()
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> None:
+    use_compilation_cache(cfg.paths.compile_cache_dir)
     run(cfg)
 
 

@@ -158,7 +158,7 @@ class RobotConfig:
     limits: PressureLimits = field(default_factory=PressureLimits)
     # runs start from a settled rest pose, so the first observed pose is the rest pose and the
     # model predicts the displacement from it (model.predict_displacement follows this). False
-    # for the paper's recordings: their first second still settles by about 1 mm.
+    # for the paper's recordings, which settle in their first second (experiments/MODEL_RESULTS.md).
     settled_start: bool = False
 
 
@@ -313,8 +313,8 @@ class ModelConfig:
     layers: int = 1
     head: list[int] = field(default_factory=list)
     condition_on_initial_pose: bool = False  # initial carry from the observed pose at reset
-    # predict the displacement from the run's initial pose (default: robot.settled_start; sim
-    # held-out 1.03 mm vs 1.96 mm absolute; real runs leave-one-out 4.04 mm vs 3.09 mm)
+    # predict the displacement from the run's initial pose (default: robot.settled_start; it
+    # helps on settled starts and hurts on the real runs: experiments/MODEL_RESULTS.md)
     predict_displacement: bool = False
     batch_size: int = 32
     learning_rate: float = 3.0e-3
@@ -367,7 +367,7 @@ class AgentConfig:
     num_seeds: int = 4  # seeds trained at once (vmap); seed i uses fold_in(PRNGKey(seed), i)
     num_envs: int = 64
     num_steps: int = 32  # rollout length per update
-    total_timesteps: int = 1_200_000  # per seed (env=sim: held-out median <= 1 mm at ~0.5M)
+    total_timesteps: int = 1_200_000  # per seed (its results: experiments/PPO_RESULTS.md)
     update_epochs: int = 4
     num_minibatches: int = 4
     gamma: float = 0.99
@@ -384,8 +384,8 @@ class AgentConfig:
     rnn_hidden: int = 64  # GRU width (recurrent only)
     rnn_skip: bool = False  # heads read the current embedding beside the GRU output
     activation: Activation = Activation.tanh
-    # initial log std of the Gaussian policy ([-1, 1] units): -2 (std 0.14); on the arm, -1
-    # ended 0.2 mm less precise (experiments/PPO_RESULTS.md)
+    # initial log std of the Gaussian policy ([-1, 1] units): -2 (std 0.14); -1 explores too
+    # much on the arm and ends less precise (see experiments/PPO_RESULTS.md)
     log_std_init: float = -2.0
     state_dependent_std: bool = False  # the actor outputs the log std (else one learned vector)
     reward_scale: float = 0.1  # rewards are multiplied by this for the update only

@@ -6,6 +6,7 @@ import importlib
 import sys
 
 BENCHMARKS = {
+    "chain": "bench.chain",
     "model_budget": "bench.model_budget",
     "ppo_throughput": "bench.ppo_throughput",
 }

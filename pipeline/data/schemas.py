@@ -111,8 +111,8 @@ RUNS = TableSchema(
     "runs",
     (_RUN, Column("source", "str", "", "where the run came from"),
      Column("complete", "bool", "", "False if the recording was interrupted"),
-     Column("n_commands", "int", "", "commands recorded"),
-     Column("n_frames", "int", "", "mocap frames recorded")),
+     Column("n_commands", "int", "count", "commands recorded"),
+     Column("n_frames", "int", "count", "mocap frames recorded")),
     time_column=None,
 )
 SCHEMAS = {s.name: s for s in (COMMANDS, MOCAP, ALIGNED, RUNS)}

@@ -9,7 +9,8 @@ trained with) and on a **consecutive-goals** task (several targets in a row, no 
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -59,38 +60,55 @@ def _starts(params: EnvParams, count: int) -> tuple[Any, jax.Array]:
             params.reset_positions[index])
 
 
-def _run(env, params, make_controller, carries, keys, starts, goals):
-    """vmap a rollout over episodes: goals [E, T, 3] -> positions [E, T+1, 3], commands."""
-    start_carries, start_positions = starts
+class Controllers(NamedTuple):
+    """One kind of controller for every seed: ``make(params, env_params)`` builds it from its
+    parameters, ``params`` (leaves ``[S, ...]``, ``S = 1`` for a baseline) and ``carries``
+    (leaves ``[S, E, ...]``, one per episode) are passed to the compiled program as arguments."""
 
-    def one(carry, key, start_carry, start_position, goal_path):
-        return rollouts.rollout(env, params, make_controller(), carry, key, start_carry,
-                                start_position, goal_path)
-
-    return jax.jit(jax.vmap(one))(carries, keys, start_carries, start_positions, goals)
+    make: Callable[[Any, EnvParams], rollouts.Controller]
+    params: Any
+    carries: Any
 
 
-def _controllers(cfg, env, params, learned_params, policies_loaded, num_episodes):
-    """(name, seed) -> (controller factory, per-episode carries), every policy seed and baseline.
+def rollout_program(env: SoftArmReachEnv, make: Callable[[Any, EnvParams], rollouts.Controller]
+                    ) -> Callable[..., tuple[jax.Array, jax.Array]]:
+    """One compiled program for a controller kind on ``env``, every seed and episode at once:
+    ``(env_params, params [S], carries [S, E], keys [E], starts [E], goals [E, T, 3])
+    -> positions [S, E, T + 1, 3], commands [S, E, T, 3]``. Seeds see the same keys, starts and
+    goals."""
+
+    def one(env_params, params, carry, key, start_carry, start_position, goal_path):
+        return rollouts.rollout(env, env_params, make(params, env_params), carry, key,
+                                start_carry, start_position, goal_path)
+
+    episodes = jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0, 0))
+    return jax.jit(jax.vmap(episodes, in_axes=(None, 0, 0, None, None, None, None)))
+
+
+def _controllers(cfg, env, params, learned_params, policies_loaded, num_episodes
+                 ) -> dict[str, Controllers]:
+    """Every policy type (all its seeds) and every baseline on ``env`` with ``params``, by name.
 
     ``learned_params`` are the learned environment's: the MPC's model starts from its settled
     states (the same ones the learned environment starts from).
     """
     out = {}
     for name, (network, stacked, num_seeds) in policies_loaded.items():
-        for seed in range(num_seeds):
-            seed_params = jax.tree.map(lambda x, s=seed: x[s], stacked)
-            hidden = initial_hidden(network, 1)
-            carries = (jnp.broadcast_to(hidden, (num_episodes, *hidden.shape)),
-                       jnp.ones((num_episodes,), bool))
-            out[(name, seed)] = (lambda n=network, p=seed_params:
-                                 rollouts.policy_controller(n, p), carries)
-    dummy = jnp.zeros((num_episodes,))
+        hidden = initial_hidden(network, 1)
+        carries = (jnp.broadcast_to(hidden, (num_seeds, num_episodes, *hidden.shape)),
+                   jnp.ones((num_seeds, num_episodes), bool))
+        out[name] = Controllers(
+            lambda params, env_params, n=network: rollouts.policy_controller(n, params),
+            stacked, carries)
+    none, dummy = jnp.zeros((1,)), jnp.zeros((1, num_episodes))
     for baseline in cfg.evaluation.baselines:
         if baseline == "preload":
-            out[(baseline, 0)] = (lambda: rollouts.preload_controller(env, params), dummy)
+            out[baseline] = Controllers(
+                lambda params, env_params: rollouts.preload_controller(env, env_params),
+                none, dummy)
         elif baseline == "random":
-            out[(baseline, 0)] = (rollouts.random_controller, dummy)
+            out[baseline] = Controllers(lambda params, env_params: rollouts.random_controller(),
+                                        none, dummy)
         elif baseline == "mpc":
             settings = mpc.CEMSettings(horizon=int(cfg.evaluation.mpc_horizon),
                                        num_samples=int(cfg.evaluation.mpc_samples),
@@ -99,12 +117,32 @@ def _controllers(cfg, env, params, learned_params, policies_loaded, num_episodes
             model_carries, model_starts = _starts(learned_params, num_episodes)
             carries = jax.vmap(mpc.initial_carry, in_axes=(0, 0, None))(
                 model_carries, model_starts, params.preload)
-            out[(baseline, 0)] = (lambda m=model, s=settings: mpc.mpc_controller(
-                env, params, m, learned_params.plant, s), carries)
+            out[baseline] = Controllers(
+                lambda params, env_params, m=model, s=settings: mpc.mpc_controller(
+                    env, env_params, m, params, s),
+                jax.tree.map(lambda x: x[None], learned_params.plant),
+                jax.tree.map(lambda x: x[None], carries))
         else:
             raise ValueError(f"evaluation.baselines: unknown baseline {baseline!r}; "
                              "known: preload, random, mpc")
     return out
+
+
+class _Programs:
+    """The compiled rollout program of each (plant, controller kind), built on first use."""
+
+    def __init__(self):
+        self._programs: dict[tuple[str, str], Callable[..., Any]] = {}
+
+    def run(self, plant: str, name: str, env: SoftArmReachEnv, env_params: EnvParams,
+            controllers: Controllers, keys, starts, goals) -> tuple[np.ndarray, np.ndarray]:
+        if (plant, name) not in self._programs:
+            self._programs[(plant, name)] = rollout_program(env, controllers.make)
+        start_carries, start_positions = starts
+        positions, commands = self._programs[(plant, name)](
+            env_params, controllers.params, controllers.carries, keys, start_carries,
+            start_positions, goals)
+        return np.asarray(positions), np.asarray(commands)
 
 
 def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv,
@@ -133,25 +171,27 @@ def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv
     limits = cfg.robot.limits
     rows, finals, paths = [], {}, {}
     keys = jax.random.split(rollout_key, episodes)
+    programs = _Programs()
     for plant_name, (plant_env_i, plant_params) in plants.items():
         controllers = _controllers(cfg, plant_env_i, plant_params, eval_params, loaded, episodes)
         starts = _starts(plant_params, episodes)
-        for (controller, seed), (factory, carries) in controllers.items():
-            positions, commands = _run(plant_env_i, plant_params, factory, carries, keys,
-                                       starts, goal_paths)
-            positions, commands = np.asarray(positions), np.asarray(commands)
-            table = episode_metrics(positions, np.asarray(goals), commands, limits)
-            table.insert(0, "episode", np.arange(episodes))
-            table.insert(0, "seed", seed)
-            table.insert(0, "controller", controller)
-            table.insert(0, "plant", plant_name)
-            rows.append(table)
-            finals[(plant_name, controller, seed)] = positions[:, -1]
-            paths[(plant_name, controller, seed)] = positions
+        for controller, batch in controllers.items():
+            positions, commands = programs.run(plant_name, controller, plant_env_i, plant_params,
+                                               batch, keys, starts, goal_paths)
+            for seed in range(positions.shape[0]):
+                table = episode_metrics(positions[seed], np.asarray(goals), commands[seed],
+                                        limits)
+                table.insert(0, "episode", np.arange(episodes))
+                table.insert(0, "seed", seed)
+                table.insert(0, "controller", controller)
+                table.insert(0, "plant", plant_name)
+                rows.append(table)
+                finals[(plant_name, controller, seed)] = positions[seed, :, -1]
+                paths[(plant_name, controller, seed)] = positions[seed]
     episodes_table = pd.concat(rows, ignore_index=True)
     summary = summarize(episodes_table, ["plant", "controller"])
     gaps = _gap_table(episodes_table, finals) if "plant" in plants else pd.DataFrame()
-    consecutive = _consecutive(cfg, plants, loaded, consecutive_key, eval_params)
+    consecutive = _consecutive(cfg, plants, loaded, consecutive_key, eval_params, programs)
     headline = {
         f"{row.plant}/{row.controller}": {"median_final_mm": float(row.median_final_mm),
                                           "success_1mm": float(row.success_1mm),
@@ -178,7 +218,7 @@ def _gap_table(episodes: pd.DataFrame, finals: dict) -> pd.DataFrame:
     return pd.concat(rows, ignore_index=True)
 
 
-def _consecutive(cfg, plants, loaded, key, eval_params) -> pd.DataFrame:
+def _consecutive(cfg, plants, loaded, key, eval_params, programs: _Programs) -> pd.DataFrame:
     """Reach ``num_consecutive_goals`` goals one after another (``max_steps`` each, no reset);
     the distance at the end of each goal's time is recorded."""
     count = int(cfg.evaluation.num_consecutive_goals)
@@ -193,18 +233,20 @@ def _consecutive(cfg, plants, loaded, key, eval_params) -> pd.DataFrame:
     rows = []
     for plant_name, (env, params) in plants.items():
         controllers = _controllers(cfg, env, params, eval_params, loaded, episodes)
-        for (controller, seed), (factory, carries) in controllers.items():
+        starts = _starts(params, episodes)
+        for controller, batch in controllers.items():
             if controller in ("preload", "random"):
                 continue
-            positions, _ = _run(env, params, factory, carries, keys, _starts(params, episodes),
-                                jnp.asarray(goals))
-            positions = np.asarray(positions)
-            ends = positions[:, per_goal::per_goal]  # pose at the end of each goal's time
+            positions, _ = programs.run(plant_name, controller, env, params, batch, keys, starts,
+                                        jnp.asarray(goals))
+            ends = positions[:, :, per_goal::per_goal]  # pose at the end of each goal's time
             targets = goals[:, per_goal - 1::per_goal]
-            distance = np.linalg.norm(ends - targets, axis=-1) * MM_PER_M
-            for goal_number in range(count):
-                rows.append({"plant": plant_name, "controller": controller, "seed": seed,
-                             "goal": goal_number,
-                             "median_distance_mm": float(np.median(distance[:, goal_number])),
-                             "success_3mm": float((distance[:, goal_number] <= 3).mean())})
+            distance = np.linalg.norm(ends - targets, axis=-1) * MM_PER_M  # [S, E, goals]
+            for seed in range(positions.shape[0]):
+                for goal_number in range(count):
+                    at_goal = distance[seed, :, goal_number]
+                    rows.append({"plant": plant_name, "controller": controller, "seed": seed,
+                                 "goal": goal_number,
+                                 "median_distance_mm": float(np.median(at_goal)),
+                                 "success_3mm": float((at_goal <= 3).mean())})
     return pd.DataFrame(rows)

@@ -38,6 +38,36 @@ def atomic_write(path: str | os.PathLike[str]) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+# unit of a column by the end of its name (the project's naming convention)
+_SUFFIX_UNITS = (("_mm", "mm"), ("_m", "m"), ("_kpa", "kPa"), ("_s", "s"), ("_hz", "Hz"))
+_PREFIX_UNITS = (("steps_", "control periods"), ("success_", "fraction of episodes"),
+                 ("time_above_", "fraction of control periods"))
+
+
+def column_units(columns: Any) -> dict[str, str]:
+    """Units read off column names: ``*_mm`` mm, ``*_m`` m, ``*_kpa`` kPa, ``*_s`` s,
+    ``steps_*`` control periods, ``success_*`` a fraction; columns without one are left out."""
+    units = {}
+    for column in map(str, columns):
+        lower = column.lower()
+        for suffix, unit in _SUFFIX_UNITS:
+            if lower.endswith(suffix):
+                units[column] = unit
+        for prefix, unit in _PREFIX_UNITS:
+            if lower.startswith(prefix):
+                units[column] = unit
+    return units
+
+
+def table_metadata(frame: pd.DataFrame, name: str, config: Mapping[str, Any] | None = None,
+                   provenance: Mapping[str, Any] | None = None,
+                   units: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The metadata every table carries: its name, its columns' units (read off the names,
+    ``units`` overriding), the producing config and its provenance."""
+    return {"schema": name, "units": {**column_units(frame.columns), **dict(units or {})},
+            "config": dict(config or {}), "provenance": dict(provenance or {})}
+
+
 def encode_metadata(metadata: Mapping[str, Any]) -> dict[bytes, str]:
     return {METADATA_KEY: json.dumps(dict(metadata), default=str)}
 

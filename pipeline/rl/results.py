@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.infra.artifacts import Artifact
-from pipeline.infra.parquet import write_parquet
+from pipeline.infra.parquet import table_metadata, write_parquet
 
 UNITS = {
     "timesteps": "environment steps per seed",
@@ -26,9 +26,9 @@ UNITS = {
 
 def write_results(frame: pd.DataFrame, path: Path, config: dict[str, Any], stage: str) -> Path:
     """``frame`` as Parquet with the units of its columns and the producing config."""
-    return write_parquet(frame, path, {"schema": path.stem,
-                                       "units": {k: v for k, v in UNITS.items() if k in frame},
-                                       "config": config, "provenance": {"stage": stage}})
+    units = {k: v for k, v in UNITS.items() if k in frame}
+    return write_parquet(frame, path, table_metadata(frame, path.stem, config, {"stage": stage},
+                                                     units))
 
 
 def metrics_table(metrics: dict[str, np.ndarray]) -> pd.DataFrame:

@@ -12,6 +12,7 @@ from pipeline import keys
 from pipeline.data.alignment import COUNT_FIELDS, align_tables
 from pipeline.data.schemas import ALIGNED, COMMANDS, MOCAP, RUNS, DataError, read_table, write_table
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
+from pipeline.infra.parquet import table_metadata, write_parquet
 
 log = logging.getLogger(__name__)
 STAGE = "align"
@@ -37,7 +38,9 @@ def align(cfg: Any) -> Artifact:
         config = {"dataset.align": spec["align"], "robot": cfg.robot.name}
         provenance = {"stage": STAGE, "inputs": inputs}
         write_table(aligned, writer.file("aligned.parquet"), ALIGNED, config, provenance)
-        report.to_parquet(writer.file("align_report.parquet"), index=False)
+        write_parquet(report, writer.file("align_report.parquet"),
+                      table_metadata(report, "align_report", config, provenance,
+                                     {k: "rows" if k == "rows" else "count" for k in COUNT_FIELDS}))
         totals = {k: int(report[k].sum()) for k in COUNT_FIELDS}
         writer.summary = {"runs": len(report), **totals}
         log.info("align: %d runs, %s", len(report),

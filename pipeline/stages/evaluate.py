@@ -33,6 +33,7 @@ from pipeline.evaluation.figures import make_figures
 from pipeline.evaluation.report import write_report
 from pipeline.evaluation.sections import report_sections
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
+from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.rl.envs.factory import environment
 
 log = logging.getLogger(__name__)
@@ -55,8 +56,10 @@ def evaluate(cfg: Any) -> Artifact:
     def build(writer):
         env, _, eval_params = environment(cfg, upstream["model"], upstream["aligned"])
         results = run_evaluation(cfg, policies, env, eval_params)
+        config = {"evaluation": spec["evaluation"], "env": spec["env"]}
         for name, frame in results["tables"].items():
-            frame.to_parquet(writer.file(f"{name}.parquet"), index=False)
+            write_parquet(frame, writer.file(f"{name}.parquet"),
+                          table_metadata(frame, name, config, {"stage": STAGE, "inputs": inputs}))
         figures = make_figures(writer.path / "figures", cfg, policies, results)
         sections = report_sections(cfg, policies, results, figures, **upstream)
         write_report(writer.path, f"sorolearn run: robot={cfg.robot.name}", sections)

@@ -26,6 +26,7 @@ from pipeline.data.windows import split_runs
 from pipeline.dynamics.figures import plot_losses, plot_reconstruction
 from pipeline.dynamics.training import evaluation_table, fit, save_dynamics
 from pipeline.infra.artifacts import Artifact, ArtifactStore, artifact_key, produce
+from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.infra.tracking import tracking
 
 log = logging.getLogger(__name__)
@@ -61,12 +62,17 @@ def fit_model(cfg: Any) -> Artifact:
             train_runs, cfg.model, window=int(data.window), stride=int(data.stride),
             order=str(data.order), val_runs=test_runs, checkpoint_dir=work_dir, resume=True)
         save_dynamics(writer.file("model.msgpack"), params)
-        losses.to_parquet(writer.file("losses.parquet"), index=False)
+        config = {"model": spec["model"], "dataset": spec["dataset"]}
+        provenance = {"stage": STAGE, "inputs": inputs}
+        write_parquet(losses, writer.file("losses.parquet"), table_metadata(
+            losses, "losses", config, provenance,
+            {"train_loss": "normalized MSE", "val_loss": "normalized MSE", "step": "step"}))
         with tracking(cfg, STAGE) as tracker:
             tracker.log_table(losses)
 
         metrics = evaluation_table(params, train_runs, test_runs)
-        metrics.to_parquet(writer.file("metrics.parquet"), index=False)
+        write_parquet(metrics, writer.file("metrics.parquet"), table_metadata(
+            metrics, "model_metrics", config, provenance, {"steps": "model steps"}))
         plot_losses(writer.file("figures/loss.png"), losses)
         shown = [train_runs[0]] + ([test_runs[0]] if test_runs else [])
         plot_reconstruction(writer.file("figures/reconstruction.png"), params, shown,

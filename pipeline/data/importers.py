@@ -68,6 +68,10 @@ def recording_id(path: Path) -> str:
     return path.name if path.is_dir() else path.stem
 
 
+class RecordingNotFoundError(FileNotFoundError):
+    """robot.data_dir, robot.files or robot.pattern name no recording."""
+
+
 # Import kinds whose recordings are folders, with the file that marks one.
 FOLDER_RECORDINGS = {"rosbag": "metadata.yaml"}
 
@@ -76,7 +80,7 @@ def list_recordings(robot: Any) -> list[Path]:
     """The recordings an import robot reads (files, or bag folders), sorted; an error if none."""
     data_dir = Path(robot.data_dir).expanduser()
     if not data_dir.is_dir():
-        raise FileNotFoundError(
+        raise RecordingNotFoundError(
             f"robot.data_dir={data_dir} is not a folder (set robot.data_dir=... or SOROLEX_DIR)"
         )
     marker = FOLDER_RECORDINGS.get(getattr(robot.kind, "value", str(robot.kind)))
@@ -89,11 +93,13 @@ def list_recordings(robot: Any) -> list[Path]:
         paths = [data_dir / name for name in robot.files]
         missing = [str(p) for p in paths if not is_recording(p)]
         if missing:
-            raise FileNotFoundError(f"robot.files not found (expected {what}): {missing}")
+            raise RecordingNotFoundError(f"robot.files not found (expected {what}): {missing}")
     else:
         paths = [p for p in sorted(data_dir.glob(robot.pattern)) if is_recording(p)]
+    if getattr(robot, "num_runs", None) is not None:
+        paths = paths[:int(robot.num_runs)]
     if not paths:
-        raise FileNotFoundError(f"no {what} match {robot.pattern!r} in {data_dir}")
+        raise RecordingNotFoundError(f"no {what} match {robot.pattern!r} in {data_dir}")
     return paths
 
 

@@ -18,6 +18,10 @@ log = logging.getLogger(__name__)
 STAGE = "collect"
 
 
+class CollectionInterrupted(RuntimeError):
+    """A recording was cut short; what was recorded is in an artifact, marked incomplete."""
+
+
 def write_raw(writer: ArtifactWriter, cfg: Any, spec: dict[str, Any], commands: pd.DataFrame,
                mocap: pd.DataFrame, runs: pd.DataFrame) -> None:
     provenance = {"stage": STAGE, "robot": cfg.robot.name}

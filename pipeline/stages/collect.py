@@ -31,16 +31,12 @@ from pipeline.arm.exploration import exploration_plan, plot_walks
 from pipeline.arm.safety import validate_limits
 from pipeline.config import RobotKind
 from pipeline.data.importers import READERS, list_recordings, recording_id
-from pipeline.data.raw import write_raw
+from pipeline.data.raw import CollectionInterrupted, write_raw
 from pipeline.data.schemas import CMD_COLUMNS, XYZ
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
-
-
-class CollectionInterrupted(RuntimeError):
-    """A recording was cut short; what was recorded is in an artifact, marked incomplete."""
 
 
 def collect(cfg: Any) -> Artifact:

@@ -614,6 +614,7 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
                 f"robot.command_timeout_s={robot.command_timeout_s} s must exceed one control "
                 f"period (1 / robot.control_hz = {period:g} s), or the arm falls back to the "
                 f"preload between commands")
+    check_rating_source(robot, robot_choice, search_dirs)
     _check_inside_rating(robot)
     low, high = list(robot.workspace.low_m), list(robot.workspace.high_m)
     if len(low) != 3 or len(high) != 3 or not all(a < b for a, b in zip(low, high)):
@@ -632,7 +633,6 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
         if float(exploration.p_max) > float(robot.rating.sum_max):
             raise ConfigError(f"exploration.p_max={exploration.p_max} kPa exceeds the arm's "
                               f"rating robot.rating.sum_max={robot.rating.sum_max} kPa")
-    check_rating_source(robot, robot_choice, search_dirs)
 
 
 def dataclass_values(cls: type, config: Any, what: str,

@@ -188,7 +188,7 @@ def _validate_named(df: pd.DataFrame, renamed: dict[str, str], path: Path, limit
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
             hint = "; a truncated last line looks like this" if row == len(df) - 1 else ""
-            raise DataError(str(path), f"not a finite number: {df[original].iloc[row]!r} "
+            raise DataError(str(path), f"not a finite number: {str(df[original].iloc[row])!r} "
                             f"(line {row + 2}{hint})", original, row)
     t = df[SOROLEX_TIME].to_numpy(np.float64)
     dt = np.diff(t)

@@ -5,6 +5,11 @@ Hydra type-checks every value and rejects unknown keys at composition: a typo su
 ``exploration.alpah=0.5`` or ``stage=fitmodel`` fails before any work starts, with a message that
 names the key and, for enums, the valid values.
 
+The router then runs :func:`validate_config` before any work: values the types allow but a run
+cannot use (NaN, a non-finite timeout, ``exploration.alpha`` outside [0, 1], limits outside the
+arm's rating, a real arm's rating changed by an override) fail with a :class:`ConfigError` naming
+the setting and its value.
+
 Units: pressures in kPa, positions in metres, times in seconds, rates in Hz.
 """
 
@@ -563,10 +568,16 @@ def robot_file(choice: str, search_dirs: list[Path] | None = None) -> Path | Non
     return None
 
 
-def rating_from_file(path: Path) -> dict[str, float]:
-    """The rating a robot's YAML file sets, over the schema's defaults."""
+def rating_from_file(path: Path, search_dirs: list[Path] | None = None) -> dict[str, float]:
+    """The rating a robot's YAML file sets over the schema's defaults, following the robot
+    options its defaults list extends (``defaults: [ros2, _self_]``)."""
     text = OmegaConf.load(path)
-    rating = OmegaConf.merge(OmegaConf.structured(PressureRating), text.get("rating") or {})
+    rating = OmegaConf.structured(PressureRating)
+    for entry in text.get("defaults") or []:
+        parent = robot_file(entry, search_dirs) if isinstance(entry, str) else None
+        if parent is not None and parent != path:
+            rating = OmegaConf.merge(rating, rating_from_file(parent, search_dirs))
+    rating = OmegaConf.merge(rating, text.get("rating") or {})
     return {k: float(v) for k, v in rating.items()}
 
 
@@ -580,7 +591,7 @@ def check_rating_source(robot: Any, choice: str | None,
     if path is None:
         raise ConfigError(f"robot={choice}: no conf/robot/{choice}.yaml to read the arm's rating "
                           f"from; a real arm's rating comes from its robot config file")
-    expected = rating_from_file(path)
+    expected = rating_from_file(path, search_dirs)
     for name, value in expected.items():
         got = float(robot.rating[name])
         if got != value and not (math.isnan(got) and math.isnan(value)):

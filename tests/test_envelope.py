@@ -104,7 +104,7 @@ def test_shipped_configs_pass_validation(make_cfg, override):
 
 def test_validation_runs_before_any_stage(make_cfg, monkeypatch):
     monkeypatch.setattr(router, "stage_function", lambda stage: pytest.fail(f"{stage} ran"))
-    with pytest.raises(ConfigError, match="exploration.alpha"):
+    with pytest.raises(ConfigError, match=r"exploration\.alpha"):
         run(make_cfg("stage=collect", "exploration.alpha=1.5"))
 
 
@@ -175,3 +175,15 @@ def test_hydra_full_error_shows_the_traceback(tmp_path):
     assert result.returncode == 1
     assert "Traceback" in result.stderr
     assert "pipeline.config.ConfigError: exploration.alpha=1.5 must lie in [0, 1]" in result.stderr
+
+
+def test_a_lab_arm_config_extending_ros2_inherits_its_rating(tmp_path):
+    from pipeline.config import rating_from_file
+
+    robot = tmp_path / "robot"
+    robot.mkdir()
+    (robot / "ros2.yaml").write_text("defaults:\n  - base_ros2\n  - _self_\n"
+                                     "rating:\n  p_max: 6.0\n  sum_max: 12.0\n")
+    (robot / "lab_arm.yaml").write_text("defaults:\n  - ros2\n  - _self_\nrating:\n  p_max: 5.0\n")
+    assert rating_from_file(robot / "lab_arm.yaml", [tmp_path]) == {
+        "p_min": 0.0, "p_max": 5.0, "sum_max": 12.0, "preload": 2.0}

@@ -38,19 +38,6 @@ OVERRIDES = [
     "exploration.pad_steps=2",
     *(f"robot.limits.{k}={v}" for k, v in LIMITS.items()),
 ]
-_domains = iter(range(100))
-
-
-@pytest.fixture
-def ros_domain() -> int:
-    """A ROS_DOMAIN_ID no other test of this session uses (per xdist worker: 20 ids); without
-    xdist the caller's ROS_DOMAIN_ID where set (tests then run one after another)."""
-    if "ROS_DOMAIN_ID" in os.environ and "PYTEST_XDIST_WORKER" not in os.environ:
-        return int(os.environ["ROS_DOMAIN_ID"])
-    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-    return 20 + (20 * worker) % 80 + next(_domains) % 20
-
-
 class Pipeline:
     """Starts pipeline stages as subprocesses in one ROS domain, writing under ``tmp_path``."""
 

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from tests.test_ros2_link import TIME_SCALE, Pipeline, ros_domain, stop  # noqa: F401
+from tests.test_ros2_link import TIME_SCALE, Pipeline, stop
 
 pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
 pytestmark = pytest.mark.ros
@@ -108,7 +108,7 @@ def test_guard_forwards_inside_the_rating_and_falls_back_to_the_preload(
             assert len(forwarded) >= 6 and all(p == [3.0, 3.0, 3.5] for p in forwarded)
             # ... until they stop: the preload within robot.command_timeout_s
             driver.spin(TIMEOUT_WALL_S + SLACK_S + 0.3)
-            (first_after, pressures), *_ = [(s, p) for s, p in driver.after(last)
+            (first_after, _), *_ = [(s, p) for s, p in driver.after(last)
                                             if p == PRELOAD]
             assert TIMEOUT_WALL_S <= first_after - last <= TIMEOUT_WALL_S + SLACK_S
             assert all(p == PRELOAD for _, p in driver.after(first_after))

@@ -1,6 +1,6 @@
 """How good can a Pendulum-v1 return be? Dynamic programming on gymnax's own dynamics.
 
-PPO's returns on Pendulum-v1 are compared with a published figure (issue 5); this script gives
+PPO's returns on Pendulum-v1 are compared with a published figure; this script gives
 the reference that no policy can beat by much: the finite-horizon optimum, by backward value
 iteration over a grid of (angle, angular velocity) with bilinear interpolation and a set of
 torque levels, 200 steps as in an episode. The greedy policy of that value function is then run

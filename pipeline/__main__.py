@@ -32,6 +32,7 @@ from pipeline.data.importers import RecordingNotFoundError
 from pipeline.data.raw import CollectionInterrupted
 from pipeline.data.schemas import DataError
 from pipeline.infra.artifacts import MissingArtifactError
+from pipeline.infra.compile_cache import use_compilation_cache
 from pipeline.ros2.node import RosUnavailableError
 
 log = logging.getLogger("pipeline")
@@ -124,6 +125,7 @@ register_configs()
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> None:
+    use_compilation_cache(cfg.paths.compile_cache_dir)
     try:
         run(cfg)
     except KNOWN_ERRORS as err:

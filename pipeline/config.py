@@ -72,6 +72,36 @@ class GoalSource(Choice):
     measured = "measured"  # the runs' recorded positions
 
 
+class GoalMode(Choice):
+    data = "data"  # uniform over the positions seen in the data
+    perturb = "perturb"  # the paper's: the initial pose plus N(0, 1) * goal_perturbation_m
+
+
+class ModelGrid(Choice):
+    clock = "clock"  # a regular grid at model_hz
+    commands = "commands"  # locked to the command times
+
+
+class WindowOrder(Choice):
+    permuted = "permuted"  # windows drawn at random (a fresh permutation per epoch)
+    sequential = "sequential"  # windows in time order
+
+
+class LrSchedule(Choice):
+    constant = "constant"
+    cosine = "cosine"  # linear warmup, cosine decay to the end
+
+
+class ReferencePose(Choice):
+    run_start = "run_start"  # the pose the window's run started from (as an env sees at reset)
+    window_start = "window_start"  # the window's own first pose
+
+
+class Activation(Choice):
+    tanh = "tanh"
+    relu = "relu"
+
+
 # --------------------------------------------------------------------------------------------
 # robot
 # --------------------------------------------------------------------------------------------
@@ -160,7 +190,7 @@ class RobotConfig:
     workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
     # runs start from a settled rest pose, so the first observed pose is the rest pose and the
     # model predicts the displacement from it (model.predict_displacement follows this). False
-    # for the paper's recordings: their first second still settles by about 1 mm.
+    # for the paper's recordings, which settle in their first second (experiments/MODEL_RESULTS.md).
     settled_start: bool = False
 
 
@@ -314,10 +344,10 @@ class AlignConfig:
 class DatasetConfig:
     align: AlignConfig = field(default_factory=AlignConfig)
     model_hz: float = 10.0  # rate the dynamics model runs at (downsampled aligned data)
-    model_grid: str = "clock"  # clock: regular grid | commands: locked to the command times
+    model_grid: ModelGrid = ModelGrid.clock
     window: int = 128  # sliding-window length in model steps
     stride: int = 1
-    order: str = "permuted"  # permuted | sequential
+    order: WindowOrder = WindowOrder.permuted
     train_fraction: float = 0.75
     split_seed: int = 0
 
@@ -334,12 +364,12 @@ class ModelConfig:
     layers: int = 1
     head: list[int] = field(default_factory=list)
     condition_on_initial_pose: bool = False  # initial carry from the observed pose at reset
-    # predict the displacement from the run's initial pose (default: robot.settled_start; sim
-    # held-out 1.03 mm vs 1.96 mm absolute; real runs leave-one-out 4.04 mm vs 3.09 mm)
+    # predict the displacement from the run's initial pose (default: robot.settled_start; it
+    # helps on settled starts and hurts on the real runs: experiments/MODEL_RESULTS.md)
     predict_displacement: bool = False
     batch_size: int = 32
     learning_rate: float = 3.0e-3
-    lr_schedule: str = "cosine"  # constant | cosine
+    lr_schedule: LrSchedule = LrSchedule.cosine
     warmup_steps: int = 100
     final_lr_fraction: float = 0.05
     max_grad_norm: float = 1.0
@@ -347,7 +377,7 @@ class ModelConfig:
     eval_every: int = 250
     checkpoint_every: int = 500
     seed: int = 0
-    reference_pose: str = "run_start"  # run_start | window_start
+    reference_pose: ReferencePose = ReferencePose.run_start
 
 
 @dataclass
@@ -361,7 +391,7 @@ class EnvConfig:
     name: EnvName = EnvName.learned
     max_steps: int = 40  # control periods per episode (truncation)
     goal_tolerance_m: float = 0.001  # terminate within this distance of the goal
-    goal_mode: str = "data"  # data (uniform over positions seen) | perturb (paper: N(0,1)*pert.)
+    goal_mode: GoalMode = GoalMode.data
     goal_perturbation_m: float = 0.01
     obs_noise_std: float = 0.0  # m, on the observed position
     action_noise_std: float = 0.0  # kPa, on the commanded pressures (before projection)
@@ -388,7 +418,7 @@ class AgentConfig:
     num_seeds: int = 4  # seeds trained at once (vmap); seed i uses fold_in(PRNGKey(seed), i)
     num_envs: int = 64
     num_steps: int = 32  # rollout length per update
-    total_timesteps: int = 1_200_000  # per seed (env=sim: held-out median <= 1 mm at ~0.5M)
+    total_timesteps: int = 1_200_000  # per seed (its results: experiments/PPO_RESULTS.md)
     update_epochs: int = 4
     num_minibatches: int = 4
     gamma: float = 0.99
@@ -404,9 +434,9 @@ class AgentConfig:
     num_layers: int = 2  # MLP layers of the actor and of the critic (after the GRU if any)
     rnn_hidden: int = 64  # GRU width (recurrent only)
     rnn_skip: bool = False  # heads read the current embedding beside the GRU output
-    activation: str = "tanh"  # tanh | relu
-    # initial log std of the Gaussian policy ([-1, 1] units): -2 (std 0.14); on the arm, -1
-    # ended 0.2 mm less precise (experiments/PPO_RESULTS.md)
+    activation: Activation = Activation.tanh
+    # initial log std of the Gaussian policy ([-1, 1] units): -2 (std 0.14); -1 explores too
+    # much on the arm and ends less precise (see experiments/PPO_RESULTS.md)
     log_std_init: float = -2.0
     state_dependent_std: bool = False  # the actor outputs the log std (else one learned vector)
     reward_scale: float = 0.1  # rewards are multiplied by this for the update only
@@ -477,6 +507,8 @@ class PathsConfig:
     data_dir: str = "${oc.env:SOROLEX_DIR,${paths.root_dir}/../shared/data/sorolex}"
     output_dir: str = "${paths.root_dir}/outputs"
     artifact_dir: str = "${paths.output_dir}/artifacts"
+    # JAX's persistent compilation cache, shared by runs, sweep jobs and tests; null: off
+    compile_cache_dir: str | None = "${oc.env:SOROLEARN_COMPILE_CACHE,${paths.output_dir}/jax_cache}"
 
 
 @dataclass

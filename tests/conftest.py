@@ -14,11 +14,15 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from pipeline.config import PROJECT_ROOT, register_configs
+from pipeline.infra.compile_cache import use_compilation_cache
 
 CONF_DIR = PROJECT_ROOT / "conf"
 SOROLEX_DIR = Path(os.environ.get("SOROLEX_DIR", PROJECT_ROOT.parent / "shared/data/sorolex"))
 
 register_configs()
+# One compilation cache for every test worker and every pipeline process a test starts.
+os.environ.setdefault("SOROLEARN_COMPILE_CACHE", str(PROJECT_ROOT / "outputs" / "jax_cache"))
+use_compilation_cache(os.environ["SOROLEARN_COMPILE_CACHE"])
 
 
 def compose_config(output_dir: Path | str, *overrides: str) -> DictConfig:

@@ -31,7 +31,6 @@ import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -39,8 +38,12 @@ import optax
 from flax.training.train_state import TrainState
 
 from pipeline.config import AgentConfig
+from pipeline.rl.evaluation import evaluate_policy
+from pipeline.rl.losses import compute_gae, ppo_loss
+from pipeline.rl.minibatches import sequence_minibatches, step_minibatches
 from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import NETWORK_FIELDS
+from pipeline.rl.spaces import action_bounds, to_env_action
 
 
 # ---------------------------------------------------------------------------------------------
@@ -81,66 +84,8 @@ class TrainOutput(NamedTuple):
 
 
 # ---------------------------------------------------------------------------------------------
-# GAE
-# ---------------------------------------------------------------------------------------------
-def compute_gae(
-    rewards: jax.Array,
-    values: jax.Array,
-    terminated: jax.Array,
-    truncated: jax.Array,
-    bootstrap_values: jax.Array,
-    last_value: jax.Array,
-    gamma: float,
-    gae_lambda: float,
-) -> tuple[jax.Array, jax.Array]:
-    """Generalized advantage estimates and value targets, both ``[T, B]``.
-
-    Args:
-      rewards, values, terminated, truncated, bootstrap_values: ``[T, B]`` (see Transition).
-      last_value: ``[B]``, V of the observation after the last step (the next rollout's first).
-
-    The one-step target of step t bootstraps with ``V(obs[t+1])`` inside an episode, with
-    ``bootstrap_values[t]`` where the episode was truncated at t, and with 0 where it terminated;
-    the advantage recursion ``A_t = delta_t + gamma * lambda * A_{t+1}`` stops at every episode
-    end (terminated or truncated).
-    """
-    chex.assert_equal_shape([rewards, values, terminated, truncated, bootstrap_values])
-    chex.assert_rank(rewards, 2)
-    chex.assert_shape(last_value, rewards.shape[1:])
-    next_values = jnp.concatenate([values[1:], last_value[None]], axis=0)
-    done = jnp.logical_or(terminated, truncated)
-    next_values = jnp.where(done, bootstrap_values, next_values)
-    next_values = jnp.where(terminated, 0.0, next_values)
-    deltas = rewards + gamma * next_values - values
-    continues = 1.0 - done.astype(rewards.dtype)
-
-    def backward(advantage_next, step):
-        delta, cont = step
-        advantage = delta + gamma * gae_lambda * cont * advantage_next
-        return advantage, advantage
-
-    _, advantages = jax.lax.scan(backward, jnp.zeros_like(last_value), (deltas, continues),
-                                 reverse=True)
-    return advantages, advantages + values
-
-
-# ---------------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------------
-def action_bounds(env: Any, env_params: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The environment's Box action bounds as float32 numpy arrays of the action shape."""
-    space = env.action_space(env_params)
-    shape = tuple(space.shape)
-    low = np.broadcast_to(np.asarray(space.low, np.float32), shape)
-    high = np.broadcast_to(np.asarray(space.high, np.float32), shape)
-    return low, high
-
-
-def to_env_action(action: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
-    """Policy action in [-1, 1] units (clipped) -> the environment's Box."""
-    return low + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
-
-
 def _masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
     """Mean of ``values`` where ``mask``; NaN where nothing is selected."""
     count = mask.sum()
@@ -296,38 +241,10 @@ def make_train(
                 config.gae_lambda)
 
             # ------------------------------------------------------------ PPO epochs
-            def loss_fn(params, hidden, batch: Transition, advantage, target):
-                _, pi, value = network.apply(params, hidden, batch.obs, batch.reset)
-                log_prob = pi.log_prob(batch.action)
-                if config.clip_value:
-                    value_clipped = batch.value + jnp.clip(
-                        value - batch.value, -config.clip_eps, config.clip_eps)
-                    value_loss = 0.5 * jnp.maximum(
-                        jnp.square(value - target), jnp.square(value_clipped - target)).mean()
-                else:
-                    value_loss = 0.5 * jnp.square(value - target).mean()
-                log_ratio = log_prob - batch.log_prob
-                ratio = jnp.exp(log_ratio)
-                advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
-                actor_loss = -jnp.minimum(
-                    ratio * advantage,
-                    jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * advantage,
-                ).mean()
-                entropy = pi.entropy().mean()
-                total = actor_loss + config.vf_coef * value_loss - config.ent_coef * entropy
-                aux = {
-                    "value_loss": value_loss,
-                    "actor_loss": actor_loss,
-                    "entropy": entropy,
-                    "approx_kl": ((ratio - 1.0) - log_ratio).mean(),
-                    "clip_fraction": (jnp.abs(ratio - 1.0) > config.clip_eps).mean(),
-                }
-                return total, aux
-
             def minibatch_step(train_state: TrainState, minibatch):
                 hidden, batch, advantage, target = minibatch
-                (total, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-                    train_state.params, hidden, batch, advantage, target)
+                (total, aux), grads = jax.value_and_grad(ppo_loss, has_aux=True)(
+                    train_state.params, network, hidden, batch, advantage, target, config)
                 return train_state.apply_gradients(grads=grads), {"total_loss": total, **aux}
 
             def epoch_step(carry, _):
@@ -335,23 +252,10 @@ def make_train(
                 rng, permute_key = jax.random.split(rng)
                 data = (trajectory, advantages, targets)
                 if config.recurrent:
-                    # whole sequences, minibatched over environments
-                    permutation = jax.random.permutation(permute_key, num_envs)
-                    data = jax.tree.map(lambda x: jnp.take(x, permutation, axis=1), data)
-                    data = jax.tree.map(
-                        lambda x: jnp.swapaxes(
-                            x.reshape(num_steps, num_minibatches, -1, *x.shape[2:]), 0, 1),
-                        data)
-                    hidden = jnp.take(rollout_hidden, permutation, axis=0).reshape(
-                        num_minibatches, -1, rollout_hidden.shape[-1])
+                    hidden, data = sequence_minibatches(permute_key, data, rollout_hidden,
+                                                        num_minibatches)
                 else:
-                    # single steps, shuffled over time and environments
-                    size = num_steps * num_envs
-                    permutation = jax.random.permutation(permute_key, size)
-                    data = jax.tree.map(
-                        lambda x: jnp.take(x.reshape(size, *x.shape[2:]), permutation, axis=0)
-                        .reshape(num_minibatches, -1, *x.shape[2:]), data)
-                    hidden = jnp.zeros((num_minibatches, size // num_minibatches, 1))
+                    hidden, data = step_minibatches(permute_key, data, num_minibatches)
                 train_state, losses = jax.lax.scan(
                     minibatch_step, train_state, (hidden, *data))
                 return (train_state, rng), losses
@@ -377,61 +281,14 @@ def make_train(
                 jax.debug.callback(progress, update_index, metrics["mean_return"])
             return runner, metrics
 
-        # ---------------------------------------------------------------- evaluation
-        def evaluate(params, key):
-            num_eval = config.eval_envs
-            if num_eval == 0:  # evaluation switched off (saves compile time in tests)
-                empty = jnp.zeros((0,))
-                return {"episode_return": empty, "episode_final_distance_m": empty,
-                        "episode_success": empty.astype(bool),
-                        "episode_finished": empty.astype(bool), "mean_return": jnp.nan,
-                        "median_final_distance_m": jnp.nan, "success_rate": jnp.nan}
-            reset_key, episode_key = jax.random.split(key)
-            obs, state = jax.vmap(env.reset, in_axes=(0, None))(
-                jax.random.split(reset_key, num_eval), eval_env_params)
-
-            def eval_step(carry, step_key):
-                obs, state, hidden, reset, active, episode_return, record = carry
-                hidden, pi, _ = apply_step(params, hidden, obs, reset)
-                action = pi.mode()[0]
-                obs, state, reward, terminated, truncated, info = jax.vmap(
-                    env.step, in_axes=(0, 0, 0, None))(
-                    jax.random.split(step_key, num_eval), state,
-                    to_env_action(action, low, high), eval_env_params)
-                done = jnp.logical_or(terminated, truncated)
-                ending = jnp.logical_and(active, done)
-                distance = info["distance_m"] if has_distance else jnp.full(num_eval, jnp.nan)
-                episode_return = episode_return + jnp.where(active, reward, 0.0)
-                record = {
-                    "final_distance_m": jnp.where(active, distance, record["final_distance_m"]),
-                    "success": jnp.where(ending, terminated, record["success"]),
-                }
-                active = jnp.logical_and(active, ~done)
-                return (obs, state, hidden, done, active, episode_return, record), None
-
-            record = {"final_distance_m": jnp.full(num_eval, jnp.nan),
-                      "success": jnp.zeros(num_eval, bool)}
-            carry = (obs, state, initial_hidden(network, num_eval), jnp.ones(num_eval, bool),
-                     jnp.ones(num_eval, bool), jnp.zeros(num_eval), record)
-            carry, _ = jax.lax.scan(eval_step, carry, jax.random.split(episode_key, eval_steps))
-            *_, active, episode_return, record = carry
-            return {
-                "episode_return": episode_return,
-                "episode_final_distance_m": record["final_distance_m"],
-                "episode_success": record["success"],
-                "episode_finished": ~active,
-                "mean_return": episode_return.mean(),
-                "median_final_distance_m": jnp.median(record["final_distance_m"]),
-                "success_rate": record["success"].mean(),
-            }
-
         # ---------------------------------------------------------------- chunks of updates
         def chunk_step(runner: RunnerState, chunk_index):
             update_indices = chunk_index * config.updates_per_eval + jnp.arange(
                 config.updates_per_eval)
             runner, metrics = jax.lax.scan(update_step, runner, update_indices)
             rng, eval_key = jax.random.split(runner.rng)
-            evaluation = evaluate(runner.train_state.params, eval_key)
+            evaluation = evaluate_policy(env, eval_env_params, network, runner.train_state.params,
+                                         eval_key, config.eval_envs, eval_steps, has_distance)
             evaluation["timesteps"] = metrics["timesteps"][-1]
             return runner._replace(rng=rng), (metrics, evaluation)
 

@@ -3,13 +3,21 @@
 ``stage=all`` (the default) runs the chain collect -> align -> fit_model -> train_ppo -> evaluate,
 each stage reusing the artifacts of identical upstream settings. A single stage first produces
 what it needs upstream the same way (reused when present), except data from a real arm: with
-``robot=ros2`` the arm is driven only by an explicit ``stage=collect``.
+``robot=ros2`` a stage of :data:`DRIVES_ARM` runs only when it is the stage asked for, never as
+another stage's upstream (nor in ``stage=all``).
+
+The composed config is validated (:func:`pipeline.config.validate_config`) before any work.
+Known errors (:data:`KNOWN_ERRORS`: bad data, bad config, an unsafe command, a missing artifact,
+an interrupted recording) print one message and exit with status 1; ``HYDRA_FULL_ERROR=1`` shows
+the traceback instead.
 """
 
 from __future__ import annotations
 
 import importlib
 import logging
+import os
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -18,8 +26,14 @@ import hydra
 from omegaconf import DictConfig
 
 from pipeline import keys
-from pipeline.config import RobotKind, Stage, register_configs
+from pipeline.arm.safety import UnsafeCommandError
+from pipeline.config import ConfigError, RobotKind, Stage, register_configs, validate_config
+from pipeline.data.importers import RecordingNotFoundError
+from pipeline.data.raw import CollectionInterrupted
+from pipeline.data.schemas import DataError
+from pipeline.infra.artifacts import MissingArtifactError
 from pipeline.infra.compile_cache import use_compilation_cache
+from pipeline.ros2.node import RosUnavailableError
 
 log = logging.getLogger("pipeline")
 
@@ -31,9 +45,16 @@ STAGES: dict[Stage, str] = {
     Stage.train_ppo: "pipeline.stages.train_ppo:train_ppo",
     Stage.evaluate: "pipeline.stages.evaluate:evaluate",
     Stage.twin: "pipeline.stages.twin:twin",
+    Stage.guard: "pipeline.stages.guard:guard",
 }
-# what `stage=all` runs, in order (the digital twin is a server, started on its own)
+# what `stage=all` runs, in order (the digital twin and the guard are servers, started on their own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
+# Stages that publish to a real arm's valves (robot=ros2): each runs only when asked for by name.
+DRIVES_ARM = frozenset({Stage.collect, Stage.guard})
+# Errors that are the user's to fix: one message, exit status 1, no traceback.
+KNOWN_ERRORS: tuple[type[BaseException], ...] = (
+    ConfigError, DataError, RecordingNotFoundError, UnsafeCommandError, MissingArtifactError,
+    CollectionInterrupted, RosUnavailableError)
 
 
 def stage_function(stage: Stage) -> Callable[[Any], Any]:
@@ -47,23 +68,38 @@ def stages_to_run(cfg: Any) -> list[Stage]:
     real arm's collection is never started by another stage."""
     stage = Stage(cfg.stage)
     if stage is Stage.all:
-        return list(CHAIN)
-    if stage not in CHAIN:
-        return [stage]
-    chain = list(CHAIN[: CHAIN.index(stage) + 1])
-    env = getattr(cfg.env.name, "value", cfg.env.name)
-    # only the learned environment trains on data; evaluate also reads it, except on gymnax
-    needs_data = env == "learned" or (stage is Stage.evaluate and env != "gymnax")
-    if not needs_data:
-        chain = [s for s in chain if s not in (Stage.collect, Stage.align, Stage.fit_model)]
-    if stage is not Stage.collect and RobotKind(cfg.robot.kind) is RobotKind.ros2:
-        chain = [s for s in chain if s is not Stage.collect]
+        chain = list(CHAIN)
+    elif stage not in CHAIN:
+        chain = [stage]
+    else:
+        chain = list(CHAIN[: CHAIN.index(stage) + 1])
+        env = getattr(cfg.env.name, "value", cfg.env.name)
+        # only the learned environment trains on data; evaluate also reads it, except on gymnax
+        needs_data = env == "learned" or (stage is Stage.evaluate and env != "gymnax")
+        if not needs_data:
+            chain = [s for s in chain if s not in (Stage.collect, Stage.align, Stage.fit_model)]
+    if RobotKind(cfg.robot.kind) is RobotKind.ros2:
+        chain = [s for s in chain if s is stage or s not in DRIVES_ARM]
     return chain
+
+
+def robot_choice() -> tuple[str | None, list]:
+    """The robot group option and the config search folders of the running Hydra app, if any."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None, []
+    hydra_cfg = HydraConfig.get()
+    folders = [source.path for source in hydra_cfg.runtime.config_sources
+               if source.schema == "file" and source.path]
+    return hydra_cfg.runtime.choices.get("robot"), folders
 
 
 def run(cfg: Any) -> dict[str, Any]:
     """Run ``cfg.stage`` after its upstream stages (or the whole chain); return each stage's
     result by name. ``force=true`` recomputes the requested stage only (every stage for ``all``)."""
+    choice, folders = robot_choice()
+    validate_config(cfg, choice, folders)
     stage = Stage(cfg.stage)
     upstream_cfg = cfg
     if stage is not Stage.all:
@@ -90,7 +126,13 @@ register_configs()
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     use_compilation_cache(cfg.paths.compile_cache_dir)
-    run(cfg)
+    try:
+        run(cfg)
+    except KNOWN_ERRORS as err:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        log.error("%s: %s", type(err).__name__, err)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

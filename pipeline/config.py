@@ -5,13 +5,19 @@ Hydra type-checks every value and rejects unknown keys at composition: a typo su
 ``exploration.alpah=0.5`` or ``stage=fitmodel`` fails before any work starts, with a message that
 names the key and, for enums, the valid values.
 
+The router then runs :func:`validate_config` before any work: values the types allow but a run
+cannot use (NaN, a non-finite timeout, ``exploration.alpha`` outside [0, 1], limits outside the
+arm's rating, a real arm's rating changed by an override) fail with a :class:`ConfigError` naming
+the setting and its value.
+
 Units: pressures in kPa, positions in metres, times in seconds, rates in Hz.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -38,6 +44,7 @@ class Stage(Choice):
     train_ppo = "train_ppo"
     evaluate = "evaluate"
     twin = "twin"  # the simulated arm as a ROS 2 node (not part of `all`)
+    guard = "guard"  # the arm-side deadman and rating filter as a ROS 2 node (not part of `all`)
     all = "all"
 
 
@@ -112,6 +119,29 @@ class PressureLimits:
 
 
 @dataclass
+class PressureRating:
+    """The arm's physical limits (its rating), fixed by its hardware, not by a run.
+
+    ``robot.limits`` (what a run uses) must lie inside it; the hardware gate checks every command
+    against both. For a real arm (``robot=ros2``) it is read from the robot's YAML file: a
+    command-line, sweep or experiment override of ``robot.rating`` is refused.
+    """
+
+    p_min: float = 0.0  # lowest pressure a valve may be commanded [kPa]
+    p_max: float = 7.0  # highest pressure of one valve [kPa]
+    sum_max: float = 13.0  # the paper's P_max: highest summed pressure of all valves [kPa]
+    preload: float = 2.0  # pressure of every valve at rest, where a deadman returns it [kPa]
+
+
+@dataclass
+class WorkspaceConfig:
+    """Box the marker positions [m] must lie in (a plausibility check of recorded data)."""
+
+    low_m: list[float] = field(default_factory=lambda: [-3.0, -3.0, -3.0])
+    high_m: list[float] = field(default_factory=lambda: [3.0, 3.0, 3.0])
+
+
+@dataclass
 class MocapConfig:
     """Motion-capture sampling and its imperfections (used by the simulated arm)."""
 
@@ -156,6 +186,8 @@ class RobotConfig:
     n_valves: int = 3
     control_hz: float = 2.0
     limits: PressureLimits = field(default_factory=PressureLimits)
+    rating: PressureRating = field(default_factory=PressureRating)
+    workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
     # runs start from a settled rest pose, so the first observed pose is the rest pose and the
     # model predicts the displacement from it (model.predict_displacement follows this). False
     # for the paper's recordings, which settle in their first second (experiments/MODEL_RESULTS.md).
@@ -178,6 +210,7 @@ class ImportRobotConfig(RobotConfig):
     data_dir: str = MISSING
     pattern: str = "*.csv"
     files: list[str] = field(default_factory=list)  # explicit names inside data_dir; empty = glob
+    num_runs: int | None = None  # read only the first num_runs recordings (None: all)
 
 
 class QosReliability(Choice):
@@ -231,6 +264,21 @@ class TwinConfig:
 
 
 @dataclass
+class GuardConfig:
+    """The guard (``stage=guard``): an arm-side node between collect and the valve driver.
+
+    It forwards each command from ``robot.command_topic`` to ``output_topic`` (which the valve
+    driver subscribes to instead) if it lies inside ``robot.rating``, and publishes the rating's
+    preload instead of a command outside it and, at ``robot.control_hz``, whenever no command
+    arrived within ``robot.command_timeout_s``.
+    """
+
+    output_topic: str = "/control_pressure/guarded"
+    node_name: str = "sorolearn_guard"
+    max_duration_s: float | None = None  # wall seconds until it exits by itself; None: SIGINT
+
+
+@dataclass
 class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     """A real arm over ROS 2 (rclpy); durations in the arm's seconds unless marked wall.
 
@@ -248,12 +296,15 @@ class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     pose_qos: QosConfig = field(
         default_factory=lambda: QosConfig(QosReliability.best_effort, QosDurability.volatile, 100))
     watchdog_s: float = 0.5  # no pose for this long: fault, preload, exit
+    # arm side (twin, guard): no command for this long: back to the preload (a few periods)
+    command_timeout_s: float = 1.5
     startup_timeout_s: float = 10.0  # wall: wait this long for the first pose and a subscriber
     flush_every_s: float = 5.0  # wall: raw streams are written to Parquet chunks this often
     stop_timeout_s: float = 3.0  # wall: wait up to this for the preload's acknowledgement
     num_runs: int = 1
     reuse_incomplete: bool = False  # reuse an interrupted artifact instead of recollecting
     twin: TwinConfig = field(default_factory=TwinConfig)
+    guard: GuardConfig = field(default_factory=GuardConfig)
 
 
 @dataclass
@@ -474,6 +525,157 @@ class Config:
     evaluation: EvaluationConfig = MISSING
     logger: LoggerConfig = MISSING
     paths: PathsConfig = MISSING
+
+
+# --------------------------------------------------------------------------------------------
+# validation at composition (the router runs it before any work)
+# --------------------------------------------------------------------------------------------
+class ConfigError(ValueError):
+    """A composed config that cannot run: the message names the setting and its value."""
+
+
+# robot settings that are durations and must be finite and positive [s]
+_ROBOT_DURATIONS = ("watchdog_s", "command_timeout_s", "startup_timeout_s", "flush_every_s",
+                    "stop_timeout_s", "time_scale", "control_hz")
+
+
+def _walk_numbers(node: Any, path: str) -> Iterator[tuple[str, float]]:
+    """Every float in ``node`` (an OmegaConf node, mapping or list) with its dotted path."""
+    if OmegaConf.is_config(node):
+        if OmegaConf.is_list(node):
+            items = ((str(i), node[i]) for i in range(len(node)))
+        else:
+            items = ((str(k), node[k]) for k in node.keys()
+                     if not OmegaConf.is_missing(node, k))
+    elif isinstance(node, Mapping):
+        items = ((str(k), v) for k, v in node.items())
+    elif isinstance(node, list | tuple):
+        items = ((str(i), v) for i, v in enumerate(node))
+    else:
+        if isinstance(node, float):
+            yield path, node
+        return
+    for key, value in items:
+        yield from _walk_numbers(value, f"{path}.{key}" if path else key)
+
+
+def _check_inside_rating(robot: Any) -> None:
+    limits, rating, n = robot.limits, robot.rating, int(robot.n_valves)
+    if not float(rating.p_min) < float(rating.p_max):
+        raise ConfigError(f"robot.rating: p_min={rating.p_min} must be below "
+                          f"p_max={rating.p_max} kPa")
+    if not float(limits.p_min) < float(limits.p_max):
+        raise ConfigError(f"robot.limits: p_min={limits.p_min} must be below "
+                          f"p_max={limits.p_max} kPa")
+    if not n * float(limits.p_min) < float(limits.sum_max):
+        raise ConfigError(f"robot.limits: sum_max={limits.sum_max} kPa must exceed {n} x "
+                          f"p_min={limits.p_min} kPa")
+    for name, inside in (("p_min", float(limits.p_min) >= float(rating.p_min)),
+                         ("p_max", float(limits.p_max) <= float(rating.p_max)),
+                         ("sum_max", float(limits.sum_max) <= float(rating.sum_max))):
+        if not inside:
+            raise ConfigError(
+                f"robot.limits.{name}={limits[name]} kPa lies outside the arm's rating "
+                f"robot.rating.{name}={rating[name]} kPa (the limits may only tighten the rating)")
+    for what, values in (("robot.limits", limits), ("robot.rating", rating)):
+        preload = float(values.preload)
+        if not (float(values.p_min) <= preload <= float(values.p_max)
+                and n * preload <= float(values.sum_max)):
+            raise ConfigError(f"{what}.preload={preload} kPa is outside {what}: "
+                              f"[{values.p_min}, {values.p_max}] per valve, sum <= "
+                              f"{values.sum_max}")
+    if not (float(rating.p_min) <= float(limits.preload) <= float(rating.p_max)
+            and n * float(limits.preload) <= float(rating.sum_max)):
+        raise ConfigError(f"robot.limits.preload={limits.preload} kPa lies outside the arm's "
+                          f"rating robot.rating: [{rating.p_min}, {rating.p_max}] per valve, "
+                          f"sum <= {rating.sum_max}")
+
+
+def robot_file(choice: str, search_dirs: list[Path] | None = None) -> Path | None:
+    """The YAML file of robot group option ``choice`` (``conf/robot/<choice>.yaml``)."""
+    for folder in [*(search_dirs or []), PROJECT_ROOT / "conf"]:
+        path = Path(folder) / "robot" / f"{choice}.yaml"
+        if path.is_file():
+            return path
+    return None
+
+
+def rating_from_file(path: Path, search_dirs: list[Path] | None = None) -> dict[str, float]:
+    """The rating a robot's YAML file sets over the schema's defaults, following the robot
+    options its defaults list extends (``defaults: [ros2, _self_]``)."""
+    text = OmegaConf.load(path)
+    rating = OmegaConf.structured(PressureRating)
+    for entry in text.get("defaults") or []:
+        parent = robot_file(entry, search_dirs) if isinstance(entry, str) else None
+        if parent is not None and parent != path:
+            rating = OmegaConf.merge(rating, rating_from_file(parent, search_dirs))
+    rating = OmegaConf.merge(rating, text.get("rating") or {})
+    return {k: float(v) for k, v in rating.items()}
+
+
+def check_rating_source(robot: Any, choice: str | None,
+                        search_dirs: list[Path] | None = None) -> None:
+    """A real arm's rating must be the one its YAML file sets: an override cannot change it."""
+    if RobotKind(robot.kind) is not RobotKind.ros2:
+        return
+    choice = choice or str(robot.name)
+    path = robot_file(choice, search_dirs)
+    if path is None:
+        raise ConfigError(f"robot={choice}: no conf/robot/{choice}.yaml to read the arm's rating "
+                          f"from; a real arm's rating comes from its robot config file")
+    expected = rating_from_file(path, search_dirs)
+    for name, value in expected.items():
+        got = float(robot.rating[name])
+        if got != value and not (math.isnan(got) and math.isnan(value)):
+            raise ConfigError(
+                f"robot.rating.{name}={got} kPa differs from {value} kPa in {path}: the rating of "
+                f"a real arm (robot=ros2) cannot be overridden; edit {path} to change it (an "
+                f"override may tighten robot.limits instead)")
+
+
+def validate_config(cfg: Any, robot_choice: str | None = None,
+                    search_dirs: list[Path] | None = None) -> None:
+    """Refuse a composed config that cannot run safely or sensibly, naming setting and value.
+
+    NaN anywhere numeric; robot durations that are not finite and positive; limits outside the
+    rating (or a real arm's rating differing from its YAML file); exploration settings outside
+    their ranges. ``robot_choice`` is the robot group option (default: ``robot.name``).
+    """
+    for path, value in _walk_numbers(cfg, ""):
+        if math.isnan(value):
+            raise ConfigError(f"{path}=nan: a number is required")
+    robot = cfg.robot
+    for name in _ROBOT_DURATIONS:
+        if name in robot:
+            value = float(robot[name])
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"robot.{name}={robot[name]} must be finite and positive")
+    if "command_timeout_s" in robot:
+        period = 1.0 / float(robot.control_hz)
+        if float(robot.command_timeout_s) <= period:
+            raise ConfigError(
+                f"robot.command_timeout_s={robot.command_timeout_s} s must exceed one control "
+                f"period (1 / robot.control_hz = {period:g} s), or the arm falls back to the "
+                f"preload between commands")
+    check_rating_source(robot, robot_choice, search_dirs)
+    _check_inside_rating(robot)
+    low, high = list(robot.workspace.low_m), list(robot.workspace.high_m)
+    if len(low) != 3 or len(high) != 3 or not all(a < b for a, b in zip(low, high)):
+        raise ConfigError(f"robot.workspace: low_m={low} must lie below high_m={high} (x, y, z)")
+    exploration = cfg.get("exploration")
+    if exploration is not None:
+        alpha = float(exploration.alpha)
+        if not 0.0 <= alpha <= 1.0:
+            raise ConfigError(f"exploration.alpha={exploration.alpha} must lie in [0, 1] (1 keeps "
+                              f"the last pressure, 0 draws afresh)")
+        for name in ("beta", "noise_std", "p_max"):
+            if not math.isfinite(float(exploration[name])):
+                raise ConfigError(f"exploration.{name}={exploration[name]} must be finite")
+        if float(exploration.noise_std) < 0:
+            raise ConfigError(f"exploration.noise_std={exploration.noise_std} must be >= 0")
+        if float(exploration.p_max) > float(robot.rating.sum_max):
+            raise ConfigError(f"exploration.p_max={exploration.p_max} kPa exceeds the arm's "
+                              f"rating robot.rating.sum_max={robot.rating.sum_max} kPa")
 
 
 def dataclass_values(cls: type, config: Any, what: str,

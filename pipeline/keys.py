@@ -24,6 +24,9 @@ IMPORT_KINDS = (RobotKind.sorolex_csv, RobotKind.plotjuggler_csv, RobotKind.rosb
 # robot.reuse_incomplete=true finds the interrupted artifact it is meant to reuse).
 _ROS2_OPERATIONAL = ("node_name", "domain_id", "startup_timeout_s", "flush_every_s",
                      "stop_timeout_s", "reuse_incomplete")
+# Checks of the commands and data, not what is recorded: a run that passes them records the same
+# data whatever they are (the limits, which shape the commands, stay in the key).
+_SAFETY_ONLY = ("rating", "workspace", "command_timeout_s", "guard")
 # the dataset settings of the model (alignment has its own key)
 _MODEL_DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order", "train_fraction",
                        "split_seed")
@@ -38,10 +41,12 @@ def _container(node: Any) -> Any:
 def collect_spec(cfg: Any) -> Spec:
     """The raw data: the robot and, where it is driven, the exploration."""
     robot = _container(cfg.robot)
+    for setting in _SAFETY_ONLY:
+        robot.pop(setting, None)
     kind = RobotKind(cfg.robot.kind)
     if kind in IMPORT_KINDS:
         # Imported data is keyed by its content, not by where it lies.
-        for where in ("data_dir", "pattern", "files"):
+        for where in ("data_dir", "pattern", "files", "num_runs"):
             robot.pop(where, None)
         files = {p.name: recording_digest(p) for p in list_recordings(cfg.robot)}
         return {"robot": robot, "files": files}, {}

@@ -44,3 +44,16 @@ def sorolex_dir() -> Path:
     if not sorted(SOROLEX_DIR.glob("Step_control_*.csv")):
         pytest.skip(f"real-arm data not found at {SOROLEX_DIR} (set SOROLEX_DIR)")
     return SOROLEX_DIR
+
+
+_domains = iter(range(100))
+
+
+@pytest.fixture
+def ros_domain() -> int:
+    """A ROS_DOMAIN_ID no other test of this session uses (per xdist worker: 20 ids); without
+    xdist the caller's ROS_DOMAIN_ID where set (tests then run one after another)."""
+    if "ROS_DOMAIN_ID" in os.environ and "PYTEST_XDIST_WORKER" not in os.environ:
+        return int(os.environ["ROS_DOMAIN_ID"])
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+    return 20 + (20 * worker) % 80 + next(_domains) % 20

@@ -38,16 +38,6 @@ OVERRIDES = [
     "exploration.pad_steps=2",
     *(f"robot.limits.{k}={v}" for k, v in LIMITS.items()),
 ]
-_domains = iter(range(100))
-
-
-@pytest.fixture
-def ros_domain() -> int:
-    """A ROS_DOMAIN_ID no other test of this session uses (per xdist worker: 20 ids)."""
-    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-    return 20 + (20 * worker) % 80 + next(_domains) % 20
-
-
 class Pipeline:
     """Starts pipeline stages as subprocesses in one ROS domain, writing under ``tmp_path``."""
 
@@ -89,8 +79,9 @@ def stop(process: subprocess.Popen, timeout_s: float = 30.0) -> int:
 
 
 def received(record: Path) -> pd.DataFrame:
-    """The commands the twin received on the wire (its JSON-lines record)."""
-    rows = [json.loads(line) for line in record.read_text().splitlines()]
+    """The commands the twin received on the wire (its JSON-lines record, deadman lines aside)."""
+    rows = [row for line in record.read_text().splitlines()
+            if not (row := json.loads(line)).get("deadman")]
     return pd.DataFrame({"receipt_ns": [r["receipt_ns"] for r in rows],
                          **{c: [r["pressures"][j] for r in rows]
                             for j, c in enumerate(CMD_COLUMNS)}})

@@ -39,6 +39,7 @@ def test_without_rclpy_ros2_and_twin_fail_with_the_install_hint(monkeypatch, mak
 
 def test_twin_is_a_stage_but_not_part_of_all():
     assert Stage.twin in STAGES and Stage.twin not in CHAIN
+    assert Stage.guard in STAGES and Stage.guard not in CHAIN
     assert CHAIN[0] is Stage.collect and CHAIN[-1] is Stage.evaluate
 
 
@@ -51,7 +52,7 @@ def test_gate_projects_then_checks_in_float64():
     crowded = gate(np.array([6.9, 6.9, 6.9]))
     assert crowded.sum() <= 13.0 and crowded.max() <= 6.9
     np.testing.assert_array_equal(gate(np.array([np.nan, 1.0, 1.0])), [0.0, 1.0, 1.0])
-    with pytest.raises(ValueError, match="outside the safe set"):
+    with pytest.raises(ValueError, match=r"outside robot\.limits: \[0\.0, 6\.9\] per valve"):
         gate.check(np.array([7.0, 0.0, 0.0]))
 
 

@@ -108,14 +108,20 @@ def project(pressures: chex.Array, safe: SafeSet) -> chex.Array:
     return jnp.where((box.sum(-1) <= target)[..., None], box, clipped(hi))
 
 
-def assert_safe(command: np.ndarray, limits: Any) -> np.ndarray:
-    """Final float64 gate before a command leaves the process; raises ``ValueError`` if unsafe."""
+class UnsafeCommandError(ValueError):
+    """A pressure command outside the limits or the arm's rating was stopped before sending."""
+
+
+def assert_safe(command: np.ndarray, limits: Any, what: str = "robot.limits") -> np.ndarray:
+    """Final float64 gate before a command leaves the process; raises
+    :class:`UnsafeCommandError` if unsafe. ``what`` names the bounds in the message."""
     p = np.asarray(command, dtype=np.float64)
     if not np.all(np.isfinite(p)):
-        raise ValueError(f"refusing non-finite pressure command {p.tolist()}")
-    if (p < limits.p_min).any() or (p > limits.p_max).any() or p.sum() > limits.sum_max:
-        raise ValueError(
-            f"refusing pressure command {p.tolist()} kPa outside the safe set "
-            f"[{limits.p_min}, {limits.p_max}] per valve, sum <= {limits.sum_max}"
+        raise UnsafeCommandError(f"refusing non-finite pressure command {p.tolist()}")
+    p_min, p_max, sum_max = float(limits.p_min), float(limits.p_max), float(limits.sum_max)
+    if (p < p_min).any() or (p > p_max).any() or p.sum() > sum_max:
+        raise UnsafeCommandError(
+            f"refusing pressure command {p.tolist()} kPa outside {what}: "
+            f"[{p_min}, {p_max}] per valve, sum <= {sum_max}"
         )
     return p

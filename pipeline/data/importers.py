@@ -12,12 +12,15 @@
 - **ROS 2 bags** (``robot=rosbag``): a recording is a bag *folder* (``metadata.yaml`` plus sqlite3
   or MCAP storage) holding the command and pose topics (``pipeline/data/rosbag.py``).
 
-Rows in errors are 0-based data rows; the CSV line is ``row + 2`` (the header is line 1).
+Rows in errors are 0-based data rows; the CSV line is ``row + 2`` (the header is line 1). A file
+whose last line has no newline was cut while being written: that line is dropped and counted.
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
+import logging
 import re
 from pathlib import Path
 from typing import Any
@@ -36,12 +39,14 @@ from pipeline.data.schemas import (
     validate,
 )
 
+log = logging.getLogger(__name__)
 SOROLEX_TIME = "time"
 SOROLEX_POSITION = ["1_x", "1_y", "1_z"]
 SOROLEX_PRESSURE = [f"control_pressure_{j}" for j in range(N_VALVES)]
 PLOTJUGGLER_TIME = "__time"
 _PJ_POSITION = re.compile(r"^(?P<body>.*)/pose/position/(?P<axis>[xyz])$")
-_PJ_PRESSURE = re.compile(r"^(?P<topic>.*)/(?:p_d|data)[.\[/](?P<index>\d+)\]?$")
+_PJ_PRESSURE = re.compile(r"^(?P<topic>.*)/(?P<field>p_d|data)[.\[/](?P<index>\d+)\]?$")
+_SOROLEX_ANY_PRESSURE = re.compile(r"^control_pressure_\d+$")
 
 
 def file_digest(path: Path) -> str:
@@ -68,6 +73,10 @@ def recording_id(path: Path) -> str:
     return path.name if path.is_dir() else path.stem
 
 
+class RecordingNotFoundError(FileNotFoundError):
+    """robot.data_dir, robot.files or robot.pattern name no recording."""
+
+
 # Import kinds whose recordings are folders, with the file that marks one.
 FOLDER_RECORDINGS = {"rosbag": "metadata.yaml"}
 
@@ -76,7 +85,7 @@ def list_recordings(robot: Any) -> list[Path]:
     """The recordings an import robot reads (files, or bag folders), sorted; an error if none."""
     data_dir = Path(robot.data_dir).expanduser()
     if not data_dir.is_dir():
-        raise FileNotFoundError(
+        raise RecordingNotFoundError(
             f"robot.data_dir={data_dir} is not a folder (set robot.data_dir=... or SOROLEX_DIR)"
         )
     marker = FOLDER_RECORDINGS.get(getattr(robot.kind, "value", str(robot.kind)))
@@ -89,19 +98,42 @@ def list_recordings(robot: Any) -> list[Path]:
         paths = [data_dir / name for name in robot.files]
         missing = [str(p) for p in paths if not is_recording(p)]
         if missing:
-            raise FileNotFoundError(f"robot.files not found (expected {what}): {missing}")
+            raise RecordingNotFoundError(f"robot.files not found (expected {what}): {missing}")
     else:
         paths = [p for p in sorted(data_dir.glob(robot.pattern)) if is_recording(p)]
+    if getattr(robot, "num_runs", None) is not None:
+        paths = paths[:int(robot.num_runs)]
     if not paths:
-        raise FileNotFoundError(f"no {what} match {robot.pattern!r} in {data_dir}")
+        raise RecordingNotFoundError(f"no {what} match {robot.pattern!r} in {data_dir}")
     return paths
 
 
-def _read_csv(path: Path) -> pd.DataFrame:
-    if path.stat().st_size == 0:
+def _read_csv(path: Path, notes: dict[str, Any] | None = None) -> pd.DataFrame:
+    """The CSV's rows. A file that does not end in a newline was cut off while being written:
+    its last line (perhaps cut inside a number) is dropped, logged and counted in ``notes``
+    (``incomplete_last_line``)."""
+    raw = path.read_bytes()
+    if not raw:
         raise DataError(str(path), "the file is empty")
+    if b"\0" in raw[:65536]:
+        raise DataError(str(path), "a binary file, not a CSV text file (it holds NUL bytes)")
     try:
-        df = pd.read_csv(path, skipinitialspace=True)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise DataError(str(path), f"not a UTF-8 text file: byte 0x{raw[err.start]:02x} at "
+                        f"offset {err.start} is not UTF-8 (a CSV export is expected)") from err
+    dropped = 0
+    if not text.endswith("\n"):
+        last_start = text.rfind("\n") + 1
+        if last_start > 0 and text[:last_start].count("\n") >= 2:  # a header and a row remain
+            dropped = 1
+            log.warning("%s: no newline at the end: the last line (line %d, %r) is incomplete "
+                        "and dropped", path, text.count("\n") + 1, text[last_start:][:80])
+            text = text[:last_start]
+    if notes is not None:
+        notes["incomplete_last_line"] = dropped
+    try:
+        df = pd.read_csv(io.StringIO(text), skipinitialspace=True)
     except pd.errors.EmptyDataError as err:
         raise DataError(str(path), "the file has no header or no data") from err
     except pd.errors.ParserError as err:
@@ -118,12 +150,17 @@ def _require(df: pd.DataFrame, columns: list[str], path: Path) -> None:
                         column=missing[0])
 
 
-def read_sorolex_csv(path: Path, limits: Any, run_id: str | None = None
-                     ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """One paper CSV as ``(commands, mocap)`` tables, validated (limits checked)."""
+def read_sorolex_csv(path: Path, limits: Any, run_id: str | None = None,
+                     notes: dict[str, Any] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """One paper CSV as ``(commands, mocap)`` tables, validated (limits checked); ``notes``
+    receives what was dropped (see :func:`_read_csv`)."""
     path = Path(path)
-    df = _read_csv(path)
+    df = _read_csv(path, notes)
     _require(df, [SOROLEX_TIME, *SOROLEX_POSITION, *SOROLEX_PRESSURE], path)
+    pressure_columns = [c for c in df.columns if _SOROLEX_ANY_PRESSURE.match(str(c))]
+    if pressure_columns != SOROLEX_PRESSURE:
+        raise DataError(str(path), f"found pressure columns {pressure_columns}; expected exactly "
+                        f"{SOROLEX_PRESSURE} ({N_VALVES} valves)")
     run_id = run_id or path.stem
     mocap = pd.DataFrame({"run_id": run_id, "t": df[SOROLEX_TIME]})
     for axis, column in zip(XYZ, SOROLEX_POSITION):
@@ -150,9 +187,9 @@ def _validate_named(df: pd.DataFrame, renamed: dict[str, str], path: Path, limit
         bad = ~np.isfinite(values)
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
-            raise DataError(str(path), f"not a finite number: {df[original].iloc[row]!r} "
-                            f"(line {row + 2}; a truncated last line looks like this)",
-                            original, row)
+            hint = "; a truncated last line looks like this" if row == len(df) - 1 else ""
+            raise DataError(str(path), f"not a finite number: {str(df[original].iloc[row])!r} "
+                            f"(line {row + 2}{hint})", original, row)
     t = df[SOROLEX_TIME].to_numpy(np.float64)
     dt = np.diff(t)
     for problem, mask in (("duplicate timestamp", dt == 0), ("timestamp goes backwards", dt < 0)):
@@ -165,29 +202,37 @@ def _validate_named(df: pd.DataFrame, renamed: dict[str, str], path: Path, limit
                           str(path))
 
 
-def read_plotjuggler_csv(path: Path, limits: Any, run_id: str | None = None
+def read_plotjuggler_csv(path: Path, limits: Any, run_id: str | None = None,
+                         notes: dict[str, Any] | None = None
                          ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """A PlotJuggler CSV export as ``(commands, mocap)`` tables, validated (limits checked)."""
+    """A PlotJuggler CSV export as ``(commands, mocap)`` tables, validated (limits checked);
+    errors name the CSV line; ``notes`` receives what was dropped (see :func:`_read_csv`)."""
     path = Path(path)
-    df = _read_csv(path)
+    df = _read_csv(path, notes)
     _require(df, [PLOTJUGGLER_TIME], path)
     bodies: dict[str, dict[str, str]] = {}
-    pressure_topics: dict[str, dict[int, str]] = {}
+    pressure_topics: dict[tuple[str, str], dict[int, str]] = {}
     for column in df.columns:
         if m := _PJ_POSITION.match(column):
             bodies.setdefault(m["body"], {})[m["axis"]] = column
         elif m := _PJ_PRESSURE.match(column):
-            pressure_topics.setdefault(m["topic"], {})[int(m["index"])] = column
+            pressure_topics.setdefault((m["topic"], m["field"]), {})[int(m["index"])] = column
     bodies = {b: axes for b, axes in bodies.items() if set(axes) == set(XYZ)}
     if len(bodies) != 1:
         raise DataError(str(path), f"expected one rigid body with .../pose/position/x,y,z "
                         f"columns, found {sorted(bodies) or 'none'}")
-    pressure_topics = {k: v for k, v in pressure_topics.items() if len(v) >= N_VALVES}
+    expected = f"p_d.0..{N_VALVES - 1} (or data.0..{N_VALVES - 1})"
+    found = {f"{topic}/{name}": [columns[i] for i in sorted(columns)]
+             for (topic, name), columns in pressure_topics.items()}
     if len(pressure_topics) != 1:
-        raise DataError(str(path), f"expected one pressure topic with fields p_d.0..{N_VALVES - 1}"
-                        f" (or data.0..), found {sorted(pressure_topics) or 'none'}")
+        raise DataError(str(path), f"expected one pressure topic with fields {expected}, found "
+                        f"{found or 'none'}")
     (axes,) = bodies.values()
     (fields,) = pressure_topics.values()
+    if sorted(fields) != list(range(N_VALVES)):
+        (columns,) = found.values()
+        raise DataError(str(path), f"the pressure topic has {len(fields)} field(s) {columns}; "
+                        f"expected {expected}: {N_VALVES} valves")
     position_cols = [axes[a] for a in XYZ]
     pressure_cols = [fields[j] for j in range(N_VALVES)]
     run_id = run_id or path.stem
@@ -221,8 +266,21 @@ def read_plotjuggler_csv(path: Path, limits: Any, run_id: str | None = None
     commands = pd.DataFrame({"run_id": run_id, "t": command[PLOTJUGGLER_TIME].to_numpy()})
     for j, column in enumerate(CMD_COLUMNS):
         commands[column] = command[pressure_cols[j]].to_numpy()
-    return (validate(commands, COMMANDS, f"{path} (pressure topic)", limits),
-            validate(mocap, MOCAP, f"{path} (pose topic)"))
+    return (_validate_stream(commands, COMMANDS, path, "pressure", command.index, limits),
+            _validate_stream(mocap, MOCAP, path, "pose", pose.index))
+
+
+def _validate_stream(table: pd.DataFrame, schema: Any, path: Path, what: str, rows: pd.Index,
+                     limits: Any = None) -> pd.DataFrame:
+    """:func:`validate` one stream of a PlotJuggler export; an error names the CSV line."""
+    try:
+        return validate(table, schema, f"{path} ({what} topic)", limits)
+    except DataError as err:
+        if err.row is None:
+            raise
+        row = int(rows[err.row])
+        raise DataError(str(path), f"{what} topic: {err.problem} (line {row + 2})", err.column,
+                        row) from err
 
 
 def _read_rosbag(path: Path, robot: Any) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -231,9 +289,11 @@ def _read_rosbag(path: Path, robot: Any) -> tuple[pd.DataFrame, pd.DataFrame]:
     return read_rosbag(path, robot)
 
 
-# kind -> reader(path, robot config) -> (commands, mocap), both validated
+# kind -> reader(path, robot config, notes) -> (commands, mocap), both validated; notes (a dict)
+# receives what the reader dropped (incomplete_last_line)
 READERS = {
-    "sorolex_csv": lambda path, robot: read_sorolex_csv(path, robot.limits),
-    "plotjuggler_csv": lambda path, robot: read_plotjuggler_csv(path, robot.limits),
-    "rosbag": _read_rosbag,
+    "sorolex_csv": lambda path, robot, notes: read_sorolex_csv(path, robot.limits, notes=notes),
+    "plotjuggler_csv": lambda path, robot, notes: read_plotjuggler_csv(path, robot.limits,
+                                                                       notes=notes),
+    "rosbag": lambda path, robot, notes: _read_rosbag(path, robot),
 }

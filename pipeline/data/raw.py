@@ -11,15 +11,32 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.data.schemas import CMD_COLUMNS, COMMANDS, MOCAP, RUNS, XYZ, write_table
+from pipeline.data.schemas import (
+    CMD_COLUMNS,
+    COMMANDS,
+    MOCAP,
+    RUNS,
+    XYZ,
+    check_workspace,
+    write_table,
+)
 from pipeline.infra.artifacts import ArtifactWriter
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
 
 
+class CollectionInterrupted(RuntimeError):
+    """A recording was cut short; what was recorded is in an artifact, marked incomplete."""
+
+
 def write_raw(writer: ArtifactWriter, cfg: Any, spec: dict[str, Any], commands: pd.DataFrame,
                mocap: pd.DataFrame, runs: pd.DataFrame) -> None:
+    """Write the three tables and a figure; the positions must lie in ``robot.workspace``."""
+    sources = dict(zip(runs["run_id"], runs["source"]))
+    for run_id, run in mocap.groupby("run_id", sort=False):
+        check_workspace(run[run["valid"].astype(bool)], cfg.robot.workspace,
+                        f"run {run_id} ({sources.get(run_id, 'unknown source')})")
     provenance = {"stage": STAGE, "robot": cfg.robot.name}
     write_table(commands, writer.file("commands.parquet"), COMMANDS, spec, provenance)
     write_table(mocap, writer.file("mocap.parquet"), MOCAP, spec, provenance)

@@ -49,6 +49,7 @@ class DataError(ValueError):
             where += f", row {row}"
         super().__init__(f"{where}: {message}")
         self.source, self.column, self.row = str(source), column, row
+        self.problem = message
 
 
 @dataclass(frozen=True)
@@ -223,6 +224,28 @@ def check_pressure_limits(pressures: np.ndarray, columns: list[str], limits: Any
         row = int(np.flatnonzero(over)[0])
         raise DataError(source, f"summed pressure {p[row].sum():.4g} kPa exceeds "
                         f"sum_max={limits.sum_max} kPa", "+".join(columns), row)
+
+
+def check_workspace(mocap: pd.DataFrame, workspace: Any, source: str) -> None:
+    """Raise :class:`DataError` if a valid marker position [m] lies outside the workspace box,
+    saying so when the positions look like millimetres (every one inside the box once / 1000)."""
+    low = np.asarray(list(workspace.low_m), np.float64)
+    high = np.asarray(list(workspace.high_m), np.float64)
+    xyz = mocap[XYZ].to_numpy(np.float64)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    outside = ((xyz < low) | (xyz > high)).any(axis=1)
+    if not outside.any():
+        return
+    row = int(np.flatnonzero(outside)[0])
+    largest = {a: float(np.abs(xyz[:, k]).max()) for k, a in enumerate(XYZ)}
+    box = f"robot.workspace [{low.tolist()}, {high.tolist()}] m"
+    scaled = xyz / 1000.0
+    if ((scaled >= low) & (scaled <= high)).all():
+        raise DataError(source, f"positions look like millimetres, not metres: largest |x|, |y|, "
+                        f"|z| = {largest['x']:.4g}, {largest['y']:.4g}, {largest['z']:.4g}, "
+                        f"outside {box}; convert the positions to metres")
+    raise DataError(source, f"position {xyz[row].tolist()} m lies outside {box} (wrong units or "
+                    f"frame?)")
 
 
 # --------------------------------------------------------------------------------------------

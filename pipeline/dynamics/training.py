@@ -22,7 +22,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import logging
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -42,6 +44,8 @@ from pipeline.data.windows import gather_windows, make_windows, sample_batch
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.model import DynamicsConfig, DynamicsParams, Normalizer
 from pipeline.infra.parquet import atomic_write
+
+log = logging.getLogger(__name__)
 
 CHECKPOINT_PREFIX = "step_"
 CHECKPOINT_SUFFIX = ".msgpack"
@@ -372,9 +376,20 @@ def _save_checkpoint(checkpoint_dir, params, state, history, spec, keep=2) -> No
         old.unlink()
 
 
+class CorruptCheckpointError(ValueError):
+    """A checkpoint file that cannot be read back (cut off, overwritten, not a checkpoint)."""
+
+
 def _restore_checkpoint(path: Path, template: TrainState, spec: dict):
-    raw = serialization.msgpack_restore(path.read_bytes())
-    stored_spec = json.loads(raw["spec"])
+    try:
+        raw = serialization.msgpack_restore(path.read_bytes())
+        stored_spec = json.loads(raw["spec"])
+        model = _model_from_state_dict(raw["model"])
+        opt_state = serialization.from_state_dict(template.opt_state, raw["opt_state"])
+        step, train_loss, val_rows = raw["step"], raw["train_loss"], raw["val_rows"]
+    except Exception as err:  # msgpack, KeyError, shape errors: all mean "not a checkpoint"
+        raise CorruptCheckpointError(f"checkpoint {path} cannot be read "
+                                     f"({type(err).__name__}: {err})") from err
     if stored_spec != spec:
         differing = sorted(k for k in set(spec) | set(stored_spec)
                            if spec.get(k) != stored_spec.get(k))
@@ -382,17 +397,33 @@ def _restore_checkpoint(path: Path, template: TrainState, spec: dict):
             f"checkpoint {path} was written by a different training setup (differs in "
             f"{differing}); use another checkpoint_dir or resume=False"
         )
-    model = _model_from_state_dict(raw["model"])
-    opt_state = serialization.from_state_dict(template.opt_state, raw["opt_state"])
     state = TrainState(
         network=model.network,
         opt_state=jax.tree.map(jnp.asarray, opt_state),
-        step=jnp.asarray(raw["step"], jnp.int32),
+        step=jnp.asarray(step, jnp.int32),
     )
     history = {
-        "train_loss": list(np.asarray(raw["train_loss"], np.float32)),
-        "val_rows": [tuple(row) for row in np.asarray(raw["val_rows"]).reshape(-1, 4)],
+        "train_loss": list(np.asarray(train_loss, np.float32)),
+        "val_rows": [tuple(row) for row in np.asarray(val_rows).reshape(-1, 4)],
     }
+    return state, history
+
+
+def _resume(checkpoint_dir: Path, state: TrainState, history: dict, spec: dict):
+    """The newest readable checkpoint's state and history (else the given ones); a corrupt
+    checkpoint is logged by name and set aside as ``<name>.corrupt``, and the next one tried."""
+    paths = sorted(checkpoint_dir.glob(f"{CHECKPOINT_PREFIX}*{CHECKPOINT_SUFFIX}"))
+    for path in reversed(paths):
+        try:
+            restored = _restore_checkpoint(path, state, spec)
+        except CorruptCheckpointError as err:
+            aside = path.with_name(path.name + ".corrupt")
+            os.replace(path, aside)
+            log.warning("%s; moved it to %s and %s", err, aside,
+                        "trying the one before" if path != paths[0] else "training afresh")
+            continue
+        log.info("resuming from checkpoint %s (step %d)", path, int(restored[0].step))
+        return restored
     return state, history
 
 
@@ -503,9 +534,8 @@ def fit(
     if checkpoint_dir is not None:
         checkpoint_dir = Path(checkpoint_dir)
         checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        last = latest_checkpoint(checkpoint_dir) if resume else None
-        if last is not None:
-            state, history = _restore_checkpoint(last, state, spec)
+        if resume:
+            state, history = _resume(checkpoint_dir, state, history, spec)
 
     data = TrainData(
         pressure_normalized=dynamics.normalize_pressure(

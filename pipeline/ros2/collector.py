@@ -335,7 +335,7 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
                     "a digital twin with the same time_scale can follow", robot.time_scale,
                     robot.time_scale)
     plan = exploration_plan(cfg.exploration, robot.limits, robot.n_valves, robot.num_runs)
-    gate = CommandGate(robot.limits, robot.n_valves)
+    gate = CommandGate.for_robot(robot)
     started = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
     recovery = Path(cfg.paths.output_dir) / "recovery" / f"{STAGE}-{writer.key}-{started}"
     recorder = ChunkedRecorder(recovery, spec, {"stage": STAGE, "robot": robot.name,

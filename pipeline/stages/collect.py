@@ -31,16 +31,12 @@ from pipeline.arm.exploration import exploration_plan, plot_walks
 from pipeline.arm.safety import validate_limits
 from pipeline.config import RobotKind
 from pipeline.data.importers import READERS, list_recordings, recording_id
-from pipeline.data.raw import write_raw
+from pipeline.data.raw import CollectionInterrupted, write_raw
 from pipeline.data.schemas import CMD_COLUMNS, XYZ
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
-
-
-class CollectionInterrupted(RuntimeError):
-    """A recording was cut short; what was recorded is in an artifact, marked incomplete."""
 
 
 def collect(cfg: Any) -> Artifact:
@@ -134,14 +130,19 @@ def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None
 
 def _import_recordings(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None:
     read = READERS[RobotKind(cfg.robot.kind).value]
-    commands, mocap, runs = [], [], []
+    commands, mocap, runs, incomplete = [], [], [], {}
     for path in list_recordings(cfg.robot):
-        run_commands, run_mocap = read(path, cfg.robot)
+        notes: dict[str, Any] = {}
+        run_commands, run_mocap = read(path, cfg.robot, notes)
         commands.append(run_commands)
         mocap.append(run_mocap)
         runs.append({"run_id": recording_id(path), "source": path.name, "complete": True,
                      "n_commands": len(run_commands), "n_frames": len(run_mocap)})
+        if notes.get("incomplete_last_line"):
+            incomplete[recording_id(path)] = int(notes["incomplete_last_line"])
         log.info("collect: imported %s (%d commands, %d frames)", path.name, len(run_commands),
                  len(run_mocap))
     write_raw(writer, cfg, spec, pd.concat(commands, ignore_index=True),
               pd.concat(mocap, ignore_index=True), pd.DataFrame(runs))
+    # lines dropped because a file ended inside them (no final newline), per run
+    writer.summary["incomplete_lines_dropped"] = incomplete

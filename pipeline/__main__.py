@@ -22,6 +22,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+# XLA's C++ log below FATAL stays quiet (errors that matter reach Python as exceptions). On
+# AVX-512 CPUs every load from the compilation cache logs a spurious "machine type doesn't
+# match" error for tuning flags of the same machine (jax-ml/jax#38445); set
+# TF_CPP_MIN_LOG_LEVEL=0 to see everything.
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+
 import hydra
 from omegaconf import DictConfig
 

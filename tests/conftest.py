@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 # Before JAX starts: one XLA thread per test worker (pytest -n 2 already fills the cores).
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # as the entry point (pipeline/__main__.py)
 os.environ.setdefault("XLA_FLAGS",
                       "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
 

@@ -66,7 +66,11 @@ def _captioned(fig, caption: str, width: int = 150) -> None:
     height = fig.get_figheight()
     extra = 0.17 * len(lines) + 0.2
     fig.set_figheight(height + extra)
-    fig.subplots_adjust(bottom=(extra + 0.45) / (height + extra))
+    images = [ax for ax in fig.axes if ax.get_label() == "image"]
+    if images:  # an artifact's own figure: shown above the caption, its own margins kept
+        images[0].set_position((0, extra / (height + extra), 1, height / (height + extra)))
+    else:
+        fig.subplots_adjust(bottom=(extra + 0.45) / (height + extra))
     fig.text(0.01, 0.01, "\n".join(lines), ha="left", va="bottom", fontsize=8, color="0.2",
              family="sans-serif")
 
@@ -89,7 +93,7 @@ def _image_figure(png: Path, width_in: float = 11.0):
     image = plt.imread(png)
     height_px, width_px = image.shape[:2]
     fig = plt.figure(figsize=(width_in, width_in * height_px / width_px))
-    ax = fig.add_axes((0, 0, 1, 1))
+    ax = fig.add_axes((0, 0, 1, 1), label="image")
     ax.imshow(image)
     ax.axis("off")
     return fig, ax
@@ -127,8 +131,13 @@ def exploration_figures(out: Path, output_dir: Path, captions: dict[str, str]) -
         "recorded valves went down to about -2.3 kPa); here every command is projected."),
         captions)
 
-    fig, axes = plt.subplots(2, len(alphas), figsize=(3.2 * len(alphas), 6.2), squeeze=False,
-                             sharex=True, sharey="row")
+    every = np.concatenate([p[["x", "y", "z"]].to_numpy() * 1e3 for p in positions.values()])
+    pad = 2.0
+    limits = [(every[:, k].min() - pad, every[:, k].max() + pad) for k in range(3)]
+    heights = [limits[1][1] - limits[1][0], limits[2][1] - limits[2][0]]
+    width = limits[0][1] - limits[0][0]
+    fig, axes = plt.subplots(2, len(alphas), squeeze=False, figsize=(
+        3.2 * len(alphas), 3.2 * sum(heights) / width + 1.6), gridspec_kw={"height_ratios": heights})
     rms = {}
     for c, alpha in enumerate(alphas):
         xyz = positions[alpha][["x", "y", "z"]].to_numpy() * 1e3
@@ -136,10 +145,10 @@ def exploration_figures(out: Path, output_dir: Path, captions: dict[str, str]) -
             ax = axes[r, c]
             ax.plot(xyz[:, 0], xyz[:, j], lw=0.3, color=f"C{c}")
             ax.plot(xyz[0, 0], xyz[0, j], "k+", ms=9)
-            ax.set_xlabel("x [mm]")
+            ax.set(xlim=limits[0], ylim=limits[j], xlabel="x [mm]")
+            ax.set_aspect("equal", adjustable="box")
             if c == 0:
                 ax.set_ylabel(f"{name} [mm]")
-            ax.set_aspect("equal", adjustable="datalim")
         spread = np.linalg.norm(xyz - xyz.mean(axis=0), axis=1)
         rms[alpha] = float(np.sqrt((spread ** 2).mean()))
         axes[0, c].set_title(f"alpha = {alpha:g}\nRMS spread {rms[alpha]:.1f} mm", fontsize=9)

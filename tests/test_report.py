@@ -96,10 +96,10 @@ def test_consecutive_goals_table_has_one_labelled_column_per_goal(tmp_path):
             for plant in ("learned", "plant") for seed in (0, 1) for goal in range(3)]
     table = consecutive_table(pd.DataFrame(rows))
     assert list(table.columns) == ["controller", "evaluated on", "goal 1 [mm]", "goal 2 [mm]",
-                                   "goal 3 [mm]", "≤ 3 mm"]
+                                   "goal 3 [mm]", "fraction ≤ 3 mm"]
     assert table["evaluated on"].tolist() == ["learned model", "simulated arm"]
     # median over the seeds (1 and 2 at goal 1), a third of the goals within 3 mm
-    assert table["goal 1 [mm]"].tolist() == [1.5, 1.5] and table["≤ 3 mm"].tolist() == [1 / 3] * 2
+    assert table["goal 1 [mm]"].tolist() == [1.5, 1.5] and table["fraction ≤ 3 mm"].tolist() == [1 / 3] * 2
     _, page = write_report(tmp_path, "Run", [Section("C", [Table(table)])])
     headers = re.findall(r"<th>(.*?)</th>", page.read_text())
     assert all(h.strip() for h in headers) and len(headers) == 6

@@ -123,9 +123,9 @@ def _chatter_sentence(summary: pd.DataFrame, policies: list[str]) -> str | None:
                 f"control period and valve on average, against {against}")
     if smoothest > 0 and mpc > 3 * smoothest:
         sentence += (f": MPC chatters ({format_number(mpc / smoothest)} times the smoothest "
-                     "policy's change). It re-plans every period from random samples on the "
-                     "learned model, so consecutive plans, and commands, jump; on a pneumatic "
-                     "arm that wears valves and excites the dynamics the model fits worst.")
+                     "policy's change). It searches a new command every period (cross-entropy "
+                     "method on the learned model, from fresh random samples, with the goal "
+                     "shifted by the arm-minus-model offset), so consecutive commands jump.")
     else:
         sentence += "."
     return sentence
@@ -220,7 +220,8 @@ def report_sections(cfg, policies, results, figures, collect: Artifact | None = 
             "control periods each, no reset: the distance at the end of each goal's time.",
             Table(consecutive_table(consecutive, order),
                   "median over seeds of each seed's median distance [mm] at the end of goal "
-                  "1, 2, ...; the last column: the fraction of all goals ended within 3 mm")]))
+                  "1, 2, ...; the last column: the fraction of all goals (every seed's episodes) ended "
+                  "within 3 mm")]))
     return sections
 
 
@@ -231,7 +232,7 @@ def consecutive_table(consecutive: pd.DataFrame, order: list[str] | None = None
                 ["median_distance_mm"].median().unstack("goal"))
     per_goal.columns = [f"goal {int(g) + 1} [mm]" for g in per_goal.columns]
     within = consecutive.groupby(["controller", "plant"], sort=False)["success_3mm"].mean()
-    table = per_goal.assign(**{"≤ 3 mm": within}).reset_index()
+    table = per_goal.assign(**{"fraction ≤ 3 mm": within}).reset_index()
     table["plant"] = table["plant"].map(_plant_label)
     table = table.rename(columns={"plant": "evaluated on"})
     return _ordered(table, order) if order else table

@@ -273,7 +273,7 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
         last = curves[curves["timesteps"] == curves["timesteps"].max()]["return"]
         finals[agent] = (float(last.mean()), float(last.std()))
     ax.set(xlabel="environment steps per seed", title="PPO in the LSTM fitted to the real runs")
-    ax.set_ylabel(RETURN_LABEL, fontsize=8)
+    ax.set_ylabel(RETURN_LABEL)
     ax.legend(fontsize=8)
     fig.tight_layout()
     better = max(finals, key=lambda a: finals[a][0])

@@ -40,7 +40,7 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
         ax.fill_between(stats["timesteps"], stats["mean"] - stats["std"].fillna(0),
                         stats["mean"] + stats["std"].fillna(0), color=f"C{i}", alpha=0.25)
     ax.set_xlabel("environment steps per seed")
-    ax.set_ylabel(RETURN_LABEL, fontsize=8)
+    ax.set_ylabel(RETURN_LABEL)
     ax.set_title("PPO in the learned model (mean ± std over seeds)", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()

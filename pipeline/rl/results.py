@@ -15,7 +15,7 @@ from pipeline.infra.artifacts import Artifact
 from pipeline.infra.parquet import write_parquet
 
 RETURN_UNIT = "sum over the episode of the reward (env=learned/sim: -distance in mm per period)"
-RETURN_LABEL = "episodic return [−mm summed over the episode's control periods]"
+RETURN_LABEL = "episodic return [−mm, summed over periods]"
 UNITS = {
     "timesteps": "environment steps per seed",
     "mean_return": RETURN_UNIT,
@@ -118,17 +118,17 @@ def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, ti
     stats = stats.reset_index()
     ax = axes[0, 0]
     ax.plot(stats["timesteps"], stats["mean"], color="C0",
-            label=f"training, mean ± std over {metrics['seed'].nunique()} seeds")
+            label=f"training episodes, mean ± std over {metrics['seed'].nunique()} seeds")
     ax.fill_between(stats["timesteps"], stats["mean"] - stats["std"].fillna(0),
                     stats["mean"] + stats["std"].fillna(0), color="C0", alpha=0.25)
     held_out = evaluation.groupby("timesteps")["mean_return"].mean()
-    ax.plot(held_out.index, held_out.to_numpy(), "o-", color="C1", label="evaluation (mean)")
-    ax.set(xlabel="environment steps per seed", ylabel=RETURN_LABEL, title=title)
-    ax.legend(fontsize=8)
+    ax.plot(held_out.index, held_out.to_numpy(), "o-", color="C1", label="held-out goals, deterministic policy (mean over seeds)")
+    xlabel = "environment steps per seed"
     if "warmup" in metrics and metrics["warmup"].any():
-        ax.annotate(f"first {int(metrics.loc[metrics['warmup'], 'update'].nunique())} update(s) "
-                    "left out: no episode could have run to max_steps yet", (0.01, 0.01),
-                    xycoords="axes fraction", fontsize=7, color="0.35")
+        xlabel += (f"\n(first {int(metrics.loc[metrics['warmup'], 'update'].nunique())} "
+                   "update(s) left out: no episode could have run to max_steps yet)")
+    ax.set(xlabel=xlabel, ylabel=RETURN_LABEL, title=title)
+    ax.legend(fontsize=8)
     if has_distance:
         ax = axes[0, 1]
         many = evaluation["seed"].nunique() > 6  # then one thin grey line per seed, no legend

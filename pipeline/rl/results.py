@@ -122,7 +122,8 @@ def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, ti
     ax.fill_between(stats["timesteps"], stats["mean"] - stats["std"].fillna(0),
                     stats["mean"] + stats["std"].fillna(0), color="C0", alpha=0.25)
     held_out = evaluation.groupby("timesteps")["mean_return"].mean()
-    ax.plot(held_out.index, held_out.to_numpy(), "o-", color="C1", label="held-out goals, deterministic policy (mean over seeds)")
+    ax.plot(held_out.index, held_out.to_numpy(), "o-", color="C1",
+            label="held-out goals, deterministic policy (mean over seeds)")
     xlabel = "environment steps per seed"
     if "warmup" in metrics and metrics["warmup"].any():
         xlabel += (f"\n(first {int(metrics.loc[metrics['warmup'], 'update'].nunique())} "

@@ -64,7 +64,7 @@ def _captioned(fig, caption: str, width: int = 150) -> None:
     """Write ``caption`` under the figure (wrapped), making room for it."""
     lines = textwrap.wrap(caption, width)
     height = fig.get_figheight()
-    extra = 0.17 * len(lines) + 0.2
+    extra = 0.2 * len(lines) + 0.35
     fig.set_figheight(height + extra)
     images = [ax for ax in fig.axes if ax.get_label() == "image"]
     if images:  # an artifact's own figure: shown above the caption, its own margins kept
@@ -203,10 +203,10 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
     fig.tight_layout()
     split = json.loads(fits["permuted"]["fit_model"].file("split.json").read_text())
     agrees = final["permuted"][0] < final["sequential"][0]
-    verdict = ("Agrees with the paper" if agrees else "DIFFERS from the paper") + (
-        f" ({CLAIM_FIG6}): final validation loss permuted {final['permuted'][0]:.3g} vs "
-        f"sequential {final['sequential'][0]:.3g}, open-loop error {final['permuted'][1]:.2f} vs "
-        f"{final['sequential'][1]:.2f} mm.")
+    verdict = (f"{'Agrees with' if agrees else 'DIFFERS from'} the paper ({CLAIM_FIG6}) on "
+               f"this one split and training seed: final validation loss permuted "
+               f"{final['permuted'][0]:.3g} vs sequential {final['sequential'][0]:.3g}, "
+               f"open-loop error {final['permuted'][1]:.2f} vs {final['sequential'][1]:.2f} mm.")
     _save(fig, out / "fig6_loss_permuted_vs_sequential.png", (
         f"Fig. 6. The LSTM dynamics model fitted to the real runs ({len(split['train'])} "
         f"training runs, validation on {len(split['test'])} held-out: {', '.join(split['test'])}) "

@@ -60,9 +60,9 @@ def run_stage(output_dir: Path, stage: str, *overrides: str) -> dict[str, Any]:
     return results
 
 
-def _captioned(fig, caption: str, width: int = 150) -> None:
-    """Write ``caption`` under the figure (wrapped), making room for it."""
-    lines = textwrap.wrap(caption, width)
+def _captioned(fig, caption: str) -> None:
+    """Write ``caption`` under the figure (wrapped to its width), making room for it."""
+    lines = textwrap.wrap(caption, int(14.5 * fig.get_figwidth()), break_on_hyphens=False)
     height = fig.get_figheight()
     extra = 0.2 * len(lines) + 0.35
     fig.set_figheight(height + extra)
@@ -84,6 +84,11 @@ def _save(fig, path: Path, caption: str, captions: dict[str, str]) -> Path:
     captions[path.name] = caption
     log.info("wrote %s", path)
     return path
+
+
+def _seconds(duration: float) -> str:
+    """How long a step took here, or that its artifact was reused."""
+    return f"{duration:.0f} s" if duration >= 5 else "reused"
 
 
 def _image_figure(png: Path, width_in: float = 11.0):
@@ -214,8 +219,8 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
         f"EMA of weight {EMA_WEIGHT}, validation over the entire held-out runs every "
         f"{int(model.eval_every)} steps. Run: python -m pipeline stage=fit_model "
         "robot=sorolex_csv dataset.order=permuted|sequential "
-        f"({durations['permuted']:.0f} s and {durations['sequential']:.0f} s here, reused when "
-        f"present). Smaller than the paper: {int(model.hidden)} units instead of "
+        f"({_seconds(durations['permuted'])} and {_seconds(durations['sequential'])} here). "
+        f"Smaller than the paper: {int(model.hidden)} units instead of "
         f"{int(paper.model.hidden)}, {int(model.num_steps):,} steps instead of "
         f"{int(paper.model.num_steps):,}, at {float(data.model_hz):g} Hz with windows of "
         f"{int(data.window)} instead of {float(paper.dataset.model_hz):g} Hz and "
@@ -260,9 +265,9 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
     for i, agent in enumerate(("ppo_ff", "ppo_rnn")):
         overrides = ("experiment=real_arm", f"agent={agent}", f"agent.num_seeds={seeds}",
                      f"agent.total_timesteps={steps}")
-        started = time.perf_counter()
         artifact = run_stage(output_dir, "train_ppo", *overrides)["train_ppo"]
-        durations[agent] = time.perf_counter() - started
+        summary = artifact.manifest["summary"]
+        durations[agent] = float(summary["compile_seconds"]) + float(summary["train_seconds"])
         cfg = compose(output_dir, *overrides)
         curves = training_curves(artifact)
         stats = curves.groupby("timesteps")["return"].agg(["mean", "std"]).reset_index()
@@ -271,12 +276,18 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
         ax.fill_between(stats["timesteps"], stats["mean"] - stats["std"],
                         stats["mean"] + stats["std"], color=f"C{i}", alpha=0.25)
         last = curves[curves["timesteps"] == curves["timesteps"].max()]["return"]
-        finals[agent] = (float(last.mean()), float(last.std()))
+        finals[agent] = (float(last.mean()), float(last.std()), len(last))
     ax.set(xlabel="environment steps per seed", title="PPO in the LSTM fitted to the real runs")
     ax.set_ylabel(RETURN_LABEL)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    better = max(finals, key=lambda a: finals[a][0])
+    (ff, ff_std, n_ff), (rnn, rnn_std, n_rnn) = finals["ppo_ff"], finals["ppo_rnn"]
+    standard_error = np.sqrt(ff_std ** 2 / n_ff + rnn_std ** 2 / n_rnn)
+    if abs(ff - rnn) <= 2 * standard_error:
+        comparison = "no difference beyond two standard errors over seeds at this budget"
+    else:
+        comparison = f"{'ppo_ff' if ff > rnn else 'ppo_rnn'} ahead by more than two standard " \
+                     "errors over seeds at this budget"
     full = compose(output_dir, "experiment=real_arm").agent  # the experiment as configured
     shrunk = [f"{steps:,} steps per seed instead of {int(full.total_timesteps):,}"]
     if seeds != int(full.num_seeds):
@@ -289,10 +300,9 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
         f"could yet have lasted {int(cfg.env.max_steps)} periods) left out. Run: python -m "
         f"pipeline stage=train_ppo experiment=real_arm agent=ppo_ff|ppo_rnn "
         f"agent.num_seeds={seeds} agent.total_timesteps={steps} ({durations['ppo_ff']:.0f} s and "
-        f"{durations['ppo_rnn']:.0f} s here, compilation included). Shrunk to run in minutes: "
-        f"{'; '.join(shrunk)}. Final return: ppo_ff {finals['ppo_ff'][0]:.1f} ± "
-        f"{finals['ppo_ff'][1]:.1f}, ppo_rnn {finals['ppo_rnn'][0]:.1f} ± "
-        f"{finals['ppo_rnn'][1]:.1f}: {better} ahead at this budget."), captions)
+        f"{durations['ppo_rnn']:.0f} s of compilation and training). Shrunk to run in minutes: "
+        f"{'; '.join(shrunk)}. Return of the last update: ppo_ff {ff:.1f} ± {ff_std:.1f}, "
+        f"ppo_rnn {rnn:.1f} ± {rnn_std:.1f} (mean ± std over seeds): {comparison}."), captions)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -130,10 +130,14 @@ def plot_walks(path: Path, key: chex.PRNGKey, exploration: Any, limits: Any,
                    lw=0.8, label="sum ceiling")
         ax.set_ylabel("kPa")
         ax.set_title(f"alpha = {alpha:g}, beta = {float(exploration.beta):g}", fontsize=9)
-    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=n_valves + 2)
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle("Exploration: mean-reverting random walk in pressure space")
-    fig.tight_layout()
+    # the legend above the first panel, clear of its traces (alpha = 0 jumps everywhere)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    top = 1 - 0.6 / fig.get_figheight()
+    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, top), ncol=n_valves + 2,
+               fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, top - 0.25 / fig.get_figheight()))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

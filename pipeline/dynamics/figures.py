@@ -12,7 +12,8 @@ from pipeline.dynamics.training import predict_run
 
 
 def plot_losses(path: Path, losses: pd.DataFrame, ema: float = 0.98) -> Path:
-    """Training loss (raw and EMA-smoothed, as in the paper) and the validation error."""
+    """Training loss (raw and smoothed with an exponential moving average that keeps ``ema`` of
+    its value each step, i.e. weight ``1 - ema`` on the new loss) and the validation error."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -40,28 +41,58 @@ def plot_losses(path: Path, losses: pd.DataFrame, ema: float = 0.98) -> Path:
     return path
 
 
-def plot_reconstruction(path: Path, params, runs: list[dict], labels: list[str]) -> Path:
-    """Measured vs open-loop predicted x, y, z over time (paper Fig. 6)."""
+def zoom_window(t: np.ndarray, width_s: float) -> tuple[float, float]:
+    """The zoom of a reconstruction: ``width_s`` seconds in the middle of the run (all of it if
+    shorter)."""
+    start, end = float(t[0]), float(t[-1])
+    if end - start <= width_s:
+        return start, end
+    middle = 0.5 * (start + end)
+    return middle - 0.5 * width_s, middle + 0.5 * width_s
+
+
+def plot_reconstruction(path: Path, params, runs: list[dict], labels: list[str],
+                        zoom_s: float = 30.0) -> Path:
+    """Measured vs open-loop predicted x, y, z over time (paper Fig. 7), the error
+    ``|predicted - measured|`` under them, and beside each run a zoom into ``zoom_s`` seconds
+    (shaded in the full view), where a millimetre-sized error is visible."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(3, len(runs), figsize=(6.5 * len(runs), 6.5), sharex="col",
-                             squeeze=False)
+    fig, axes = plt.subplots(4, 2 * len(runs), figsize=(8.5 * len(runs), 8), squeeze=False,
+                             gridspec_kw={"width_ratios": [2.2, 1] * len(runs),
+                                          "height_ratios": [1, 1, 1, 0.9]})
     for col, (run, label) in enumerate(zip(runs, labels)):
         predicted = predict_run(params, run)
         t = run["t"] - run["t"][0]
         error = 1e3 * np.linalg.norm(predicted - run["pos"], axis=1)
+        low, high = zoom_window(t, zoom_s)
+        inside = (t >= low) & (t <= high)
+        full, zoom = axes[:, 2 * col], axes[:, 2 * col + 1]
         for k, axis in enumerate(XYZ):
-            ax = axes[k, col]
-            ax.plot(t, run["pos"][:, k] * 1e3, lw=0.8, color="k", label="measured")
-            ax.plot(t, predicted[:, k] * 1e3, lw=0.8, color="C3", label="model (open loop)")
-            ax.set_ylabel(f"{axis} [mm]")
-        axes[0, col].set_title(f"{label} {run['run_id']}: mean error {error.mean():.2f} mm",
-                               fontsize=10)
-        axes[-1, col].set_xlabel("time [s]")
-    axes[0, 0].legend(fontsize=8)
+            for ax, keep in ((full[k], slice(None)), (zoom[k], inside)):
+                ax.plot(t[keep], run["pos"][keep, k] * 1e3, lw=0.8, color="k", label="measured")
+                ax.plot(t[keep], predicted[keep, k] * 1e3, lw=0.8, color="C3",
+                        label="model (open loop)")
+            full[k].axvspan(low, high, color="C0", alpha=0.08)
+            full[k].set_ylabel(f"{axis} [mm]")
+        for ax, keep in ((full[3], slice(None)), (zoom[3], inside)):
+            ax.plot(t[keep], error[keep], lw=0.7, color="C3")
+            ax.axhline(error.mean(), color="0.3", ls="--", lw=0.8,
+                       label=f"mean {error.mean():.2f} mm")
+            ax.set_xlabel("time [s]")
+        full[3].axvspan(low, high, color="C0", alpha=0.08)
+        full[3].set_ylabel("error [mm]")
+        full[3].legend(fontsize=7, loc="upper right")
+        for k in range(3):
+            full[k].tick_params(labelbottom=False)
+            zoom[k].tick_params(labelbottom=False)
+        full[0].set_title(f"{label} {run['run_id']}: mean error {error.mean():.2f} mm, p95 "
+                          f"{np.percentile(error, 95):.2f} mm", fontsize=10)
+        zoom[0].set_title(f"zoom: {low:.0f}–{high:.0f} s", fontsize=10)
+    axes[0, 0].legend(fontsize=7, loc="upper right")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -99,8 +99,21 @@ def plant_gap(learned: pd.DataFrame, plant: pd.DataFrame, learned_final: np.ndar
     })
 
 
+def median_steps(steps: pd.Series) -> float:
+    """Median of first-passage steps over ALL episodes, those that never got there (NaN)
+    counted as never: ``inf`` when fewer than half of them got there, never a median over the
+    ones that did alone."""
+    values = np.where(np.isnan(steps.to_numpy(np.float64)), np.inf, steps.to_numpy(np.float64))
+    return float(np.median(values)) if len(values) else float("nan")
+
+
 def summarize(table: pd.DataFrame, by: list[str]) -> pd.DataFrame:
-    """Median / mean final distance, success rates and steps per group (e.g. policy, plant)."""
+    """Median / mean final distance, success rates and steps per group (e.g. policy, plant).
+
+    ``reached_3mm``: the fraction of episodes that were ever within 3 mm; ``median_steps_to_3mm``
+    the median over all episodes of when they first were (:func:`median_steps`: ``inf`` when
+    fewer than half were).
+    """
     grouped = table.groupby(by, sort=False)
     out = grouped.agg(
         episodes=("final_distance_mm", "size"),
@@ -109,8 +122,22 @@ def summarize(table: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         p90_final_mm=("final_distance_mm", lambda x: float(np.percentile(x, 90))),
         success_1mm=("success_1mm", "mean"),
         success_3mm=("success_3mm", "mean"),
-        median_steps_to_3mm=("steps_to_3mm", "median"),
+        reached_3mm=("steps_to_3mm", lambda x: float(np.isfinite(x).mean())),
+        median_steps_to_3mm=("steps_to_3mm", median_steps),
         smoothness_kpa=("smoothness_kpa", "mean"),
         time_above_limits=("time_above_limits", "max"),
     )
+    return out.reset_index()
+
+
+def seed_spread(table: pd.DataFrame, by: list[str], value: str = "final_distance_mm"
+                ) -> pd.DataFrame:
+    """Spread over seeds of each seed's median ``value``: per group, the number of seeds, the
+    median over seeds, the quartiles and the extremes of the per-seed medians."""
+    per_seed = table.groupby([*by, "seed"], sort=False)[value].median()
+    grouped = per_seed.groupby(level=list(range(len(by))), sort=False)
+    out = grouped.agg(
+        seeds="size", median_of_seed_medians="median",
+        q25=lambda x: float(np.percentile(x, 25)), q75=lambda x: float(np.percentile(x, 75)),
+        min="min", max="max")
     return out.reset_index()

@@ -96,29 +96,41 @@ def _masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
 class ThrottledProgress:
     """A tqdm bar on the host fed from ``jax.debug.callback``; redraws at most every
     ``min_interval_s`` seconds. Under ``vmap`` over seeds it receives each seed's index and
-    shows the furthest one."""
+    shows the furthest one.
+
+    The callbacks of different seeds may run at the same time on different host threads: the
+    count is updated under a lock and set to the furthest update seen (never past ``total``), so
+    two calls cannot both add the same updates. ``train_return`` is the mean return of the
+    training episodes (stochastic policy, training goals) that ended in the latest update, not
+    the deterministic evaluation on held-out goals that ``final_eval_mean_return`` reports."""
 
     def __init__(self, total: int, desc: str = "ppo", min_interval_s: float = 1.0,
                  disable: bool = False):
+        import threading
+
         from tqdm.auto import tqdm
 
         self.bar = tqdm(total=total, desc=desc, disable=disable, mininterval=min_interval_s,
                         unit="update")
+        self.total = int(total)
         self.min_interval_s = min_interval_s
         self.done = 0
         self.last_draw = 0.0
+        self.lock = threading.Lock()
 
     def __call__(self, update_index: Any, mean_return: Any) -> None:
-        done = int(np.max(np.asarray(update_index))) + 1
-        now = time.monotonic()
-        if done > self.done and (now - self.last_draw >= self.min_interval_s
-                                 or done >= self.bar.total):
-            self.bar.update(done - self.done)
-            returns = np.asarray(mean_return, np.float64)
-            if np.isfinite(returns).any():
-                self.bar.set_postfix(ret=f"{np.nanmean(returns):.3g}", refresh=False)
-            self.done = done
-            self.last_draw = now
+        done = min(int(np.max(np.asarray(update_index))) + 1, self.total)
+        returns = np.asarray(mean_return, np.float64)
+        with self.lock:
+            now = time.monotonic()
+            if done > self.done and (now - self.last_draw >= self.min_interval_s
+                                     or done >= self.total):
+                if np.isfinite(returns).any():
+                    self.bar.set_postfix(train_return=f"{np.nanmean(returns):.3g}",
+                                         refresh=False)
+                self.bar.update(done - self.done)
+                self.done = done
+                self.last_draw = now
 
     def close(self) -> None:
         self.bar.close()

@@ -65,7 +65,8 @@ def train_ppo(cfg: Any) -> Artifact:
         config = {"env": spec["env"], "agent": spec["agent"], "seed": spec["seed"],
                   "init_policy_sha256": spec.get("init_policy_sha256")}
 
-        metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()})
+        metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()},
+                                int(train_params.max_steps_in_episode), agent.num_steps)
         summary, episodes = evaluation_tables(
             {k: np.asarray(v) for k, v in output.evaluation.items()})
         write_results(metrics, writer.file("metrics.parquet"), config, STAGE)

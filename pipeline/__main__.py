@@ -20,6 +20,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 # XLA's C++ log below FATAL stays quiet (errors that matter reach Python as exceptions). On
@@ -115,19 +116,33 @@ def run(cfg: Any) -> dict[str, Any]:
     for name in stages_to_run(cfg):
         started = time.perf_counter()
         stage_cfg = cfg if name is stage else upstream_cfg
-        function = stage_function(name)
-        if name is Stage.evaluate and stage is Stage.all:
-            # the chain trains every policy type evaluate compares (reused when there)
-            train = stage_function(Stage.train_ppo)
-            for policy, variant in keys.policy_configs(stage_cfg).items():
-                trained_from = time.perf_counter()
-                train(variant)
-                log.info("stage train_ppo (%s) done in %.1f s", policy,
-                         time.perf_counter() - trained_from)
-            started = time.perf_counter()  # evaluate's own time, without the training above
-        results[name.value] = function(stage_cfg)
+        if name is Stage.train_ppo and stage is Stage.all:
+            # the chain trains its own agent and every policy type evaluate compares
+            results[name.value] = train_policies(stage_cfg, int(cfg.train_workers))
+        else:
+            results[name.value] = stage_function(name)(stage_cfg)
         log.info("stage %s done in %.1f s", name.value, time.perf_counter() - started)
     return results
+
+
+def train_policies(cfg: Any, workers: int) -> Any:
+    """train_ppo for ``cfg``'s agent and for each policy type of ``evaluation.policies``
+    (``workers`` at once); returns the artifact of ``cfg``'s own agent."""
+    train = stage_function(Stage.train_ppo)
+    variants = {cfg.agent.name: cfg, **keys.policy_configs(cfg)}
+    by_key = {keys.key("train_ppo", variant): (name, variant) for name, variant in
+              variants.items()}
+
+    def timed(name: str, variant: Any) -> Any:
+        started = time.perf_counter()
+        artifact = train(variant)
+        log.info("stage train_ppo (%s) done in %.1f s", name, time.perf_counter() - started)
+        return artifact
+
+    with ThreadPoolExecutor(max(1, min(workers, len(by_key)))) as pool:
+        futures = {key: pool.submit(timed, *job) for key, job in by_key.items()}
+        artifacts = {key: future.result() for key, future in futures.items()}
+    return artifacts[keys.key("train_ppo", cfg)]
 
 
 register_configs()
@@ -146,6 +161,12 @@ def main(cfg: DictConfig) -> None:
         sys.exit(1)
 
 
-if __name__ == "__main__":
-    cli.exit_on_unknown_key(sys.argv[1:])  # a mistyped key: say so, do not suggest +key=value
+def console() -> None:
+    """``python -m pipeline`` and the ``sorolearn`` script: a mistyped key is refused first
+    (saying so, rather than Hydra's suggestion to append it with ``+key=value``)."""
+    cli.exit_on_unknown_key(sys.argv[1:])
     main()
+
+
+if __name__ == "__main__":
+    console()

@@ -159,13 +159,3 @@ def exit_on_unknown_key(argv: Sequence[str]) -> None:
     message = unknown_key_message(argv)
     if message is not None:
         raise SystemExit(message)
-
-
-def main() -> None:
-    """The ``sorolearn`` console script: ``python -m pipeline`` with the key check first."""
-    import sys
-
-    exit_on_unknown_key(sys.argv[1:])
-    from pipeline.__main__ import main as hydra_main
-
-    hydra_main()

@@ -516,6 +516,8 @@ class Config:
     stage: Stage = Stage.all
     seed: int = 0
     force: bool = False  # recompute artifacts even when one with the same key exists
+    # policy types the chain trains at once (threads; each training is one compiled program)
+    train_workers: int = 2
     robot: Any = MISSING  # one of the RobotConfig subclasses, chosen by the robot group
     exploration: ExplorationConfig = MISSING
     dataset: DatasetConfig = MISSING

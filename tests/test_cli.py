@@ -39,8 +39,9 @@ def test_a_mistyped_key_is_called_unknown_with_close_matches():
     assert "did you mean agent.num_seeds?" in message
     assert unknown_key_message(["agent.lr=0.1", "agent=ppo_rnn", "+foo=1", "seed=3"]) is None
     # a key that only one robot's schema has is known with that robot only
-    assert unknown_key_message(["robot.num_runs=2"]) is None
-    assert "robot.num_runs" in unknown_key_message(["robot=sorolex_csv", "robot.num_runs=2"])
+    assert unknown_key_message(["robot.physics.bend_gain=0.1"]) is None
+    assert "robot.physics.bend_gain" in unknown_key_message(["robot=sorolex_csv",
+                                                              "robot.physics.bend_gain=0.1"])
 
 
 def test_the_command_line_exits_with_that_message():

@@ -488,6 +488,9 @@ class EvaluationConfig:
     num_consecutive_goals: int = 5  # goals reached one after another without reset
     consecutive_episodes: int = 8
     plant: bool = True  # also run on the ground-truth plant (the simulated arm for robot=sim)
+    # other fitted models to evaluate every controller in (cross-model): fit_model artifact
+    # folders or keys of this artifact store; observed like the training env, same goals
+    models: list[str] = field(default_factory=list)
     mpc_horizon: int = 2  # control periods a candidate command is held
     mpc_samples: int = 64
     mpc_iterations: int = 3

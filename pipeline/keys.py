@@ -8,6 +8,7 @@ importing the stage that made them, and sweeps share upstream artifacts.
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 from typing import Any
 
 from omegaconf import OmegaConf
@@ -121,6 +122,9 @@ def evaluate_spec(cfg: Any) -> Spec:
     spec = {"evaluation": _container(cfg.evaluation), "env": _container(cfg.env)}
     inputs = {f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
               for name, variant in policy_configs(cfg).items()}
+    spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do
+    for entry in cfg.evaluation.models:
+        inputs[f"fit_model/{Path(str(entry)).name}"] = Path(str(entry)).name
     return spec, inputs
 
 

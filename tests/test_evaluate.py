@@ -86,3 +86,18 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg):
     assert len(episodes) == 2 * 4 * 4  # plants x controllers (one seed each) x episodes
     gap = pd.read_parquet(artifact.file("plant_gap.parquet"))
     assert len(gap) == 4 * 4 and np.isfinite(gap["final_gap_mm"]).all()
+
+    # the same policies in another fitted model (cross-model): here the fitted model itself,
+    # as a separate plant with its own settled starts, same goals and observation
+    model = results["fit_model"]
+    cfg.stage, cfg.evaluation.models = "evaluate", [str(model.path)]
+    crossed = run(cfg)["evaluate"]
+    assert crossed.key != artifact.key
+    summary = pd.read_parquet(crossed.file("summary.parquet"))
+    other = f"model {model.key}"
+    assert set(summary["plant"]) == {"learned", "plant", other}
+    in_model = summary.set_index(["plant", "controller"])["median_final_mm"]
+    for controller in ("ppo_ff", "ppo_rnn"):
+        assert np.isfinite(in_model[(other, controller)])
+        # its own model from nearly the same starts: close to the learned env's figure
+        assert abs(in_model[(other, controller)] - in_model[("learned", controller)]) < 2.0

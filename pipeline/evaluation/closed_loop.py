@@ -145,11 +145,25 @@ class _Programs:
         return np.asarray(positions), np.asarray(commands)
 
 
+def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: Any,
+               key: jax.Array, cfg: Any) -> EnvParams:
+    """Another fitted model as a plant of the same environment: its own settled starts from
+    the learned env's start poses, the same safe set, goals and observation normalization."""
+    starts = eval_params.reset_positions
+    return make_env_params(
+        env, dynamics_params, key=key, safe_set=eval_params.safe_set,
+        preload=eval_params.preload, rest_pose=starts.mean(axis=0),
+        rest_pose_std=starts.std(axis=0), goal_set=eval_params.goal_set,
+        obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale, **common_params(cfg))
+
+
 def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv,
-                   eval_params: EnvParams) -> dict[str, Any]:
+                   eval_params: EnvParams, models: dict[str, Any] | None = None
+                   ) -> dict[str, Any]:
     """Roll out every controller of ``policies`` (train_ppo artifacts by policy type) and every
-    baseline on the learned env (``env`` with its evaluation parameters) and on the plant;
-    return tables and arrays."""
+    baseline on the learned env (``env`` with its evaluation parameters), on the plant and in
+    each of ``models`` (other fitted models' ``DynamicsParams`` by plant name); return tables
+    and arrays."""
     evaluation = cfg.evaluation
     episodes, steps = int(evaluation.num_episodes), int(cfg.env.max_steps)
     key = jax.random.key(int(evaluation.seed))
@@ -162,6 +176,9 @@ def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv
     plant_env = _plant_env(cfg, env, eval_params, plant_key)
     if plant_env is not None:
         plants["plant"] = plant_env
+    for number, (name, dynamics_params) in enumerate((models or {}).items()):
+        plants[name] = (env, _model_env(env, eval_params, dynamics_params,
+                                        jax.random.fold_in(plant_key, number + 1), cfg))
 
     loaded = {}
     for name, artifact in policies.items():

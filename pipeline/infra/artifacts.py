@@ -76,6 +76,13 @@ class ArtifactStore:
             return Artifact(stage, key, path)
         return None
 
+    def resolve(self, stage: str, entry: str) -> Artifact:
+        """An artifact named by its folder (anywhere) or by its key in this store."""
+        folder = Path(entry)
+        if (folder / MANIFEST).is_file():
+            return Artifact(stage, folder.name, folder)
+        return self.require(stage, entry)
+
     def require(self, stage: str, key: str, hint: str = "") -> Artifact:
         artifact = self.find(stage, key)
         if artifact is None:

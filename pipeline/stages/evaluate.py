@@ -24,10 +24,12 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 from typing import Any
 
 from pipeline import keys
 from pipeline.config import EnvName
+from pipeline.dynamics.training import load_dynamics
 from pipeline.evaluation.closed_loop import run_evaluation
 from pipeline.evaluation.figures import make_figures
 from pipeline.evaluation.report import write_report
@@ -53,9 +55,14 @@ def evaluate(cfg: Any) -> Artifact:
                     "aligned": store.find("align", keys.key("align", cfg)),
                     "model": store.find("fit_model", keys.key("fit_model", cfg))}
 
+    other_models = {f"model {Path(str(entry)).name}": store.resolve("fit_model", str(entry))
+                    for entry in cfg.evaluation.models}
+
     def build(writer):
         env, _, eval_params = environment(cfg, upstream["model"], upstream["aligned"])
-        results = run_evaluation(cfg, policies, env, eval_params)
+        models = {name: load_dynamics(artifact.file("model.msgpack"))
+                  for name, artifact in other_models.items()}
+        results = run_evaluation(cfg, policies, env, eval_params, models)
         config = {"evaluation": spec["evaluation"], "env": spec["env"]}
         for name, frame in results["tables"].items():
             write_parquet(frame, writer.file(f"{name}.parquet"),

@@ -30,6 +30,7 @@ STAGES: dict[Stage, str] = {
     Stage.train_ppo: "pipeline.stages.train_ppo:train_ppo",
     Stage.evaluate: "pipeline.stages.evaluate:evaluate",
     Stage.twin: "pipeline.stages.twin:twin",
+    Stage.control: "pipeline.stages.control:control",
 }
 # what `stage=all` runs, in order (the digital twin is a server, started on its own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)

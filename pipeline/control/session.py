@@ -137,8 +137,9 @@ def run_session(cfg: Any, deployment: Deployment, schedule: GoalSchedule, writer
                                       robot).run()
     periods = recorder.read_all()
     if periods.empty or not (periods["goal_index"] >= 0).any():
-        raise RuntimeError(f"control: nothing commanded by the policy, nothing to keep: "
-                           f"{outcome.reason or 'no goal arrived'}") from outcome.error
+        raise ControlInterrupted(f"control: {outcome.reason or 'no goal arrived'}, before the "
+                                 f"policy commanded anything. The preload was commanded; nothing "
+                                 f"to keep") from outcome.error
     recorder.write(writer.file("periods.parquet"), periods)
     period_s = 1.0 / deployment.control_hz
     metrics = goal_metrics(periods, period_s)

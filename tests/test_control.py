@@ -17,9 +17,9 @@ from pipeline.control.session import ControlInterrupted, control
 from pipeline.data.schemas import CMD_COLUMNS
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.keys import key
-from pipeline.ros2.gate import CommandGate
 from pipeline.rl.envs.learned import EnvState
 from pipeline.rl.envs.observation import observe
+from pipeline.ros2.gate import CommandGate
 from tests.conftest import compose_config
 from tests.control_fixtures import SMALL, goals_mm, write_policy
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -60,12 +61,15 @@ class Deployment:
         return hidden, np.asarray(obs), np.asarray(action), np.asarray(pressure, np.float64)
 
 
-def policy_artifact(cfg: Any, store: ArtifactStore) -> Artifact:
-    """The train_ppo artifact of ``control.policy_file`` or of ``control.policy`` (by key)."""
+def policy_artifact(cfg: Any, store: ArtifactStore) -> tuple[Artifact, ArtifactStore]:
+    """The train_ppo artifact of ``control.policy_file`` or of ``control.policy`` (by key), and
+    the store that holds it and its lineage (that of ``control.policy_file``'s folder)."""
     key = keys.control_policy_key(cfg)
-    hint = ("" if cfg.control.policy_file else
-            f" with agent={cfg.control.policy} (or point control.policy_file at a policy.msgpack)")
-    return store.require("train_ppo", key, hint=hint)
+    if cfg.control.policy_file:
+        folder = Path(str(cfg.control.policy_file)).resolve().parent
+        return Artifact("train_ppo", key, folder), ArtifactStore(folder.parent.parent)
+    hint = f" with agent={cfg.control.policy} (or point control.policy_file at a policy.msgpack)"
+    return store.require("train_ppo", key, hint=hint), store
 
 
 def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
@@ -122,8 +126,8 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
 
 def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
     """The policy of this config, its environment, and its step compiled (one call made)."""
-    artifact = policy_artifact(cfg, store)
-    train_cfg, model, aligned = training_config(artifact, store, int(cfg.robot.n_valves))
+    artifact, lineage = policy_artifact(cfg, store)
+    train_cfg, model, aligned = training_config(artifact, lineage, int(cfg.robot.n_valves))
     control_hz = float(train_cfg.robot.control_hz)
     if abs(control_hz - float(cfg.robot.control_hz)) > 1e-9:
         raise ValueError(f"robot.control_hz={cfg.robot.control_hz}: the policy {artifact.path} "

@@ -8,6 +8,7 @@ import sys
 BENCHMARKS = {
     "model_budget": "bench.model_budget",
     "ppo_throughput": "bench.ppo_throughput",
+    "control_latency": "bench.control_latency",
 }
 
 

@@ -241,3 +241,36 @@ def test_a_non_finite_policy_output_stops_with_a_clear_error(make_cfg):
     with pytest.raises(ControlInterrupted, match="non-finite policy output at period 0"):
         control(cfg)
     assert ArtifactStore(cfg.paths.artifact_dir).find("control", key("control", cfg)) is None
+
+
+def test_live_goals_take_effect_at_the_next_period_and_bad_ones_are_refused(policies,
+                                                                            deployment, tmp_path):
+    cfg = policies["ppo_rnn"].copy()
+    cfg.control.goals = []
+    cfg.control.goal_topic = "/goal"
+    cfg.control.duration_s = 3.0
+    inside = np.asarray(cfg_goals := policies["ppo_rnn"].control.goals, np.float64) / 1e3
+
+    class Live:
+        def __init__(self, arm):
+            self.arm, self.commands, self.sent = arm, arm.commands, []
+
+        def __getattr__(self, name):
+            return getattr(self.arm, name)
+
+        def take_goals(self):
+            now = self.arm.now()
+            due = [(0.9, inside[0]), (1.0, np.array([0.5, 0.35, 0.2])), (2.0, inside[1])]
+            out = [g for t, g in due if t <= now and t not in self.sent]
+            self.sent += [t for t, _ in due if t <= now and t not in self.sent]
+            return out
+
+    outcome, arm = _loop(cfg, deployment, Live, tmp_path)
+    assert outcome.reason is None and outcome.periods == 6, outcome
+    chunks = pd.concat(pd.read_parquet(p) for p in sorted((tmp_path / "chunks").glob("*")))
+    commanded = chunks[chunks["goal_index"] >= 0]
+    assert commanded["period"].tolist() == [2, 3, 4, 5]  # periods 0, 1 held the preload
+    assert commanded["goal_index"].tolist() == [0, 0, 1, 1]  # the far goal was refused
+    np.testing.assert_allclose(commanded[["goal_x", "goal_y", "goal_z"]].to_numpy()[-1],
+                               np.asarray(cfg_goals[1]) / 1e3)
+    np.testing.assert_array_equal(np.asarray(arm.commands)[[0, 1, -1]], [[2.0] * 3] * 3)

@@ -142,6 +142,7 @@ class ControlLoop:
             self.arm.start()
             outcome.periods = self._periods()
         except Stop as stop:
+            log.warning("control: %s; stopping safely", stop)
             outcome.reason = str(stop)
         except Exception as err:  # any failure: stop safely, keep the records, report it
             log.error("control: %s: %s; stopping safely", type(err).__name__, err)

@@ -72,6 +72,8 @@ def measure(policy: str, periods: int, policy_file: str | None, ros: bool, out: 
             "compute_p50_ms": summary["compute_latency_ms"]["p50"],
             "compute_p99_ms": summary["compute_latency_ms"]["p99"],
             "compute_max_ms": summary["compute_latency_ms"]["max"],
+            "cpu_p50_ms": summary["compute_cpu_ms"]["p50"],
+            "cpu_p99_ms": summary["compute_cpu_ms"]["p99"],
             "pose_age_p50_ms": summary["pose_age_ms"]["p50"],
             "pose_age_p99_ms": summary["pose_age_ms"]["p99"]}
 
@@ -93,8 +95,9 @@ def main(argv: list[str]) -> None:
     frame = pd.DataFrame(rows)
     where = "ROS 2 (real time)" if args.ros else "the simulated arm (simulated time)"
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
-    print(f"control loop on {where}; compute: wall ms, pose age: arm ms; {os.cpu_count()} CPUs, "
-          f"load average {load} (other processes share the cores: wall times grow with it)")
+    print(f"control loop on {where}; compute: wall ms, cpu: CPU ms of this process in the same "
+          f"span, pose age: arm ms; {os.cpu_count()} CPUs, load average {load} (other processes "
+          f"share the cores: wall times grow with it)")
     print(frame.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
 
 

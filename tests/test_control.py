@@ -274,3 +274,12 @@ def test_live_goals_take_effect_at_the_next_period_and_bad_ones_are_refused(poli
     np.testing.assert_allclose(commanded[["goal_x", "goal_y", "goal_z"]].to_numpy()[-1],
                                np.asarray(cfg_goals[1]) / 1e3)
     np.testing.assert_array_equal(np.asarray(arm.commands)[[0, 1, -1]], [[2.0] * 3] * 3)
+
+
+def test_control_is_routed_alone_and_never_by_the_chain(make_cfg):
+    from pipeline.__main__ import CHAIN, STAGES, stages_to_run
+    from pipeline.config import Stage
+
+    assert Stage.control in STAGES and Stage.control not in CHAIN
+    assert stages_to_run(make_cfg("stage=control", "robot=ros2")) == [Stage.control]
+    assert stages_to_run(make_cfg("stage=control")) == [Stage.control]

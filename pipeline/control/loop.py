@@ -166,7 +166,7 @@ class ControlLoop:
             self._wait_until(tick)
             self._take_goals(period)
             current = schedule.goal(period)
-            started = time.perf_counter()
+            started, cpu_started = time.perf_counter(), time.process_time()
             frame, age = self._pose(self.arm.now())
             if current is None:  # live goals: none yet, hold the preload
                 safe = self.gate.check(self.gate.preload)
@@ -183,10 +183,11 @@ class ControlLoop:
             safe = self.gate(pressure)
             published = self.arm.publish(safe)
             latency_ms = (time.perf_counter() - started) * 1e3
+            cpu_ms = (time.process_time() - cpu_started) * 1e3
             self.recorder.add(period=period, t=tick, publish_t=published, pose_t=frame[0],
                               pose_age_s=age, position=frame[2], goal_index=index, goal=goal,
                               observation=obs, action=action, command=safe,
-                              latency_ms=latency_ms)
+                              latency_ms=latency_ms, cpu_ms=cpu_ms)
             last_pressure, first = safe, False
             period += 1
         # the pose at the end of the last period: where the last goal ended
@@ -195,7 +196,7 @@ class ControlLoop:
         self.recorder.add(period=period, t=period * self.period_s, publish_t=np.nan,
                           pose_t=frame[0], pose_age_s=age, position=frame[2], goal_index=-1,
                           goal=np.full(3, np.nan), observation=None, action=np.full(3, np.nan),
-                          command=np.full(3, np.nan), latency_ms=np.nan)
+                          command=np.full(3, np.nan), latency_ms=np.nan, cpu_ms=np.nan)
         return period
 
 

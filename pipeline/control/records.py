@@ -10,7 +10,8 @@ Columns (one row per control period, and a last row with the pose at the end of 
 ``pose_t`` (the pose's stamp, arm s), ``pose_age_s`` (at command time), ``x, y, z`` (m),
 ``goal_index`` (-1 on the last row), ``goal_x, goal_y, goal_z`` (m), ``obs_<i>``, ``action_<j>``
 ([-1, 1]), ``p_cmd_<j>`` (kPa, the command sent after the gate), ``latency_ms`` (wall: pose
-taken to command published).
+taken to command published) and ``cpu_ms`` (the CPU time this process spent on it: the compute
+itself, without the waits for cores that other processes hold).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from pipeline.infra.parquet import write_parquet
 
 SCHEMA = "control_periods"
 UNITS = {"t": "s", "publish_t": "s", "pose_t": "s", "pose_age_s": "s", "x": "m", "y": "m",
-         "z": "m", "goal_x": "m", "goal_y": "m", "goal_z": "m", "latency_ms": "ms",
+         "z": "m", "goal_x": "m", "goal_y": "m", "goal_z": "m", "latency_ms": "ms", "cpu_ms": "ms",
          **{c: "kPa" for c in CMD_COLUMNS}}
 GOAL_COLUMNS = [f"goal_{a}" for a in XYZ]
 
@@ -46,7 +47,8 @@ class PeriodRecorder:
 
     def add(self, *, period: int, t: float, publish_t: float, pose_t: float, pose_age_s: float,
             position: np.ndarray, goal_index: int, goal: np.ndarray, observation: Any,
-            action: np.ndarray, command: np.ndarray, latency_ms: float) -> None:
+            action: np.ndarray, command: np.ndarray, latency_ms: float, cpu_ms: float
+            ) -> None:
         obs = (np.full(self.obs_dim, np.nan) if observation is None
                else np.asarray(observation, np.float64))
         row = {"period": int(period), "t": float(t), "publish_t": float(publish_t),
@@ -55,7 +57,8 @@ class PeriodRecorder:
                **dict(zip(GOAL_COLUMNS, map(float, goal))),
                **{f"obs_{i}": float(v) for i, v in enumerate(obs)},
                **{f"action_{j}": float(v) for j, v in enumerate(action)},
-               **dict(zip(CMD_COLUMNS, map(float, command))), "latency_ms": float(latency_ms)}
+               **dict(zip(CMD_COLUMNS, map(float, command))), "latency_ms": float(latency_ms),
+               "cpu_ms": float(cpu_ms)}
         self._rows.append(row)
         if goal_index >= 0:
             self.periods += 1

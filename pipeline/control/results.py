@@ -78,7 +78,8 @@ def goal_metrics(periods: pd.DataFrame, period_s: float) -> pd.DataFrame:
 
 
 def latency_summary(periods: pd.DataFrame) -> dict[str, float | None]:
-    """Compute latency (wall ms) and pose age at command time (arm ms): median, p99, max."""
+    """Compute latency (wall ms), its CPU time (ms) and pose age at command time (arm ms):
+    median, p99, max."""
     commanded = periods[periods["goal_index"] >= 0]
 
     def describe(values: np.ndarray) -> dict[str, float] | None:
@@ -89,6 +90,8 @@ def latency_summary(periods: pd.DataFrame) -> dict[str, float | None]:
                 "max": float(values.max())}
 
     return {"compute_latency_ms": describe(commanded["latency_ms"].to_numpy(np.float64)),
+            "compute_cpu_ms": (describe(commanded["cpu_ms"].to_numpy(np.float64))
+                               if "cpu_ms" in commanded else None),
             "pose_age_ms": describe(commanded["pose_age_s"].to_numpy(np.float64) * 1e3)}
 
 
@@ -156,5 +159,6 @@ def write_control_report(folder: Path, title: str, header: list[str], metrics: p
     rows = [{"quantity": name, **(values or {})} for name, values in latency.items()]
     sections.append(Section("Timing").add(Table(pd.DataFrame(rows),
                                                 "compute: wall ms from the pose taken to the "
-                                                "command published; pose age: arm ms")))
+                                                "command published, cpu: CPU ms of this process "
+                                                "in that span; pose age: arm ms")))
     write_report(folder, title, sections)

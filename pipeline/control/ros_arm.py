@@ -67,6 +67,11 @@ class RosArm:
                            f"{silent * self.scale:.2f} s (robot.watchdog_s="
                            f"{self.robot.watchdog_s})")
 
+    def receive(self) -> None:
+        """Run the callbacks of messages already queued (up to the pose queue's depth)."""
+        for _ in range(int(self.robot.pose_qos.depth)):
+            self.link.spin_once(0.0)
+
     def take_frames(self) -> list[Frame]:
         return [(self._arm_time(stamp), self._arm_time(receipt), np.asarray(xyz, np.float64))
                 for stamp, receipt, xyz in self.link.take_poses()]

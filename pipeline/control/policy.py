@@ -68,7 +68,8 @@ def policy_artifact(cfg: Any, store: ArtifactStore) -> tuple[Artifact, ArtifactS
     if cfg.control.policy_file:
         folder = Path(str(cfg.control.policy_file)).resolve().parent
         return Artifact("train_ppo", key, folder), ArtifactStore(folder.parent.parent)
-    hint = f" with agent={cfg.control.policy} (or point control.policy_file at a policy.msgpack)"
+    hint = (f" with agent={cfg.control.policy}, on this robot's data (robot=ros2: `stage=collect` "
+            f"first); or point control.policy_file at a train_ppo policy.msgpack")
     return store.require("train_ppo", key, hint=hint), store
 
 

@@ -1,6 +1,7 @@
 """Control-loop latency: compute per period for both policy types, and pose age at command time.
 
-    python -m bench control_latency [--periods 200] [--policy-file ff=... --policy-file rnn=...]
+    python -m bench control_latency
+    python -m bench.control_latency [--periods 200] [--policy-file ff=PATH --policy-file rnn=PATH]
     python -m bench.control_latency --ros [...]   # against a running twin or arm (robot=ros2)
 
 Compute latency is wall time from the pose taken to the command published, as the loop records

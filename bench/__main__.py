@@ -9,6 +9,7 @@ BENCHMARKS = {
     "chain": "bench.chain",
     "model_budget": "bench.model_budget",
     "ppo_throughput": "bench.ppo_throughput",
+    "control_latency": "bench.control_latency",
 }
 
 

@@ -53,11 +53,12 @@ STAGES: dict[Stage, str] = {
     Stage.evaluate: "pipeline.stages.evaluate:evaluate",
     Stage.twin: "pipeline.stages.twin:twin",
     Stage.guard: "pipeline.stages.guard:guard",
+    Stage.control: "pipeline.stages.control:control",
 }
 # what `stage=all` runs, in order (the digital twin and the guard are servers, started on their own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
 # Stages that publish to a real arm's valves (robot=ros2): each runs only when asked for by name.
-DRIVES_ARM = frozenset({Stage.collect, Stage.guard})
+DRIVES_ARM = frozenset({Stage.collect, Stage.guard, Stage.control})
 # Errors that are the user's to fix: one message, exit status 1, no traceback.
 KNOWN_ERRORS: tuple[type[BaseException], ...] = (
     ConfigError, DataError, RecordingNotFoundError, UnsafeCommandError, MissingArtifactError,

@@ -45,6 +45,7 @@ class Stage(Choice):
     evaluate = "evaluate"
     twin = "twin"  # the simulated arm as a ROS 2 node (not part of `all`)
     guard = "guard"  # the arm-side deadman and rating filter as a ROS 2 node (not part of `all`)
+    control = "control"  # a trained policy drives the arm (not part of `all`)
     all = "all"
 
 
@@ -498,6 +499,30 @@ class EvaluationConfig:
 
 
 @dataclass
+class ControlConfig:
+    """``stage=control``: a trained policy drives the arm (``pipeline/control``).
+
+    Goals in mm in the mocap frame: ``goals`` (each held ``hold_s``), or ``goals_csv`` (waypoints
+    ``t,x,y,z``, t in s from the start, each in force until the next; the last for ``hold_s``), or
+    live on ``goal_topic`` (``geometry_msgs/msg/PointStamped`` in metres, robot=ros2 only).
+    """
+
+    policy: str = "ppo_ff"  # agent option (conf/agent/<policy>.yaml) of the train_ppo artifact
+    policy_file: str | None = None  # a policy.msgpack inside a train_ppo artifact, instead
+    seed: int | None = None  # seed of the stacked policy; None: best held-out median in training
+    goals: list[Any] = field(default_factory=list)  # [[x, y, z], ...] mm (checked by control)
+    goals_csv: str | None = None
+    goal_topic: str | None = None
+    duration_s: float | None = None  # live goals: stop after this long (None: until Ctrl-C)
+    hold_s: float = 20.0  # arm seconds each goal is held (the last waypoint too)
+    workspace_margin_mm: float = 2.0  # goals this far outside the training goals' box are allowed
+    max_pose_jump_mm: float = 20.0  # between consecutive frames: preload and stop
+    arm_seed: int = 0  # robot=sim: the simulated session (rest pose, mocap noise); as twin.seed
+    flush_every_s: float = 2.0  # wall: rows written to Parquet chunks this often
+    node_name: str = "sorolearn_control"
+
+
+@dataclass
 class LoggerConfig:
     wandb: bool = False
     project: str = "sorolearn"
@@ -528,6 +553,7 @@ class Config:
     env: EnvConfig = MISSING
     agent: AgentConfig = MISSING
     evaluation: EvaluationConfig = MISSING
+    control: ControlConfig = MISSING
     logger: LoggerConfig = MISSING
     paths: PathsConfig = MISSING
 
@@ -721,5 +747,6 @@ def register_configs() -> None:
     cs.store(group="env", name="base_env", node=EnvConfig)
     cs.store(group="agent", name="base_agent", node=AgentConfig)
     cs.store(group="evaluation", name="base_evaluation", node=EvaluationConfig)
+    cs.store(group="control", name="base_control", node=ControlConfig)
     cs.store(group="logger", name="base_logger", node=LoggerConfig)
     cs.store(group="paths", name="base_paths", node=PathsConfig)

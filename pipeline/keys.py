@@ -8,6 +8,7 @@ importing the stage that made them, and sweeps share upstream artifacts.
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,7 @@ from omegaconf import OmegaConf
 
 from pipeline.config import PROJECT_ROOT, EnvName, RobotKind
 from pipeline.data.importers import list_recordings, recording_digest
-from pipeline.infra.artifacts import artifact_key
+from pipeline.infra.artifacts import MANIFEST, artifact_key
 from pipeline.rl.policy_io import init_policy_file
 
 Spec = tuple[dict[str, Any], dict[str, str]]
@@ -128,8 +129,54 @@ def evaluate_spec(cfg: Any) -> Spec:
     return spec, inputs
 
 
+def control_policy_config(cfg: Any) -> Any:
+    """The config that trained ``control.policy``: ``cfg`` with that agent option laid over its
+    ``agent`` (as :func:`policy_configs` does for evaluate)."""
+    variant = cfg.copy()
+    variant.agent = agent_option(str(cfg.control.policy), cfg.agent)
+    return variant
+
+
+def control_policy_key(cfg: Any) -> str:
+    """The train_ppo key of the policy ``stage=control`` runs: that of ``control.policy_file``'s
+    artifact folder, else that of ``control.policy`` under this config."""
+    if cfg.control.policy_file:
+        path = Path(str(cfg.control.policy_file))
+        manifest = path.parent / MANIFEST
+        if not path.is_file():
+            raise FileNotFoundError(f"control.policy_file: no file at {path}")
+        if not manifest.is_file() or json.loads(manifest.read_text()).get("stage") != "train_ppo":
+            raise ValueError(f"control.policy_file={path} is not inside a train_ppo artifact "
+                             f"(no train_ppo {MANIFEST} beside it): the environment it was "
+                             f"trained in, hence its observation, cannot be rebuilt")
+        return str(json.loads(manifest.read_text())["key"])
+    return artifact_key(*train_ppo_spec(control_policy_config(cfg)))
+
+
+# settings of stage=control that do not change what is commanded
+_CONTROL_OPERATIONAL = ("policy", "policy_file", "goals_csv", "flush_every_s", "node_name")
+
+
+def control_spec(cfg: Any) -> Spec:
+    """A control session: the policy (its train_ppo key), the goals, the robot and its session
+    label (``robot.session`` on ROS 2; a new label runs anew)."""
+    control = _container(cfg.control)
+    for setting in _CONTROL_OPERATIONAL:
+        control.pop(setting, None)
+    if cfg.control.goals_csv:
+        control["goals_csv_sha256"] = hashlib.sha256(
+            Path(str(cfg.control.goals_csv)).read_bytes()).hexdigest()
+    robot = _container(cfg.robot)
+    if RobotKind(cfg.robot.kind) is RobotKind.ros2:
+        for setting in _ROS2_OPERATIONAL:
+            robot.pop(setting, None)
+        robot.pop("twin", None)  # the twin is another process: its settings are not ours
+        control.pop("arm_seed", None)
+    return {"control": control, "robot": robot}, {"train_ppo": control_policy_key(cfg)}
+
+
 SPECS = {"collect": collect_spec, "align": align_spec, "fit_model": fit_model_spec,
-         "train_ppo": train_ppo_spec, "evaluate": evaluate_spec}
+         "train_ppo": train_ppo_spec, "evaluate": evaluate_spec, "control": control_spec}
 
 
 def key(stage: str, cfg: Any) -> str:

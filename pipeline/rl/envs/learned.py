@@ -39,6 +39,7 @@ from flax import struct
 from gymnax.environments import environment, spaces
 
 from pipeline.arm.safety import SafeSet, project
+from pipeline.rl.envs import observation
 from pipeline.rl.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
 
 GOAL_MODES = ("data", "perturb")
@@ -198,16 +199,12 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
     def observe(self, key: jax.Array, state: EnvState, action: Any, params: EnvParams
                 ) -> jax.Array:
         """``[obs_dim]``: standardized noisy position, standardized goal (, scaled error)
-        (, last pressure)."""
+        (, last pressure); see :func:`pipeline.rl.envs.observation.observe`."""
         measured = state.position + params.obs_noise_std * jax.random.normal(
             key, (POSITION_DIM,))
-        parts = [(measured - params.obs_mean) / params.obs_scale,
-                 (state.goal - params.obs_mean) / params.obs_scale]
-        if self.include_error:
-            parts.append((state.goal - measured) / params.error_scale)
-        if self.include_last_action:
-            parts.append(self.pressure_to_action(state.last_pressure, params))
-        return jnp.concatenate(parts).astype(jnp.float32)
+        return observation.observe(measured, state.goal, state.last_pressure, params,
+                                   include_error=self.include_error,
+                                   include_last_action=self.include_last_action)
 
     def is_terminated(self, state: EnvState, params: EnvParams) -> jax.Array:
         return jnp.linalg.norm(state.goal - state.position) <= params.goal_tolerance
@@ -228,8 +225,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
     @staticmethod
     def pressure_to_action(pressure: jax.Array, params: EnvParams) -> jax.Array:
         """Inverse of :meth:`pressure_command`: kPa -> [-1, 1]."""
-        safe = params.safe_set
-        return 2.0 * (pressure - safe.p_min) / (safe.p_max - safe.p_min) - 1.0
+        return observation.pressure_to_action(pressure, params.safe_set)
 
     def settle(self, plant_params: Any, initial_pose: jax.Array, preload: jax.Array
                ) -> tuple[Any, jax.Array]:

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.ros
 
 COMMAND_TIMEOUT_S = 1.5  # conf/robot/ros2.yaml: three control periods
 TIMEOUT_WALL_S = COMMAND_TIMEOUT_S / TIME_SCALE
-SLACK_S = 0.3  # wall: scheduling on a busy machine
+SLACK_S = 1.0  # wall: scheduling on a busy machine (2 cores, the suite running beside it)
 PRELOAD = [2.0, 2.0, 2.0]  # the rating's
 
 

@@ -39,6 +39,14 @@ class RobotKind(str, Enum):
     rosbag = "rosbag"
 
 
+class ModelProtocol(str, Enum):
+    """How fit_model selects and scores the model (``dataset.protocol``)."""
+
+    auto = "auto"  # cv for recorded data (every robot but sim), split for the simulated arm
+    cv = "cv"  # leave-one-run-out cross-validation, then the model is trained on all runs
+    split = "split"  # one seeded split of the runs (train_fraction, split_seed)
+
+
 class GapPolicy(str, Enum):
     error = "error"  # a mocap gap longer than max_gap_s aborts align, naming the run and time
     split = "split"  # the run is split at the gap into runs '<id>#0', '<id>#1', ... (counted)
@@ -246,8 +254,9 @@ class DatasetConfig:
     window: int = 128  # sliding-window length in model steps
     stride: int = 1
     order: str = "permuted"  # permuted | sequential
-    train_fraction: float = 0.75
-    split_seed: int = 0
+    protocol: ModelProtocol = ModelProtocol.auto
+    train_fraction: float = 0.75  # protocol split only
+    split_seed: int = 0  # protocol split only
 
 
 # --------------------------------------------------------------------------------------------
@@ -276,6 +285,17 @@ class ModelConfig:
     checkpoint_every: int = 500
     seed: int = 0
     reference_pose: str = "run_start"  # run_start | window_start
+    cell: str = "lstm"  # lstm | gru
+    # input features (pipeline/model_features.py); empty / false: off
+    pressure_delta: bool = False  # p_t - p_{t-1} per chamber
+    step_size: bool = False  # the pressure change at the last command step, held
+    step_decays: list[float] = field(default_factory=list)  # exp(-steps since step / tau)
+    play_widths_kpa: list[float] = field(default_factory=list)  # play operators per chamber
+    step_threshold_kpa: float = 0.05  # a command step: some chamber changed by more
+    # regularization (training only)
+    input_noise_std: float = 0.0  # on the standardized inputs
+    recurrent_dropout: float = 0.0  # one mask on h per window
+    weight_decay: float = 0.0  # AdamW, decoupled
 
 
 @dataclass

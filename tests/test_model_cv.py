@@ -1,0 +1,146 @@
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline import dynamics, model_cv, model_features, train_model
+from pipeline.model_cv import Member
+from pipeline.model_features import FeatureSpec
+
+TINY = {
+    "hidden": 8, "batch_size": 4, "learning_rate": 1e-2, "lr_schedule": "constant",
+    "num_steps": 20, "eval_every": 10, "checkpoint_every": 10,
+}
+
+
+def lag_runs(lengths=(40, 30, 50), seed=0):
+    """Position a first-order lag of a linear map of held pressures; runs of unequal length."""
+    rng = np.random.default_rng(seed)
+    gain = np.array([[2.0, -1.0, 0.0], [0.5, 0.5, 0.5], [0.0, 1.0, -2.0]]) * 1e-3
+    runs = []
+    for i, num_steps in enumerate(lengths):
+        pressure = np.repeat(rng.uniform(0.0, 5.0, (num_steps // 5 + 1, 3)), 5, axis=0)
+        pressure = pressure[:num_steps]
+        position, state = [], np.zeros(3)
+        for p in pressure:
+            state = 0.6 * state + 0.4 * gain @ p
+            position.append(np.array([0.03, 0.35, 0.2]) + state)
+        runs.append({"run_id": f"run{i}", "t": np.arange(num_steps) / 10.0,
+                     "p": pressure.astype(np.float32), "pos": np.array(position, np.float32)})
+    return runs
+
+
+def test_loro_folds_hold_out_each_run_exactly_once():
+    ids = ["c", "a", "d", "b"]
+    folds = model_cv.loro_folds(ids)
+    assert [held for _, held in folds] == ["a", "b", "c", "d"]
+    for train, held in folds:
+        assert sorted([*train, held]) == ["a", "b", "c", "d"]
+        assert held not in train
+    members = model_cv.cv_members(ids, seeds=(0, 1))
+    assert len(members) == 9 and members[-1] == Member(("a", "b", "c", "d"), None, 0)
+    with pytest.raises(ValueError, match="at least 2 runs"):
+        model_cv.loro_folds(["a"])
+    with pytest.raises(ValueError, match="duplicate"):
+        model_cv.loro_folds(["a", "a"])
+
+
+def test_vmapped_members_equal_single_fits():
+    """K=1 equals fit; K=2 folds with different window counts each equal their own fit."""
+    runs = lag_runs()
+    single, _, table = train_model.fit(runs[:2], TINY, window=8, progress=False)
+    (vmapped,), losses = model_cv.fit_members(
+        runs[:2], [Member(("run0", "run1"))], TINY, window=8, progress=False)
+    np.testing.assert_allclose(losses[0], table.train_loss, rtol=2e-4)
+    for a, b in zip(jax.tree.leaves(single.network), jax.tree.leaves(vmapped.network)):
+        np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-6)
+
+    members = [Member(("run0", "run1"), "run2", 3), Member(("run2",), "run0", 1)]
+    params, losses = model_cv.fit_members(runs, members, TINY, window=8, progress=False)
+    for member, member_params, member_losses in zip(members, params, losses):
+        train_runs = [r for r in runs if r["run_id"] in member.train_ids]
+        alone, normalizer, table = train_model.fit(train_runs, dict(TINY, seed=member.seed),
+                                                   window=8, progress=False)
+        np.testing.assert_allclose(member_losses, table.train_loss, rtol=2e-4)
+        np.testing.assert_allclose(member_params.normalizer.pressure_mean,
+                                   normalizer.pressure_mean, rtol=1e-6)
+        run = runs[0]
+        np.testing.assert_allclose(train_model.predict_run(member_params, run),
+                                   train_model.predict_run(alone, run), rtol=1e-3, atol=1e-6)
+
+
+def test_members_resume_equals_uninterrupted(tmp_path):
+    runs = lag_runs((30, 30))
+    members = model_cv.cv_members(["run0", "run1"], final=False)
+    full, full_losses = model_cv.fit_members(runs, members, TINY, window=8, progress=False)
+    checkpoints = tmp_path / "ckpt"
+    model_cv.fit_members(runs, members, TINY, window=8, progress=False,
+                         checkpoint_dir=checkpoints, stop_after_steps=10)
+    assert train_model.latest_checkpoint(checkpoints).name == "step_00000010.msgpack"
+    resumed, resumed_losses = model_cv.fit_members(runs, members, TINY, window=8,
+                                                   progress=False, checkpoint_dir=checkpoints)
+    np.testing.assert_allclose(resumed_losses, full_losses, rtol=1e-6)
+    for a, b in zip(jax.tree.leaves([p.network for p in full]),
+                    jax.tree.leaves([p.network for p in resumed])):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    with pytest.raises(ValueError, match="different training setup"):
+        model_cv.fit_members(runs, members[:1], TINY, window=8, progress=False,
+                             checkpoint_dir=checkpoints)
+
+
+def test_warning_fires_when_the_model_loses_to_the_linear_baseline(caplog):
+    # an untrained network against a linear model that the lagged features fit exactly
+    runs = lag_runs((60, 60))
+    config = train_model.ModelTrainConfig(hidden=4).architecture()
+    members = model_cv.cv_members(["run0", "run1"], final=False)
+    params = [dynamics.DynamicsParams(
+        dynamics.init_network(jax.random.PRNGKey(0), config),
+        dynamics.fit_normalizer([r for r in runs if r["run_id"] in m.train_ids], False),
+        config) for m in members]
+    metrics = model_cv.cv_metrics(runs, members, params, num_lags=5)
+    assert set(metrics["split"]) == {"cv", "cv_train"}
+    held = metrics[(metrics["split"] == "cv") & (metrics["model"] == "lstm")]
+    assert held["loses_to_linear"].all() and len(held) == 2
+    assert not metrics.loc[metrics["model"] != "lstm", "loses_to_linear"].any()
+    with caplog.at_level(logging.WARNING):
+        messages = model_cv.warn_if_losing(metrics)
+    assert len(messages) == 2 and "run0" in messages[0] and "linear lagged" in messages[0]
+    assert "does not beat the linear lagged baseline" in caplog.text
+
+    winning = pd.DataFrame({
+        "run_id": ["a"] * 3, "split": ["cv"] * 3, "model": list(model_cv.MODELS),
+        "mean_mm": [1.0, 5.0, 2.0], "p95_mm": [2.0, 9.0, 4.0]})
+    assert model_cv.warn_if_losing(winning) == []
+
+
+def test_feature_transforms_known_answer():
+    spec = FeatureSpec(pressure_delta=True, step_size=True, decays=(2.0,), play_widths=(0.5,),
+                       step_threshold=0.05)
+    assert spec.dim == 3 + 3 + 1 + 3
+    p0 = [1.0, 2.0, 0.0]
+    pressures = jnp.asarray([p0, p0, [1.2, 2.0, 0.0], [1.2, 2.0, 0.0], [1.0, 2.0, -1.0],
+                             [2.0, 2.0, -1.0]], jnp.float32)
+    features = np.asarray(model_features.sequence(spec, pressures))
+    delta, step_size, decay, play = (features[:, :3], features[:, 3:6], features[:, 6],
+                                     features[:, 7:])
+    np.testing.assert_allclose(delta[:, 0], [0, 0, 0.2, 0, -0.2, 1.0], atol=1e-6)
+    # the step at t=5 (chamber 0 by +1) replaces the one at t=4 in every chamber
+    np.testing.assert_allclose(step_size[:, 2], [0, 0, 0, 0, -1.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(step_size[:, 0], [0, 0, 0.2, 0.2, -0.2, 1.0], atol=1e-6)
+    # steps since the last command step: never, never, 0, 1, 0, 0
+    np.testing.assert_allclose(decay, [0, 0, 1, np.exp(-0.5), 1, 1], atol=1e-6)
+    # play operator of half-width 0.5 on chamber 0: 1, 1, 1, 1, 1, 1.5 (backlash)
+    np.testing.assert_allclose(play[:, 0], [1, 1, 1, 1, 1, 1.5], atol=1e-6)
+    # chamber 2: 0, 0, 0, 0, -0.5 (dragged down by 1 - 0.5), -0.5
+    np.testing.assert_allclose(play[:, 2], [0, 0, 0, 0, -0.5, -0.5], atol=1e-6)
+    np.testing.assert_allclose(model_features.play_operator(
+        jnp.asarray(0.0), jnp.asarray([0.2, 1.0, -3.0]), 0.5), [0.0, 0.5, -2.5])
+
+
+def test_band_coverage_and_ensemble_mean():
+    mean, std = np.zeros((4, 3)), np.full((4, 3), 0.5)
+    observed = np.array([[0.0, 0.9, 1.1]] * 4)
+    assert model_cv.band_coverage(mean, std, observed) == pytest.approx(2 / 3)

@@ -399,10 +399,13 @@ def _summary_section(cfg, model, summary: pd.DataFrame, policies: list[str]) -> 
     section = Section("Summary")
     if model is not None:
         held_out = model.manifest["summary"]
+        how = ("leave-one-run-out" if held_out.get("protocol") == "cv" else "on held-out runs")
         section.add(f"Dynamics model: **{held_out['lstm_mean_mm']:.2f} mm** mean open-loop error "
-                    f"on held-out runs (mean-position baseline {held_out['mean_position_mean_mm']:.2f}"
+                    f"{how} (mean-position baseline {held_out['mean_position_mean_mm']:.2f}"
                     f" mm, linear lagged-pressure baseline {held_out['linear_lagged_mean_mm']:.2f} "
                     "mm).")
+        for warning in held_out.get("warnings", []):
+            section.add(f"**Warning:** {warning}.")
     wide = summary.pivot_table(index="controller", columns="plant",
                                values="median_final_mm").reset_index()
     wide.columns.name = None
@@ -454,10 +457,21 @@ def report_sections(cfg, store, policies, results, figures) -> list[Section]:
     if model is not None:
         metrics = pd.read_parquet(model.file("metrics.parquet"))
         accuracy.add("Open-loop error over each entire run (mean and 95th percentile, mm).")
-        per_run = metrics.pivot_table(index=["split", "run_id"], columns="model",
-                                      values="mean_mm").reset_index()
-        per_run.columns.name = None
-        accuracy.add(Table(per_run, "mean error [mm] per run"))
+        if "cv" in set(metrics["split"]):
+            from pipeline.model_cv import cv_summary
+
+            accuracy.add("Leave-one-run-out cross-validation: each run predicted by the model "
+                         "trained on the other runs, next to the baselines fitted on the same "
+                         "runs and that fold model's error on its own training runs; the model "
+                         "the policies use is trained on all runs.")
+            accuracy.add(Table(cv_summary(metrics), "held-out error per run [mm]"))
+        else:
+            per_run = metrics.pivot_table(index=["split", "run_id"], columns="model",
+                                          values="mean_mm").reset_index()
+            per_run.columns.name = None
+            accuracy.add(Table(per_run, "mean error [mm] per run"))
+        for warning in model.manifest.get("summary", {}).get("warnings", []):
+            accuracy.add(f"**Warning:** {warning}.")
         for name, caption in (("loss.png", "loss curves (EMA-smoothed)"),
                               ("reconstruction.png", "reconstruction of a training and an "
                                                      "unseen run")):

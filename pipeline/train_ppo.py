@@ -5,8 +5,10 @@
 - ``learned`` (default): the fitted LSTM of the fit_model artifact of this config; goals
   (``goal_mode=data``) are the model's open-loop predictions along the training runs' commands
   (``env.goal_source=predicted``, reachable in the model's world) or their measured positions
-  (``measured``); evaluation goals come from the held-out runs (the split recorded by fit_model);
-  the rest pose is the mean measured first pose of the runs.
+  (``measured``); evaluation goals come from the held-out runs: with fit_model's ``cv``
+  protocol the measured positions of every run as it was held out by its fold (so all runs,
+  measured, while the model trained on all of them), with ``split`` the runs of the split
+  recorded by fit_model; the rest pose is the mean measured first pose of the runs.
 - ``sim``: the simulated arm itself (no model needed; the upper bound for the learned env).
 - ``gymnax``: a standard gymnax environment (``env.gymnax_name``) to check the PPO.
 
@@ -124,7 +126,8 @@ def learned_env_for(cfg: Any) -> tuple[Any, Any, Any]:
     dynamics_params = fit_stage.load_model(model_artifact)
     split = json.loads(model_artifact.file("split.json").read_text())
     aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
-    runs = fit_stage.runs_at_model_rate(aligned, float(cfg.dataset.model_hz))
+    runs = fit_stage.runs_at_model_rate(aligned, float(cfg.dataset.model_hz),
+                                        str(cfg.dataset.model_grid))
     goal_source = str(cfg.env.goal_source)
     if goal_source not in ("predicted", "measured"):
         raise ValueError(f"env.goal_source must be predicted or measured, got {goal_source!r}")
@@ -142,12 +145,25 @@ def learned_env_for(cfg: Any) -> tuple[Any, Any, Any]:
         ignore_index=True)
     first_poses = pd.DataFrame([{"run_id": run["run_id"], "x": run["pos"][0, 0],
                                  "y": run["pos"][0, 1], "z": run["pos"][0, 2]} for run in runs])
-    test_ids = list(split["test"]) or list(split["train"])  # one run only: evaluate on it
-    data = data_goals_and_rest_pose(at_model_rate, test_ids, every=int(cfg.env.goal_every))
+    every = int(cfg.env.goal_every)
     rest = data_goals_and_rest_pose(first_poses, [])  # rest pose from the measured first poses
+    if split.get("protocol") == "cv":
+        # training goals along every run (the model trained on all of them); evaluation goals
+        # the measured positions of each run as recorded when its fold held it out
+        held_out_ids = [fold["held_out"] for fold in split["folds"]]
+        measured = pd.concat(
+            [pd.DataFrame({"run_id": run["run_id"], "x": run["pos"][:, 0],
+                           "y": run["pos"][:, 1], "z": run["pos"][:, 2]})
+             for run in runs if run["run_id"] in held_out_ids], ignore_index=True)
+        data = {"train_goals": data_goals_and_rest_pose(at_model_rate, [], every)["train_goals"],
+                "held_out_goals": data_goals_and_rest_pose(measured, held_out_ids,
+                                                           every)["held_out_goals"]}
+    else:
+        test_ids = list(split["test"]) or list(split["train"])  # one run only: evaluate on it
+        data = data_goals_and_rest_pose(at_model_rate, test_ids, every=every)
+        if not split["test"]:
+            data["train_goals"] = data["held_out_goals"]
     data["rest_pose"], data["rest_pose_std"] = rest["rest_pose"], rest["rest_pose_std"]
-    if not split["test"]:
-        data["train_goals"] = data["held_out_goals"]
     return make_learned_env(cfg, dynamics_params, data["train_goals"], data["held_out_goals"],
                             data["rest_pose"], data["rest_pose_std"])
 

@@ -1,3 +1,4 @@
+import json
 import logging
 
 import jax
@@ -144,3 +145,53 @@ def test_band_coverage_and_ensemble_mean():
     mean, std = np.zeros((4, 3)), np.full((4, 3), 0.5)
     observed = np.array([[0.0, 0.9, 1.1]] * 4)
     assert model_cv.band_coverage(mean, std, observed) == pytest.approx(2 / 3)
+
+
+def test_protocol_defaults_cv_for_recorded_data_and_split_for_the_simulated_arm(make_cfg):
+    from pipeline.fit_model import fit_model_spec, protocol
+
+    assert protocol(make_cfg()) == "split"
+    assert protocol(make_cfg("robot=sorolex_csv")) == "cv"
+    assert protocol(make_cfg("robot=sorolex_csv", "dataset.protocol=split")) == "split"
+    assert protocol(make_cfg("dataset.protocol=cv")) == "cv"
+    cv_spec, _ = fit_model_spec(make_cfg("robot=sorolex_csv"))
+    assert cv_spec["dataset"]["protocol"] == "cv" and "train_fraction" not in cv_spec["dataset"]
+
+
+def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
+    from pipeline.__main__ import run
+    from pipeline.schemas import MODEL_METRICS, read_table
+    from pipeline.train_ppo import learned_env_for
+
+    cfg = make_cfg("experiment=quick", "stage=fit_model", "dataset.protocol=cv",
+                   "model.hidden=8", "model.num_steps=20", "model.checkpoint_every=10",
+                   "dataset.window=16")
+    artifact = run(cfg)["fit_model"]
+    metrics, meta = read_table(artifact.file("metrics.parquet"), MODEL_METRICS)
+    assert meta["units"]["mean_mm"] == "mm" and meta["config"]["dataset"]["protocol"] == "cv"
+    ids = sorted(metrics["run_id"].unique())
+    assert len(ids) == 3
+    held = metrics[metrics["split"] == "cv"]
+    assert sorted(held["held_out"]) == sorted(ids * 3) and (held["run_id"] == held["held_out"]).all()
+    assert len(metrics[metrics["split"] == "cv_train"]) == 3 * 2 * 3
+    assert sorted(metrics.loc[metrics["split"] == "train", "run_id"].unique()) == ids
+    assert set(metrics["fold"]) == {-1, 0, 1, 2}
+    split = json.loads(artifact.file("split.json").read_text())
+    assert split["train"] == ids and sorted(f["held_out"] for f in split["folds"]) == ids
+    summary = artifact.manifest["summary"]
+    assert summary["protocol"] == "cv" and isinstance(summary["warnings"], list)
+    losing = held[(held["model"] == "lstm") & held["loses_to_linear"]]["run_id"].tolist()
+    assert len(summary["warnings"]) == len(losing)
+
+    _, train_params, eval_params = learned_env_for(cfg)
+    from pipeline.align import align_key
+    from pipeline.artifacts import ArtifactStore
+    from pipeline.fit_model import runs_at_model_rate
+    from pipeline.schemas import ALIGNED
+
+    aligned_artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", align_key(cfg))
+    aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
+    measured = np.concatenate([r["pos"] for r in runs_at_model_rate(aligned, 10.0)])
+    np.testing.assert_allclose(np.asarray(eval_params.goal_set), measured, atol=1e-7)
+    assert train_params.goal_set.shape == eval_params.goal_set.shape
+    assert not np.allclose(np.asarray(train_params.goal_set), measured)  # model predictions

@@ -7,6 +7,7 @@ import sys
 
 BENCHMARKS = {
     "model_budget": "bench.model_budget",
+    "model_cv": "bench.model_cv",
     "ppo_throughput": "bench.ppo_throughput",
 }
 

@@ -195,3 +195,16 @@ def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
     np.testing.assert_allclose(np.asarray(eval_params.goal_set), measured, atol=1e-7)
     assert train_params.goal_set.shape == eval_params.goal_set.shape
     assert not np.allclose(np.asarray(train_params.goal_set), measured)  # model predictions
+
+
+def test_a_model_with_features_round_trips_through_its_file(tmp_path):
+    runs = lag_runs((30,))
+    config = train_model.ModelTrainConfig(hidden=4, cell="gru", play_widths_kpa=(0.5,),
+                                          step_decays=(2.0,), step_size=True).architecture()
+    params = dynamics.DynamicsParams(dynamics.init_network(jax.random.PRNGKey(1), config),
+                                     dynamics.fit_normalizer(runs, False), config)
+    train_model.save_dynamics(tmp_path / "model.msgpack", params)
+    loaded = train_model.load_dynamics(tmp_path / "model.msgpack")
+    assert loaded.config == config
+    np.testing.assert_allclose(train_model.predict_run(loaded, runs[0]),
+                               train_model.predict_run(params, runs[0]), rtol=1e-6)

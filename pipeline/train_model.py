@@ -82,9 +82,10 @@ class ModelTrainConfig:
     reference_pose: str = "run_start"
     # recurrent cell and input features (pipeline/model_features.py), see DynamicsConfig
     cell: str = "lstm"
+    # default: the last command step and the time since it (experiments/MODEL_RESULTS.md)
     pressure_delta: bool = False
-    step_size: bool = False
-    step_decays: tuple[float, ...] = ()
+    step_size: bool = True
+    step_decays: tuple[float, ...] = (1.0, 3.0, 10.0)
     play_widths_kpa: tuple[float, ...] = ()
     step_threshold_kpa: float = 0.05
     # regularization (training only)

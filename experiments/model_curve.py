@@ -5,15 +5,10 @@ Leave-one-run-out like ``model_search.py`` (same flags); the held-out run is sco
 
 Example::
 
-    .venv/bin/python experiments/model_curve.py --folds all --every 100
+    .venv/bin/python -m experiments.model_curve --folds all --every 100
 """
 
 from __future__ import annotations
-
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.model_search import load_folds, model_config, parse_args, split_fold
 from pipeline.dynamics import training as train_model

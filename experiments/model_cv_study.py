@@ -9,10 +9,10 @@ band on the held-out runs; the single members' average error is reported beside 
 Appends one JSON line to ``--out`` (the command, per held-out run the model's mean / p95 mm, the
 baselines on the same folds, the fold models' error on their training runs, and the averages)::
 
-    python experiments/model_cv_study.py --tag default
-    python experiments/model_cv_study.py --tag play model.play_widths_kpa=[0.25,0.5,1.0]
-    python experiments/model_cv_study.py --tag ensemble5 --seeds 0,1,2,3,4
-    python experiments/model_cv_study.py --report      # the table of every row so far
+    python -m experiments.model_cv_study --tag default
+    python -m experiments.model_cv_study --tag play model.play_widths_kpa=[0.25,0.5,1.0]
+    python -m experiments.model_cv_study --tag ensemble5 --seeds 0,1,2,3,4
+    python -m experiments.model_cv_study --report      # the table of every row so far
 """
 
 from __future__ import annotations
@@ -26,8 +26,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 DEFAULT_OUT = "outputs/model_cv_study/study.jsonl"
 
@@ -103,7 +101,7 @@ def study_row(args: argparse.Namespace) -> dict:
                                 if len(seeds) > 1 else float("nan")),
         }
     average = pd.DataFrame(per_run).T.mean().to_dict()
-    return {"tag": args.tag, "command": "python experiments/model_cv_study.py " + shlex.join(
+    return {"tag": args.tag, "command": "python -m experiments.model_cv_study " + shlex.join(
         sys.argv[1:]), "seeds": seeds, "train_s": train_s, "train_cpu_s": train_cpu_s,
         "per_run": per_run, "average": average}
 
@@ -121,7 +119,7 @@ def report(path: str) -> str:
             f"{a['train_runs_mean_mm']:.2f} / {a['train_runs_p95_mm']:.2f} | "
             f"{a['linear_mean_mm']:.2f} / {a['linear_p95_mm']:.2f} | "
             f"{'' if np.isnan(coverage) else f'{coverage:.2f}'} | {row['train_cpu_s']:.0f} | "
-            f"`{row['command'].removeprefix('python experiments/model_cv_study.py ')}` |")
+            f"`{row['command'].removeprefix('python -m experiments.model_cv_study ')}` |")
     runs = sorted(rows[0]["per_run"]) if rows else []
     lines += ["", "| row | " + " | ".join(r.removeprefix("Step_control_") for r in runs) + " |",
               "|---|" + "---|" * len(runs)]

@@ -7,7 +7,6 @@ command change, and saves a plot of measured vs predicted positions.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import matplotlib
@@ -15,8 +14,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.model_data import load_runs
 from experiments.model_search import model_config, parse_args, split_fold

@@ -7,21 +7,17 @@ linear lagged-pressure model. One JSON line per fold is appended to ``--out``.
 
 Example::
 
-    .venv/bin/python experiments/model_ensemble.py --members 5 --folds 4,6 \\
+    .venv/bin/python -m experiments.model_ensemble --members 5 --folds 4,6 \\
         --out outputs/model_search/ensemble.jsonl
 """
 
 from __future__ import annotations
 
 import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.model_search import load_folds, model_config, parse_args, split_fold
 from pipeline.dynamics import training as train_model

@@ -10,8 +10,8 @@ every variant is then scored at the same time points.
 
 Usage::
 
-    python experiments/model_grid.py run --variant cmd10 [--folds 12_20 11_29 ...]
-    python experiments/model_grid.py table
+    python -m experiments.model_grid run --variant cmd10 [--folds 12_20 11_29 ...]
+    python -m experiments.model_grid table
 
 One JSON line per (variant, fold) is appended to ``outputs/model_grid/results.jsonl``.
 """
@@ -29,7 +29,8 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
-DATA_GLOB = "/work/shared/data/sorolex/Step_control_*.csv"
+from pipeline.config import sorolex_dir
+
 OUT = Path("outputs/model_grid/results.jsonl")
 
 DEFAULT_MODEL = dict(
@@ -62,7 +63,7 @@ def load_aligned() -> pd.DataFrame:
 
     limits = SimpleNamespace(p_min=-3, p_max=7, sum_max=13, preload=2)
     commands, mocap = [], []
-    for path in sorted(glob.glob(DATA_GLOB)):
+    for path in sorted(glob.glob(str(sorolex_dir() / "Step_control_*.csv"))):
         c, m = read_sorolex_csv(Path(path), limits)
         commands.append(c)
         mocap.append(m)

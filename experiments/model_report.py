@@ -1,6 +1,6 @@
 """Markdown tables from the JSON lines written by ``model_search.py``.
 
-    .venv/bin/python experiments/model_report.py outputs/model_search/final_*.jsonl
+    .venv/bin/python -m experiments.model_report outputs/model_search/final_*.jsonl
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ appended to ``--out`` and a table is printed at the end.
 Example (one CPU core)::
 
     XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \\
-    taskset -c 1 .venv/bin/python experiments/model_search.py \\
+    taskset -c 1 .venv/bin/python -m experiments.model_search \\
         --data-dir ../shared/data/sorolex --hz 10 --window 128 --hidden 64 --steps 1500 \\
         --folds all --out outputs/model_search/default.jsonl
 """
@@ -16,22 +16,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from experiments.model_data import load_runs
+from pipeline.config import sorolex_dir
 from pipeline.dynamics import training as train_model
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data-dir", default="/work/shared/data/sorolex")
+    parser.add_argument("--data-dir", default=str(sorolex_dir()))
     parser.add_argument("--hz", type=float, default=10.0, help="model rate")
     parser.add_argument("--pressure", default="interval_mean", choices=["interval_mean", "sample"])
     parser.add_argument("--window", type=int, default=128)

@@ -8,7 +8,7 @@ regression, to the stationary greedy policy of value iteration (torque levels ov
 states visited by that policy with and without action noise, plus uniform states; it then writes
 the clone as a ``train_ppo`` policy file, which PPO can start from::
 
-    .venv/bin/python experiments/pendulum_clone.py --out /tmp/clone.msgpack
+    .venv/bin/python -m experiments.pendulum_clone --out /tmp/clone.msgpack
     .venv/bin/python -m pipeline stage=train_ppo experiment=pendulum \\
         agent.init_policy=/tmp/clone.msgpack agent.init_policy_log_std=-1 agent.lr=5e-5 \\
         agent.ent_coef=0 agent.num_seeds=4
@@ -28,9 +28,7 @@ import jax.numpy as jnp
 import optax
 from gymnax.environments.classic_control.pendulum import EnvState
 
-# beside this script: on sys.path when it runs
-from pendulum_optimal import greedy_torque, optimal_returns, policy_returns, solve
-
+from experiments.pendulum_optimal import greedy_torque, optimal_returns, policy_returns, solve
 from pipeline.config import AgentConfig
 from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import save_policy

@@ -13,8 +13,8 @@ down by the start angle: where the policy loses return, not only how much.
 
 Example::
 
-    .venv/bin/python experiments/pendulum_optimal.py --episodes 2048
-    .venv/bin/python experiments/pendulum_optimal.py --policy outputs/artifacts/train_ppo/<key>/policy.msgpack
+    .venv/bin/python -m experiments.pendulum_optimal --episodes 2048
+    .venv/bin/python -m experiments.pendulum_optimal --policy outputs/artifacts/train_ppo/<key>/policy.msgpack
 """
 
 from __future__ import annotations

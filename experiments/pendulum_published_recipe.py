@@ -26,7 +26,7 @@ evaluations fall every 59 updates.
 
 Example (16 seeds, about 2 min on one core)::
 
-    .venv/bin/python experiments/pendulum_published_recipe.py --seeds 16
+    .venv/bin/python -m experiments.pendulum_published_recipe --seeds 16
 """
 
 from __future__ import annotations

@@ -13,9 +13,9 @@ the twin's record of what it received:
 
 Usage (about 10 s of arm time plus ~15 s of start-up)::
 
-    .venv/bin/python experiments/ros2_link.py                    # real time, 20 steps
-    .venv/bin/python experiments/ros2_link.py --time-scale 4 --steps 40
-    .venv/bin/python experiments/ros2_link.py --mocap-faults     # with simulated dropouts
+    .venv/bin/python -m experiments.ros2_link                    # real time, 20 steps
+    .venv/bin/python -m experiments.ros2_link --time-scale 4 --steps 40
+    .venv/bin/python -m experiments.ros2_link --mocap-faults     # with simulated dropouts
 """
 
 from __future__ import annotations

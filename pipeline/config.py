@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import Enum
@@ -756,7 +757,27 @@ def dataclass_values(cls: type, config: Any, what: str,
     return values
 
 
+def frozen_twin(schema: type, name: str) -> type:
+    """A frozen (hashable) dataclass with ``schema``'s fields and defaults, lists as tuples: the
+    schema in the form runtime code can pass to ``jax.jit`` as a static argument. Derived, so
+    the schema stays the only place a field is declared."""
+    fields = []
+    for f in dataclasses.fields(schema):
+        default = (f.default_factory() if f.default_factory is not dataclasses.MISSING
+                   else f.default)
+        if isinstance(default, list):
+            default = tuple(default)
+        fields.append((f.name, Any, dataclasses.field(default=default)))
+    return dataclasses.make_dataclass(name, fields, frozen=True)
+
+
 PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the checkout: conf/ lies here
+
+
+def sorolex_dir() -> Path:
+    """The paper's recorded runs: ``SOROLEX_DIR``, else ``../shared/data/sorolex`` beside the
+    checkout (as ``paths.data_dir``)."""
+    return Path(os.environ.get("SOROLEX_DIR", PROJECT_ROOT.parent / "shared" / "data" / "sorolex"))
 
 
 def register_configs() -> None:

@@ -38,7 +38,7 @@ import pandas as pd
 from flax import serialization
 from tqdm.auto import tqdm
 
-from pipeline.config import dataclass_values
+from pipeline.config import ModelConfig, dataclass_values, frozen_twin
 from pipeline.data.windows import gather_windows, make_windows, sample_batch
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.model import DynamicsConfig, DynamicsParams, Normalizer
@@ -55,47 +55,14 @@ LOSS_TABLE_COLUMNS = ["step", "train_loss", "val_loss", "val_mean_mm", "val_p95_
 # configuration
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
-class ModelTrainConfig:
-    """Model and optimizer settings (the ``model`` config group). Defaults: the CPU recipe.
+class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
+    """The ``model`` config group (``pipeline.config.ModelConfig``, its only declaration) as a
+    frozen dataclass: model and optimizer settings. Defaults: the CPU recipe.
 
     The paper's configuration is ``hidden=1024, batch_size=64, learning_rate=1e-3,
     lr_schedule="constant", num_steps=200_000, condition_on_initial_pose=False,
     predict_displacement=False`` with windows of 512 at 100 Hz (dataset settings).
     """
-
-    name: str = "lstm"
-    hidden: int = 64
-    layers: int = 1
-    head: tuple[int, ...] = ()
-    # Measured on the 7 real runs (experiments/MODEL_RESULTS.md): neither initial-pose switch
-    # helped the open-loop error, so the default is the plain absolute-position model.
-    condition_on_initial_pose: bool = False
-    predict_displacement: bool = False
-    batch_size: int = 32
-    learning_rate: float = 3.0e-3
-    lr_schedule: str = "cosine"  # constant | cosine (linear warmup, cosine decay to the end)
-    warmup_steps: int = 100
-    final_lr_fraction: float = 0.05  # cosine: learning rate at the last step / peak
-    max_grad_norm: float = 1.0  # global-norm gradient clipping; <= 0 disables it
-    num_steps: int = 1500
-    eval_every: int = 250
-    checkpoint_every: int = 500
-    seed: int = 0
-    # Initial pose given to a training window: "run_start" (the pose its run started from, as an
-    # environment observes at reset) or "window_start" (the window's own first pose).
-    reference_pose: str = "run_start"
-    # recurrent cell and input features (pipeline/model_features.py), see DynamicsConfig
-    cell: str = "lstm"
-    # default: the last command step and the time since it (experiments/MODEL_RESULTS.md)
-    pressure_delta: bool = False
-    step_size: bool = True
-    step_decays: tuple[float, ...] = (1.0, 3.0, 10.0)
-    play_widths_kpa: tuple[float, ...] = ()
-    step_threshold_kpa: float = 0.05
-    # regularization (training only)
-    input_noise_std: float = 0.0  # Gaussian noise on the standardized inputs, every step
-    recurrent_dropout: float = 0.0  # drop rate of each h unit, one mask per window
-    weight_decay: float = 0.0  # decoupled (AdamW)
 
     def __post_init__(self):
         object.__setattr__(self, "head", tuple(int(width) for width in self.head))

@@ -1,0 +1,1 @@
+"""Measurement scripts, run from the checkout with ``python -m experiments.<name>``."""

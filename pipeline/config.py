@@ -86,6 +86,12 @@ class SimPhysics:
     pressure_tau_s: float = 0.10  # first-order lag of each chamber behind its valve command
     bend_gain: float = 0.065  # bending angle per kPa of chamber pressure [rad/kPa]
     elong_gain: float = 0.0005  # elongation per kPa of mean pressure [m/kPa]
+    chamber_gains: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # relative
+    # each chamber's strain saturates: f(p) = c + tanh(a (p - c)) / a (a in 1/kPa; 0: linear)
+    saturation_per_kpa: float = 0.0
+    saturation_center_kpa: float = 2.0  # c [kPa]; also the reference of mean_stiffening
+    # bending gain times exp(-s (mean pressure - c)): the arm stiffens as its mean pressure rises
+    mean_stiffening_per_kpa: float = 0.0
     natural_freq_hz: float = 1.5
     damping_ratio: float = 0.3
     gravity_stiffening: float = 0.15  # gravity's restoring torque relative to the elastic one

@@ -29,11 +29,14 @@ STAGES: dict[Stage, str] = {
     Stage.train_ppo: "pipeline.train_ppo:train_ppo",
     Stage.evaluate: "pipeline.evaluate:evaluate",
     Stage.twin: "pipeline.ros2.twin:twin",
+    Stage.calibrate: "pipeline.calibrate:calibrate",
 }
 # what `stage=all` runs, in order (the digital twin is a server, started on its own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
 # evaluate trains the other policy types it compares when they are missing
 CHAIN_OPTIONS: dict[Stage, dict[str, Any]] = {Stage.evaluate: {"train_missing": True}}
+# stages outside the chain that read its data: the part of the chain they need first
+UPSTREAM: dict[Stage, tuple[Stage, ...]] = {Stage.calibrate: (Stage.collect, Stage.align)}
 
 
 def stage_function(stage: Stage) -> Callable[[Any], Any] | None:
@@ -55,7 +58,10 @@ def stages_to_run(cfg: Any) -> list[Stage]:
     if stage is Stage.all:
         return list(CHAIN)
     if stage not in CHAIN:
-        return [stage]
+        chain = [*UPSTREAM.get(stage, ()), stage]
+        if stage is not Stage.collect and RobotKind(cfg.robot.kind) is RobotKind.ros2:
+            chain = [s for s in chain if s is not Stage.collect]
+        return chain
     chain = list(CHAIN[: CHAIN.index(stage) + 1])
     env = getattr(cfg.env.name, "value", cfg.env.name)
     # only the learned environment trains on data; evaluate also reads it, except on gymnax
@@ -67,10 +73,20 @@ def stages_to_run(cfg: Any) -> list[Stage]:
     return chain
 
 
+def apply_physics_from(cfg: Any) -> Any:
+    """``robot.physics_from`` resolved into the robot's physics (see pipeline.calibrate)."""
+    if not (hasattr(cfg.robot, "get") and cfg.robot.get("physics_from")):
+        return cfg
+    from pipeline.calibrate import apply_physics_from as apply
+
+    return apply(cfg)
+
+
 def run(cfg: Any) -> dict[str, Any]:
     """Run ``cfg.stage`` after its upstream stages (or the whole chain); return each stage's
     result by name. ``force=true`` recomputes the requested stage only (every stage for ``all``)."""
     stage = Stage(cfg.stage)
+    cfg = apply_physics_from(cfg)
     upstream_cfg = cfg
     if stage is not Stage.all:
         upstream_cfg = cfg.copy()

@@ -28,6 +28,7 @@ class Stage(str, Enum):
     train_ppo = "train_ppo"
     evaluate = "evaluate"
     twin = "twin"  # the simulated arm as a ROS 2 node (not part of `all`)
+    calibrate = "calibrate"  # fit the simulated arm to recorded runs (not part of `all`)
     all = "all"
 
 
@@ -124,6 +125,8 @@ class SimRobotConfig(RobotConfig):
     num_runs: int = 4  # exploration runs recorded, each a new session (new rest pose)
     physics: SimPhysics = field(default_factory=SimPhysics)
     mocap: MocapConfig = field(default_factory=MocapConfig)
+    # a calibrate artifact (key or folder) whose fitted physics replace `physics`
+    physics_from: str | None = None
 
 
 @dataclass
@@ -209,6 +212,8 @@ class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     num_runs: int = 1
     reuse_incomplete: bool = False  # reuse an interrupted artifact instead of recollecting
     twin: TwinConfig = field(default_factory=TwinConfig)
+    # a calibrate artifact (key or folder) whose fitted physics replace `twin.physics`
+    physics_from: str | None = None
 
 
 @dataclass
@@ -254,6 +259,27 @@ class DatasetConfig:
     order: str = "permuted"  # permuted | sequential
     train_fraction: float = 0.75
     split_seed: int = 0
+
+
+@dataclass
+class CalibrationConfig:
+    """``stage=calibrate``: the simulated arm's physics fitted to the aligned runs by gradient
+    descent through the simulator (see ``pipeline/calibration.py``)."""
+
+    rate_hz: float = 20.0  # frames simulated and compared per second (a multiple of model_hz)
+    substeps: int = 2  # integrator steps per frame
+    num_steps: int = 300  # Adam steps
+    learning_rate: float = 0.05  # in the unconstrained (logit) coordinates; offsets in mm
+    num_restarts: int = 4  # starts per fit (the first at `init`), vmapped
+    restart_std: float = 0.5  # logit-space spread of the other starts
+    seed: int = 0
+    leave_one_run_out: bool = True  # also fit every fold (score the held-out runs)
+    fitted: list[str] = field(default_factory=lambda: [
+        "chamber_angles_deg", "chamber_gains", "segment_length_m", "tip_offset_m",
+        "pressure_tau_s", "bend_gain", "elong_gain", "natural_freq_hz", "damping_ratio",
+        "gravity_stiffening", "hysteresis_kpa", "creep_gain", "creep_tau_s",
+        "saturation_per_kpa", "saturation_center_kpa", "mean_stiffening_per_kpa"])
+    init: SimPhysics = field(default_factory=SimPhysics)  # start; holds the unfitted values
 
 
 # --------------------------------------------------------------------------------------------
@@ -393,6 +419,7 @@ class Config:
     robot: Any = MISSING  # one of the RobotConfig subclasses, chosen by the robot group
     exploration: ExplorationConfig = MISSING
     dataset: DatasetConfig = MISSING
+    calibration: CalibrationConfig = MISSING
     model: ModelConfig = MISSING
     env: EnvConfig = MISSING
     agent: AgentConfig = MISSING
@@ -435,6 +462,7 @@ def register_configs() -> None:
     cs.store(group="robot", name="base_rosbag", node=RosbagRobotConfig)
     cs.store(group="exploration", name="base_exploration", node=ExplorationConfig)
     cs.store(group="dataset", name="base_dataset", node=DatasetConfig)
+    cs.store(group="calibration", name="base_calibration", node=CalibrationConfig)
     cs.store(group="model", name="base_model", node=ModelConfig)
     cs.store(group="env", name="base_env", node=EnvConfig)
     cs.store(group="agent", name="base_agent", node=AgentConfig)

@@ -13,7 +13,8 @@ lagged pressures) trained on the same runs.
 Artifact: ``physics.json`` (the SimPhysics values of the fit on all runs, the base position and
 rest-pose spread from its offsets: what ``robot.physics_from`` reads), ``parameters.parquet`` and
 ``parameters.md`` (value, unit, bounds and start of every fitted parameter, per fold), per-run
-``offsets.parquet``, ``metrics.parquet`` (per run and split: mean and p95 open-loop error in mm),
+``offsets.parquet``, ``robot_sim.yaml`` (a ``conf/robot`` file holding the fitted physics),
+``metrics.parquet`` (per run and split: mean and p95 open-loop error in mm),
 ``losses.parquet`` and ``figures/reconstruction.png``.
 """
 
@@ -91,7 +92,7 @@ def fold_weights(num_runs: int, leave_one_run_out: bool) -> tuple[list[str | int
     """Folds (run index held out, or ALL_RUNS last) and their ``[folds, runs]`` weights."""
     folds: list[str | int] = list(range(num_runs)) if leave_one_run_out and num_runs > 1 else []
     weights = [np.arange(num_runs) != f for f in folds] + [np.ones(num_runs, bool)]
-    return folds + [ALL_RUNS], np.stack(weights).astype(np.float32)
+    return [*folds, ALL_RUNS], np.stack(weights).astype(np.float32)
 
 
 def calibrate(cfg: Any) -> Artifact:
@@ -198,6 +199,8 @@ def write_outputs(writer, cfg, spec, inputs, folds, runs, param, init, result, m
         {"physics": fitted, "units": {k: calib.UNITS.get(k, "") for k in fitted},
          "runs": [r["run_id"] for r in runs]}, indent=2))
 
+    writer.file("robot_sim.yaml").write_text(robot_yaml(fitted, [r["run_id"] for r in runs]))
+
     rows = [row for f, name in enumerate(fold_names)
             for row in parameter_rows(name, param, result.physics[f], init)]
     write_table(pd.DataFrame(rows), writer.file("parameters.parquet"), PARAMETERS, config,
@@ -239,13 +242,25 @@ def write_outputs(writer, cfg, spec, inputs, folds, runs, param, init, result, m
              summary[f"{held}_linear_lagged_mean_mm"])
 
 
+def robot_yaml(physics: dict[str, Any], run_ids: list[str]) -> str:
+    """A ``conf/robot`` file of the simulated arm with these physics (no artifact needed)."""
+    lines = ["# The simulated arm with physics calibrated (stage=calibrate) to the runs",
+             f"# {', '.join(run_ids)}.",
+             "defaults:", "  - base_sim", "  - _self_", "", "physics:"]
+    for name, value in physics.items():
+        text = (f"[{', '.join(f'{v:.6g}' for v in value)}]" if isinstance(value, list)
+                else f"{value:.6g}" if isinstance(value, float) else str(value))
+        lines.append(f"  {name}: {text}")
+    return "\n".join(lines) + "\n"
+
+
 def parameter_markdown(table: pd.DataFrame) -> str:
     lines = ["| parameter | value | unit | bounds | start |", "| --- | --- | --- | --- | --- |"]
     for name, group in table.groupby("name", sort=False):
-        def fmt(column):
-            return ", ".join(f"{v:.4g}" for v in group[column])
-        lines.append(f"| {name} | {fmt('value')} | {group['unit'].iloc[0]} | "
-                     f"[{fmt('lower')}] .. [{fmt('upper')}] | {fmt('initial')} |")
+        cell = {c: ", ".join(f"{v:.4g}" for v in group[c])
+                for c in ("value", "lower", "upper", "initial")}
+        lines.append(f"| {name} | {cell['value']} | {group['unit'].iloc[0]} | "
+                     f"[{cell['lower']}] .. [{cell['upper']}] | {cell['initial']} |")
     return "\n".join(lines) + "\n"
 
 

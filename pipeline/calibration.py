@@ -10,9 +10,10 @@ between simulated and recorded marker positions, per run, averaged over runs.
   the bounds (:data:`BOUNDS`, SI units and kPa, as in :class:`pipeline.config.SimPhysics`).
 - **Nuisance offsets.** The arm's rest pose differs by a few mm between runs: each training run
   gets its own offset ``[3]`` (m), fitted with the physics; the base position is not fitted (the
-  offsets carry it). A run that is not trained on (held out) gets the offset that puts the
-  simulated rest pose on its first recorded position, the same information the learned model
-  gets.
+  offsets carry it). A run that is not trained on (held out) gets the mean of the training runs'
+  offsets (nothing of the held-out run is used, as for the baselines), or, for comparison, the
+  offset that puts the simulated rest pose on its first recorded position (the information the
+  learned model gets).
 - **Members.** One program fits ``M`` members at once (vmap): every leave-one-run-out fold (its
   held-out run has weight 0) and the fit on all runs, each from several restarts (the first from
   the initial physics, the others perturbed in ``z``). A fold's restart is chosen by its
@@ -295,20 +296,32 @@ def rest_poses(template: sim_arm.SimParams, param: Parameterization, z: np.ndarr
     return np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(z)))
 
 
+def training_mean_offsets(offsets: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``[M, 3]`` m: each member's mean offset over the runs it was trained on."""
+    weights = np.asarray(weights, np.float64)
+    return np.einsum("mr,mrk->mk", weights, offsets) / weights.sum(1, keepdims=True)
+
+
 def open_loop(template: sim_arm.SimParams, param: Parameterization, z: np.ndarray,
-              batch: RunBatch) -> np.ndarray:
-    """``[M, R, T, 3]`` m: each member's open-loop positions of every run, offset so that the
-    simulated rest pose lies on the run's first recorded position (no fitted offsets)."""
+              batch: RunBatch, offsets: np.ndarray | None = None) -> np.ndarray:
+    """``[M, R, T, 3]`` m: each member's open-loop positions of every run plus ``offsets
+    [M, 3]`` (m, the same for every run), or, if None, the offset that puts the simulated rest
+    pose on each run's first recorded position."""
     positions, rest = make_predict(template, param)(jnp.asarray(z), batch_arrays(batch))
-    offsets = batch.positions[None, :, 0] - np.asarray(rest)
-    return np.asarray(positions) + offsets[:, :, None, :]
+    if offsets is None:
+        run_offsets = batch.positions[None, :, 0] - np.asarray(rest)
+    else:
+        run_offsets = np.broadcast_to(np.asarray(offsets)[:, None, :], np.shape(rest))
+    return np.asarray(positions) + run_offsets[:, :, None, :]
 
 
-def open_loop_template(template: sim_arm.SimParams, batch: RunBatch) -> np.ndarray:
-    """``[R, T, 3]`` m: :func:`open_loop` of the physics in ``template`` itself."""
+def open_loop_template(template: sim_arm.SimParams, batch: RunBatch, first_pose: bool = False
+                       ) -> np.ndarray:
+    """``[R, T, 3]`` m: open-loop positions with the physics in ``template`` itself, at its own
+    rest pose or (``first_pose``) with each run's rest pose on its first recorded position."""
     positions, rest = jax.jit(simulate_batch)(template, {}, jnp.asarray(batch.commands),
                                               jnp.asarray(batch.preload))
-    offsets = batch.positions[:, 0] - np.asarray(rest)
+    offsets = batch.positions[:, 0] - np.asarray(rest) if first_pose else np.zeros((1, 3))
     return np.asarray(positions) + offsets[:, None, :]
 
 

@@ -94,9 +94,14 @@ def test_recovers_known_physics_from_the_simulators_own_noisy_data():
     # the fit explains the data to about its noise: 0.1 mm per axis
     assert result.losses[-1, 0, result.chosen[0]] < 0.1
     assert result.losses[-1, 0, result.chosen[0]] < result.losses[0, 0, result.chosen[0]] / 20
-    # and the held-out protocol (offset from the first pose) predicts a run it did not see
-    held = calib.open_loop(template, param, result.z, batch)[0, 0]
-    assert 1e3 * np.linalg.norm(held - runs[0]["pos"], axis=1).mean() < 0.6
+    # the physics predict a run from its first pose (no fitted offset) to within its noise
+    first_pose = calib.open_loop(template, param, result.z, batch)[0, 0]
+    assert 1e3 * np.linalg.norm(first_pose - runs[0]["pos"], axis=1).mean() < 0.6
+    # at the training runs' mean offset the run is off by its own rest offset, (2, 0, -1) mm
+    mean_offset = calib.training_mean_offsets(result.offsets, np.ones((1, 2)))
+    at_mean = calib.open_loop(template, param, result.z, batch, mean_offset)[0, 0]
+    np.testing.assert_allclose(1e3 * (runs[0]["pos"] - at_mean).mean(0), [-2.0, 0.0, 1.0],
+                               atol=0.3)
 
 
 def test_fold_weights_hold_each_run_out_once_then_use_all():
@@ -131,7 +136,8 @@ def test_calibrate_stage_writes_its_artifact_and_reuses_it(make_cfg):
     physics = json.loads(artifact.file("physics.json").read_text())["physics"]
     assert set(SimPhysics.__dataclass_fields__) == set(physics)
     metrics = __import__("pandas").read_parquet(artifact.file("metrics.parquet"))
-    assert set(metrics["model"]) == {"sim_calibrated", "sim_default", "mean_position",
+    assert set(metrics["model"]) == {"sim_calibrated", "sim_calibrated_first_pose",
+                                     "sim_default", "sim_default_first_pose", "mean_position",
                                      "linear_lagged"}
     assert set(metrics["split"]) == {"train", "test"}
     assert artifact.file("figures/reconstruction.png").stat().st_size > 0

@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 EXTRAS ?= dev
 
 .DEFAULT_GOAL := help
-.PHONY: help setup setup-ros run quick test test-all lint bench clean
+.PHONY: help setup setup-ros run quick test test-all lint bench figures clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-10s %s\n", $$1, $$2}'
@@ -38,3 +38,6 @@ bench: ## benchmarks: print side-by-side tables (ratios)
 
 clean: ## remove run outputs (artifacts included)
 	rm -rf outputs multirun
+
+figures: ## the paper's Figs. 4-8 from the pipeline's artifacts (minutes on 2 cores) -> outputs/paper_figures/
+	$(BIN)/python -m experiments.paper_figures

@@ -6,8 +6,10 @@ import importlib
 import sys
 
 BENCHMARKS = {
+    "chain": "bench.chain",
     "model_budget": "bench.model_budget",
     "ppo_throughput": "bench.ppo_throughput",
+    "control_latency": "bench.control_latency",
 }
 
 

@@ -19,11 +19,10 @@ import jax
 import numpy as np
 import pandas as pd
 
-from pipeline.align import align_tables
 from pipeline.config import AlignConfig, ModelConfig
-from pipeline.fit_model import runs_at_model_rate
-from pipeline.importers import read_sorolex_csv
-from pipeline.train_model import evaluate_open_loop, fit
+from pipeline.data.alignment import align_tables, runs_at_model_rate
+from pipeline.data.importers import read_sorolex_csv
+from pipeline.dynamics.training import evaluate_open_loop, fit
 
 LIMITS = argparse.Namespace(p_min=-3.0, p_max=7.0, sum_max=13.0, preload=2.0)
 CHUNK = 10  # training steps between checks of the clock

@@ -21,11 +21,11 @@ import jax
 import jax.numpy as jnp
 from omegaconf import OmegaConf
 
-from pipeline import dynamics
+from pipeline.arm.safety import SafeSet
 from pipeline.config import AgentConfig, DatasetConfig, ModelConfig
-from pipeline.envs import SoftArmReachEnv, learned_plant, make_env_params
-from pipeline.ppo import PPOConfig, make_train, seed_keys
-from pipeline.safety import SafeSet
+from pipeline.dynamics import model as dynamics
+from pipeline.rl.envs import SoftArmReachEnv, learned_plant, make_env_params
+from pipeline.rl.ppo import make_train, seed_keys
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 REST_POSE = jnp.array([0.032, 0.353, 0.202])
@@ -53,7 +53,7 @@ def measure(name: str, updates: int, seeds: int) -> dict:
     params = make_env_params(env, random_model(hidden), key=jax.random.PRNGKey(0),
                              safe_set=SafeSet.from_limits(LIMITS), preload=2.0,
                              rest_pose=REST_POSE, goal_mode="perturb", reset_bank_size=16)
-    agent = PPOConfig(num_seeds=seeds, num_envs=num_envs, num_steps=32,
+    agent = AgentConfig(num_seeds=seeds, num_envs=num_envs, num_steps=32,
                       total_timesteps=updates * num_envs * 32, num_evals=1, eval_envs=8,
                       progress=False)
     train = jax.jit(jax.vmap(make_train(agent, env, params, eval_steps=1),

@@ -20,8 +20,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.calibration_data import load_runs
-from pipeline import calibration as calib
-from pipeline.calibrate import _template
+from pipeline.arm import calibration as calib
+from pipeline.stages.calibrate import _template
 
 
 def main(folder: str) -> None:

@@ -26,11 +26,11 @@ import sys
 import numpy as np
 from hydra import compose, initialize_config_dir
 
-from pipeline.align import align_key
-from pipeline.artifacts import ArtifactStore
+from pipeline import keys
 from pipeline.config import PROJECT_ROOT, register_configs
-from pipeline.fit_model import runs_at_model_rate
-from pipeline.schemas import ALIGNED, read_table
+from pipeline.data.alignment import runs_at_model_rate
+from pipeline.data.schemas import ALIGNED, read_table
+from pipeline.infra.artifacts import ArtifactStore
 
 HZ = 20.0
 REST_FRAMES = 20  # the first second
@@ -40,7 +40,7 @@ def load_runs() -> list[dict]:
     register_configs()
     with initialize_config_dir(str(PROJECT_ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", ["robot=sorolex_csv"])
-    artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", align_key(cfg))
+    artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", keys.key("align", cfg))
     aligned, _ = read_table(artifact.file("aligned.parquet"), ALIGNED)
     return runs_at_model_rate(aligned, HZ)
 

@@ -16,7 +16,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.model_search import load_folds, model_config, parse_args, split_fold
-from pipeline import train_model
+from pipeline.dynamics import training as train_model
 
 
 def main(argv=None) -> None:

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.model_data import load_runs
 from experiments.model_search import model_config, parse_args, split_fold
-from pipeline import train_model
+from pipeline.dynamics import training as train_model
 
 
 def main() -> None:

@@ -1,8 +1,8 @@
 """Does a command-locked model grid improve the learned dynamics' held-out accuracy?
 
 Leave-one-run-out over the 7 runs of ``shared/data/sorolex``, loaded with the pipeline's own
-code (``importers.read_sorolex_csv`` -> ``align.align_tables`` with ``AlignConfig()`` defaults ->
-``fit_model.runs_at_model_rate(aligned, hz, grid)``), trained with ``train_model.fit`` and scored
+code (``importers.read_sorolex_csv`` -> ``alignment.align_tables`` with ``AlignConfig()`` defaults ->
+``alignment.runs_at_model_rate(aligned, hz, grid)``), trained with ``train_model.fit`` and scored
 with ``train_model.evaluate_open_loop`` on the held-out run's own grid. For comparability across
 grids the held-out prediction is also linearly interpolated onto the held-out run's regular
 10 Hz clock grid and scored there against the clock-grid positions (``clock10_*`` fields), so
@@ -56,9 +56,9 @@ PUBLISHED_CLOCK10 = {  # mean mm per held-out run, from the brief (not measured 
 
 
 def load_aligned() -> pd.DataFrame:
-    from pipeline.align import align_tables
     from pipeline.config import AlignConfig
-    from pipeline.importers import read_sorolex_csv
+    from pipeline.data.alignment import align_tables
+    from pipeline.data.importers import read_sorolex_csv
 
     limits = SimpleNamespace(p_min=-3, p_max=7, sum_max=13, preload=2)
     commands, mocap = [], []
@@ -76,8 +76,8 @@ def fold_id(run_id: str) -> str:
 
 
 def run_variant(variant: str, folds: list[str] | None, seed: int | None = None) -> None:
-    from pipeline.fit_model import runs_at_model_rate
-    from pipeline.train_model import (
+    from pipeline.data.alignment import runs_at_model_rate
+    from pipeline.dynamics.training import (
         baseline_linear_lagged,
         evaluate_open_loop,
         fit,

@@ -26,7 +26,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.model_data import load_runs
-from pipeline import train_model
+from pipeline.dynamics import training as train_model
 
 
 def parse_args(argv=None) -> argparse.Namespace:

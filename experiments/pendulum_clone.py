@@ -31,11 +31,12 @@ from gymnax.environments.classic_control.pendulum import EnvState
 # beside this script: on sys.path when it runs
 from pendulum_optimal import greedy_torque, optimal_returns, policy_returns, solve
 
-from pipeline.networks import initial_hidden, make_network
-from pipeline.ppo import PPOConfig, save_policy
+from pipeline.config import AgentConfig
+from pipeline.rl.networks import initial_hidden, make_network
+from pipeline.rl.policy_io import save_policy
 
 
-def pendulum_agent(overrides: list[str]) -> PPOConfig:
+def pendulum_agent(overrides: list[str]) -> AgentConfig:
     """The composed ``experiment=pendulum`` agent config (plus Hydra ``overrides``)."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
@@ -45,7 +46,7 @@ def pendulum_agent(overrides: list[str]) -> PPOConfig:
     register_configs()
     with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["experiment=pendulum", *overrides])
-    return PPOConfig.from_any(OmegaConf.to_container(cfg.agent, resolve=True))
+    return AgentConfig.from_any(OmegaConf.to_container(cfg.agent, resolve=True))
 
 
 def main(argv=None) -> None:

@@ -1,6 +1,6 @@
 """How good can a Pendulum-v1 return be? Dynamic programming on gymnax's own dynamics.
 
-PPO's returns on Pendulum-v1 are compared with a published figure (issue 5); this script gives
+PPO's returns on Pendulum-v1 are compared with a published figure; this script gives
 the reference that no policy can beat by much: the finite-horizon optimum, by backward value
 iteration over a grid of (angle, angular velocity) with bilinear interpolation and a set of
 torque levels, 200 steps as in an episode. The greedy policy of that value function is then run
@@ -29,9 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline.envs.factory import BoundsScaledObservation
-from pipeline.networks import initial_hidden
-from pipeline.ppo import deterministic_action, load_policy, to_env_action
+from pipeline.rl.envs.factory import BoundsScaledObservation
+from pipeline.rl.networks import initial_hidden
+from pipeline.rl.policy_io import deterministic_action, load_policy
+from pipeline.rl.ppo import to_env_action
 
 ANGLE_BINS = 12  # start-angle bins of the breakdown (0 is upright, +-pi hanging down)
 

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from pipeline.ppo import compute_gae
+from pipeline.rl.ppo import compute_gae
 
 NUM_ENVS = 32
 ROLLOUT = 16  # transitions per environment that train; one more is collected to bootstrap

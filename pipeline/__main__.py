@@ -3,52 +3,75 @@
 ``stage=all`` (the default) runs the chain collect -> align -> fit_model -> train_ppo -> evaluate,
 each stage reusing the artifacts of identical upstream settings. A single stage first produces
 what it needs upstream the same way (reused when present), except data from a real arm: with
-``robot=ros2`` the arm is driven only by an explicit ``stage=collect``.
+``robot=ros2`` a stage of :data:`DRIVES_ARM` runs only when it is the stage asked for, never as
+another stage's upstream (nor in ``stage=all``).
+
+The composed config is validated (:func:`pipeline.config.validate_config`) before any work.
+Known errors (:data:`KNOWN_ERRORS`: bad data, bad config, an unsafe command, a missing artifact,
+an interrupted recording) print one message and exit with status 1; ``HYDRA_FULL_ERROR=1`` shows
+the traceback instead.
 """
 
 from __future__ import annotations
 
 import importlib
 import logging
+import os
+import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
+
+# XLA's C++ log below FATAL stays quiet (errors that matter reach Python as exceptions). On
+# AVX-512 CPUs every load from the compilation cache logs a spurious "machine type doesn't
+# match" error for tuning flags of the same machine (jax-ml/jax#38445); set
+# TF_CPP_MIN_LOG_LEVEL=0 to see everything.
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.config import RobotKind, Stage, register_configs
+from pipeline import cli, keys
+from pipeline.arm.safety import UnsafeCommandError
+from pipeline.config import ConfigError, RobotKind, Stage, register_configs, validate_config
+from pipeline.data.importers import RecordingNotFoundError
+from pipeline.data.raw import CollectionInterrupted
+from pipeline.data.schemas import DataError
+from pipeline.infra.artifacts import MissingArtifactError
+from pipeline.infra.compile_cache import use_compilation_cache
+from pipeline.ros2.node import RosUnavailableError
 
 log = logging.getLogger("pipeline")
 
-# stage -> "module:function"; a stage whose module is not there yet is skipped by `all`.
+# stage -> "module:function"
 STAGES: dict[Stage, str] = {
-    Stage.collect: "pipeline.collect:collect",
-    Stage.align: "pipeline.align:align",
-    Stage.fit_model: "pipeline.fit_model:fit_model",
-    Stage.train_ppo: "pipeline.train_ppo:train_ppo",
-    Stage.evaluate: "pipeline.evaluate:evaluate",
-    Stage.twin: "pipeline.ros2.twin:twin",
-    Stage.calibrate: "pipeline.calibrate:calibrate",
+    Stage.collect: "pipeline.stages.collect:collect",
+    Stage.align: "pipeline.stages.align:align",
+    Stage.fit_model: "pipeline.stages.fit_model:fit_model",
+    Stage.train_ppo: "pipeline.stages.train_ppo:train_ppo",
+    Stage.evaluate: "pipeline.stages.evaluate:evaluate",
+    Stage.twin: "pipeline.stages.twin:twin",
+    Stage.guard: "pipeline.stages.guard:guard",
+    Stage.control: "pipeline.stages.control:control",
+    Stage.calibrate: "pipeline.stages.calibrate:calibrate",
 }
-# what `stage=all` runs, in order (the digital twin is a server, started on its own)
+# what `stage=all` runs, in order (the digital twin and the guard are servers, started on their own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
-# evaluate trains the other policy types it compares when they are missing
-CHAIN_OPTIONS: dict[Stage, dict[str, Any]] = {Stage.evaluate: {"train_missing": True}}
 # stages outside the chain that read its data: the part of the chain they need first
 UPSTREAM: dict[Stage, tuple[Stage, ...]] = {Stage.calibrate: (Stage.collect, Stage.align)}
+# Stages that publish to a real arm's valves (robot=ros2): each runs only when asked for by name.
+DRIVES_ARM = frozenset({Stage.collect, Stage.guard, Stage.control})
+# Errors that are the user's to fix: one message, exit status 1, no traceback.
+KNOWN_ERRORS: tuple[type[BaseException], ...] = (
+    ConfigError, DataError, RecordingNotFoundError, UnsafeCommandError, MissingArtifactError,
+    CollectionInterrupted, RosUnavailableError)
 
 
-def stage_function(stage: Stage) -> Callable[[Any], Any] | None:
-    """The function that runs ``stage``, or None if this version does not implement it."""
+def stage_function(stage: Stage) -> Callable[[Any], Any]:
+    """The function that runs ``stage``."""
     module_name, function_name = STAGES[stage].split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as err:
-        if err.name == module_name:
-            return None
-        raise
-    return getattr(module, function_name)
+    return getattr(importlib.import_module(module_name), function_name)
 
 
 def stages_to_run(cfg: Any) -> list[Stage]:
@@ -56,28 +79,38 @@ def stages_to_run(cfg: Any) -> list[Stage]:
     real arm's collection is never started by another stage."""
     stage = Stage(cfg.stage)
     if stage is Stage.all:
-        return list(CHAIN)
-    if stage not in CHAIN:
+        chain = list(CHAIN)
+    elif stage not in CHAIN:
         chain = [*UPSTREAM.get(stage, ()), stage]
-        if stage is not Stage.collect and RobotKind(cfg.robot.kind) is RobotKind.ros2:
-            chain = [s for s in chain if s is not Stage.collect]
-        return chain
-    chain = list(CHAIN[: CHAIN.index(stage) + 1])
-    env = getattr(cfg.env.name, "value", cfg.env.name)
-    # only the learned environment trains on data; evaluate also reads it, except on gymnax
-    needs_data = env == "learned" or (stage is Stage.evaluate and env != "gymnax")
-    if not needs_data:
-        chain = [s for s in chain if s not in (Stage.collect, Stage.align, Stage.fit_model)]
-    if stage is not Stage.collect and RobotKind(cfg.robot.kind) is RobotKind.ros2:
-        chain = [s for s in chain if s is not Stage.collect]
+    else:
+        chain = list(CHAIN[: CHAIN.index(stage) + 1])
+        env = getattr(cfg.env.name, "value", cfg.env.name)
+        # only the learned environment trains on data; evaluate also reads it, except on gymnax
+        needs_data = env == "learned" or (stage is Stage.evaluate and env != "gymnax")
+        if not needs_data:
+            chain = [s for s in chain if s not in (Stage.collect, Stage.align, Stage.fit_model)]
+    if RobotKind(cfg.robot.kind) is RobotKind.ros2:
+        chain = [s for s in chain if s is stage or s not in DRIVES_ARM]
     return chain
 
 
+def robot_choice() -> tuple[str | None, list]:
+    """The robot group option and the config search folders of the running Hydra app, if any."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None, []
+    hydra_cfg = HydraConfig.get()
+    folders = [source.path for source in hydra_cfg.runtime.config_sources
+               if source.schema == "file" and source.path]
+    return hydra_cfg.runtime.choices.get("robot"), folders
+
+
 def apply_physics_from(cfg: Any) -> Any:
-    """``robot.physics_from`` resolved into the robot's physics (see pipeline.calibrate)."""
+    """``robot.physics_from`` resolved into the robot's physics (see pipeline.stages.calibrate)."""
     if not (hasattr(cfg.robot, "get") and cfg.robot.get("physics_from")):
         return cfg
-    from pipeline.calibrate import apply_physics_from as apply
+    from pipeline.stages.calibrate import apply_physics_from as apply
 
     return apply(cfg)
 
@@ -85,6 +118,8 @@ def apply_physics_from(cfg: Any) -> Any:
 def run(cfg: Any) -> dict[str, Any]:
     """Run ``cfg.stage`` after its upstream stages (or the whole chain); return each stage's
     result by name. ``force=true`` recomputes the requested stage only (every stage for ``all``)."""
+    choice, folders = robot_choice()
+    validate_config(cfg, choice, folders)
     stage = Stage(cfg.stage)
     cfg = apply_physics_from(cfg)
     upstream_cfg = cfg
@@ -93,27 +128,59 @@ def run(cfg: Any) -> dict[str, Any]:
         upstream_cfg.force = False
     results = {}
     for name in stages_to_run(cfg):
-        function = stage_function(name)
-        if function is None:
-            if stage is Stage.all:
-                log.warning("stage %s is not implemented in this version; the chain stops here",
-                            name.value)
-                break
-            raise NotImplementedError(f"stage={name.value} is not implemented in this version")
         started = time.perf_counter()
         stage_cfg = cfg if name is stage else upstream_cfg
-        results[name.value] = function(stage_cfg, **CHAIN_OPTIONS.get(name, {}))
+        if name is Stage.train_ppo and stage is Stage.all:
+            # the chain trains its own agent and every policy type evaluate compares
+            results[name.value] = train_policies(stage_cfg, int(cfg.train_workers))
+        else:
+            results[name.value] = stage_function(name)(stage_cfg)
         log.info("stage %s done in %.1f s", name.value, time.perf_counter() - started)
     return results
 
 
+def train_policies(cfg: Any, workers: int) -> Any:
+    """train_ppo for ``cfg``'s agent and for each policy type of ``evaluation.policies``
+    (``workers`` at once); returns the artifact of ``cfg``'s own agent."""
+    train = stage_function(Stage.train_ppo)
+    variants = {cfg.agent.name: cfg, **keys.policy_configs(cfg)}
+    by_key = {keys.key("train_ppo", variant): (name, variant) for name, variant in
+              variants.items()}
+
+    def timed(name: str, variant: Any) -> Any:
+        started = time.perf_counter()
+        artifact = train(variant)
+        log.info("stage train_ppo (%s) done in %.1f s", name, time.perf_counter() - started)
+        return artifact
+
+    with ThreadPoolExecutor(max(1, min(workers, len(by_key)))) as pool:
+        futures = {key: pool.submit(timed, *job) for key, job in by_key.items()}
+        artifacts = {key: future.result() for key, future in futures.items()}
+    return artifacts[keys.key("train_ppo", cfg)]
+
+
 register_configs()
+cli.register_help(STAGES)  # the stages and groups of `--help` (conf/hydra/help/)
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> None:
-    run(cfg)
+    use_compilation_cache(cfg.paths.compile_cache_dir)
+    try:
+        run(cfg)
+    except KNOWN_ERRORS as err:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        log.error("%s: %s", type(err).__name__, err)
+        sys.exit(1)
+
+
+def console() -> None:
+    """``python -m pipeline`` and the ``sorolearn`` script: a mistyped key is refused first
+    (saying so, rather than Hydra's suggestion to append it with ``+key=value``)."""
+    cli.exit_on_unknown_key(sys.argv[1:])
+    main()
 
 
 if __name__ == "__main__":
-    main()
+    console()

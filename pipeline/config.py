@@ -5,13 +5,19 @@ Hydra type-checks every value and rejects unknown keys at composition: a typo su
 ``exploration.alpah=0.5`` or ``stage=fitmodel`` fails before any work starts, with a message that
 names the key and, for enums, the valid values.
 
+The router then runs :func:`validate_config` before any work: values the types allow but a run
+cannot use (NaN, a non-finite timeout, ``exploration.alpha`` outside [0, 1], limits outside the
+arm's rating, a real arm's rating changed by an override) fail with a :class:`ConfigError` naming
+the setting and its value.
+
 Units: pressures in kPa, positions in metres, times in seconds, rates in Hz.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -21,18 +27,30 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 
-class Stage(str, Enum):
+class Choice(str, Enum):
+    """A closed set of options: compares equal to, prints and formats as its value."""
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
+class Stage(Choice):
     collect = "collect"
     align = "align"
     fit_model = "fit_model"
     train_ppo = "train_ppo"
     evaluate = "evaluate"
     twin = "twin"  # the simulated arm as a ROS 2 node (not part of `all`)
+    guard = "guard"  # the arm-side deadman and rating filter as a ROS 2 node (not part of `all`)
+    control = "control"  # a trained policy drives the arm (not part of `all`)
     calibrate = "calibrate"  # fit the simulated arm to recorded runs (not part of `all`)
     all = "all"
 
 
-class RobotKind(str, Enum):
+class RobotKind(Choice):
     sim = "sim"
     ros2 = "ros2"
     sorolex_csv = "sorolex_csv"
@@ -40,9 +58,50 @@ class RobotKind(str, Enum):
     rosbag = "rosbag"
 
 
-class GapPolicy(str, Enum):
+class GapPolicy(Choice):
     error = "error"  # a mocap gap longer than max_gap_s aborts align, naming the run and time
     split = "split"  # the run is split at the gap into runs '<id>#0', '<id>#1', ... (counted)
+
+
+class EnvName(Choice):
+    learned = "learned"  # the fitted model of the fit_model artifact
+    sim = "sim"  # the simulated arm itself
+    gymnax = "gymnax"  # a standard gymnax environment (env.gymnax_name), to check the PPO
+
+
+class GoalSource(Choice):
+    predicted = "predicted"  # the model's open-loop predictions along the runs: reachable in it
+    measured = "measured"  # the runs' recorded positions
+
+
+class GoalMode(Choice):
+    data = "data"  # uniform over the positions seen in the data
+    perturb = "perturb"  # the paper's: the initial pose plus N(0, 1) * goal_perturbation_m
+
+
+class ModelGrid(Choice):
+    clock = "clock"  # a regular grid at model_hz
+    commands = "commands"  # locked to the command times
+
+
+class WindowOrder(Choice):
+    permuted = "permuted"  # windows drawn at random (a fresh permutation per epoch)
+    sequential = "sequential"  # windows in time order
+
+
+class LrSchedule(Choice):
+    constant = "constant"
+    cosine = "cosine"  # linear warmup, cosine decay to the end
+
+
+class ReferencePose(Choice):
+    run_start = "run_start"  # the pose the window's run started from (as an env sees at reset)
+    window_start = "window_start"  # the window's own first pose
+
+
+class Activation(Choice):
+    tanh = "tanh"
+    relu = "relu"
 
 
 # --------------------------------------------------------------------------------------------
@@ -62,6 +121,29 @@ class PressureLimits:
 
 
 @dataclass
+class PressureRating:
+    """The arm's physical limits (its rating), fixed by its hardware, not by a run.
+
+    ``robot.limits`` (what a run uses) must lie inside it; the hardware gate checks every command
+    against both. For a real arm (``robot=ros2``) it is read from the robot's YAML file: a
+    command-line, sweep or experiment override of ``robot.rating`` is refused.
+    """
+
+    p_min: float = 0.0  # lowest pressure a valve may be commanded [kPa]
+    p_max: float = 7.0  # highest pressure of one valve [kPa]
+    sum_max: float = 13.0  # the paper's P_max: highest summed pressure of all valves [kPa]
+    preload: float = 2.0  # pressure of every valve at rest, where a deadman returns it [kPa]
+
+
+@dataclass
+class WorkspaceConfig:
+    """Box the marker positions [m] must lie in (a plausibility check of recorded data)."""
+
+    low_m: list[float] = field(default_factory=lambda: [-3.0, -3.0, -3.0])
+    high_m: list[float] = field(default_factory=lambda: [3.0, 3.0, 3.0])
+
+
+@dataclass
 class MocapConfig:
     """Motion-capture sampling and its imperfections (used by the simulated arm)."""
 
@@ -75,7 +157,7 @@ class MocapConfig:
 
 @dataclass
 class SimPhysics:
-    """Parameters of the simulated 3-chamber bellows arm (see ``pipeline/sim_arm.py``).
+    """Parameters of the simulated 3-chamber bellows arm (see ``pipeline/arm/sim_arm.py``).
 
     Calibrated by hand to the magnitudes of the real arm in ``shared/data/sorolex``.
     """
@@ -112,9 +194,11 @@ class RobotConfig:
     n_valves: int = 3
     control_hz: float = 2.0
     limits: PressureLimits = field(default_factory=PressureLimits)
+    rating: PressureRating = field(default_factory=PressureRating)
+    workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
     # runs start from a settled rest pose, so the first observed pose is the rest pose and the
     # model predicts the displacement from it (model.predict_displacement follows this). False
-    # for the paper's recordings: their first second still settles by about 1 mm.
+    # for the paper's recordings, which settle in their first second (experiments/MODEL_RESULTS.md).
     settled_start: bool = False
 
 
@@ -136,14 +220,15 @@ class ImportRobotConfig(RobotConfig):
     data_dir: str = MISSING
     pattern: str = "*.csv"
     files: list[str] = field(default_factory=list)  # explicit names inside data_dir; empty = glob
+    num_runs: int | None = None  # read only the first num_runs recordings (None: all)
 
 
-class QosReliability(str, Enum):
+class QosReliability(Choice):
     reliable = "reliable"
     best_effort = "best_effort"
 
 
-class QosDurability(str, Enum):
+class QosDurability(Choice):
     volatile = "volatile"
     transient_local = "transient_local"
 
@@ -189,6 +274,21 @@ class TwinConfig:
 
 
 @dataclass
+class GuardConfig:
+    """The guard (``stage=guard``): an arm-side node between collect and the valve driver.
+
+    It forwards each command from ``robot.command_topic`` to ``output_topic`` (which the valve
+    driver subscribes to instead) if it lies inside ``robot.rating``, and publishes the rating's
+    preload instead of a command outside it and, at ``robot.control_hz``, whenever no command
+    arrived within ``robot.command_timeout_s``.
+    """
+
+    output_topic: str = "/control_pressure/guarded"
+    node_name: str = "sorolearn_guard"
+    max_duration_s: float | None = None  # wall seconds until it exits by itself; None: SIGINT
+
+
+@dataclass
 class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     """A real arm over ROS 2 (rclpy); durations in the arm's seconds unless marked wall.
 
@@ -206,12 +306,15 @@ class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     pose_qos: QosConfig = field(
         default_factory=lambda: QosConfig(QosReliability.best_effort, QosDurability.volatile, 100))
     watchdog_s: float = 0.5  # no pose for this long: fault, preload, exit
+    # arm side (twin, guard): no command for this long: back to the preload (a few periods)
+    command_timeout_s: float = 1.5
     startup_timeout_s: float = 10.0  # wall: wait this long for the first pose and a subscriber
     flush_every_s: float = 5.0  # wall: raw streams are written to Parquet chunks this often
     stop_timeout_s: float = 3.0  # wall: wait up to this for the preload's acknowledgement
     num_runs: int = 1
     reuse_incomplete: bool = False  # reuse an interrupted artifact instead of recollecting
     twin: TwinConfig = field(default_factory=TwinConfig)
+    guard: GuardConfig = field(default_factory=GuardConfig)
     # a calibrate artifact (key or folder) whose fitted physics replace `twin.physics`
     physics_from: str | None = None
 
@@ -253,10 +356,10 @@ class AlignConfig:
 class DatasetConfig:
     align: AlignConfig = field(default_factory=AlignConfig)
     model_hz: float = 10.0  # rate the dynamics model runs at (downsampled aligned data)
-    model_grid: str = "clock"  # clock: regular grid | commands: locked to the command times
+    model_grid: ModelGrid = ModelGrid.clock
     window: int = 128  # sliding-window length in model steps
     stride: int = 1
-    order: str = "permuted"  # permuted | sequential
+    order: WindowOrder = WindowOrder.permuted
     train_fraction: float = 0.75
     split_seed: int = 0
 
@@ -287,19 +390,19 @@ class CalibrationConfig:
 # --------------------------------------------------------------------------------------------
 @dataclass
 class ModelConfig:
-    """The LSTM forward-dynamics model and its training (see ``pipeline/train_model.py``)."""
+    """The LSTM forward-dynamics model and its training (see ``pipeline/dynamics/training.py``)."""
 
     name: str = "lstm"
     hidden: int = 64
     layers: int = 1
     head: list[int] = field(default_factory=list)
     condition_on_initial_pose: bool = False  # initial carry from the observed pose at reset
-    # predict the displacement from the run's initial pose (default: robot.settled_start; sim
-    # held-out 1.03 mm vs 1.96 mm absolute; real runs leave-one-out 4.04 mm vs 3.09 mm)
+    # predict the displacement from the run's initial pose (default: robot.settled_start; it
+    # helps on settled starts and hurts on the real runs: experiments/MODEL_RESULTS.md)
     predict_displacement: bool = False
     batch_size: int = 32
     learning_rate: float = 3.0e-3
-    lr_schedule: str = "cosine"  # constant | cosine
+    lr_schedule: LrSchedule = LrSchedule.cosine
     warmup_steps: int = 100
     final_lr_fraction: float = 0.05
     max_grad_norm: float = 1.0
@@ -307,7 +410,7 @@ class ModelConfig:
     eval_every: int = 250
     checkpoint_every: int = 500
     seed: int = 0
-    reference_pose: str = "run_start"  # run_start | window_start
+    reference_pose: ReferencePose = ReferencePose.run_start
 
 
 @dataclass
@@ -318,10 +421,10 @@ class EnvConfig:
     gymnax environment, ``gymnax_name``, to check the PPO against published returns).
     """
 
-    name: str = "learned"
+    name: EnvName = EnvName.learned
     max_steps: int = 40  # control periods per episode (truncation)
     goal_tolerance_m: float = 0.001  # terminate within this distance of the goal
-    goal_mode: str = "data"  # data (uniform over positions seen) | perturb (paper: N(0,1)*pert.)
+    goal_mode: GoalMode = GoalMode.data
     goal_perturbation_m: float = 0.01
     obs_noise_std: float = 0.0  # m, on the observed position
     action_noise_std: float = 0.0  # kPa, on the commanded pressures (before projection)
@@ -336,19 +439,19 @@ class EnvConfig:
     num_goals: int = 2048  # env=sim: goals drawn from the simulated arm's reachable set
     held_out_fraction: float = 0.25  # env=sim: share of the goals kept for evaluation
     goal_every: int = 1  # env=learned: use every n-th row (at model_hz) as a goal
-    goal_source: str = "predicted"  # env=learned: predicted (model along the runs) | measured
+    goal_source: GoalSource = GoalSource.predicted  # env=learned
 
 
 @dataclass
 class AgentConfig:
-    """PPO (``pipeline/ppo.py``); ``recurrent`` selects the GRU actor-critic."""
+    """PPO (``pipeline/rl/ppo.py``); ``recurrent`` selects the GRU actor-critic."""
 
     name: str = "ppo_ff"
     recurrent: bool = False
     num_seeds: int = 4  # seeds trained at once (vmap); seed i uses fold_in(PRNGKey(seed), i)
     num_envs: int = 64
     num_steps: int = 32  # rollout length per update
-    total_timesteps: int = 1_200_000  # per seed (env=sim: held-out median <= 1 mm at ~0.5M)
+    total_timesteps: int = 1_200_000  # per seed (its results: experiments/PPO_RESULTS.md)
     update_epochs: int = 4
     num_minibatches: int = 4
     gamma: float = 0.99
@@ -364,9 +467,9 @@ class AgentConfig:
     num_layers: int = 2  # MLP layers of the actor and of the critic (after the GRU if any)
     rnn_hidden: int = 64  # GRU width (recurrent only)
     rnn_skip: bool = False  # heads read the current embedding beside the GRU output
-    activation: str = "tanh"  # tanh | relu
-    # initial log std of the Gaussian policy ([-1, 1] units): -2 (std 0.14); on the arm, -1
-    # ended 0.2 mm less precise (experiments/PPO_RESULTS.md)
+    activation: Activation = Activation.tanh
+    # initial log std of the Gaussian policy ([-1, 1] units): -2 (std 0.14); -1 explores too
+    # much on the arm and ends less precise (see experiments/PPO_RESULTS.md)
     log_std_init: float = -2.0
     state_dependent_std: bool = False  # the actor outputs the log std (else one learned vector)
     reward_scale: float = 0.1  # rewards are multiplied by this for the update only
@@ -379,6 +482,34 @@ class AgentConfig:
     init_policy_seed: int | None = None
     init_policy_log_std: float | None = None
 
+    @classmethod
+    def from_any(cls, config: Any, **overrides: Any) -> AgentConfig:
+        """From a mapping, a dataclass or an OmegaConf node (plus ``overrides``); unknown keys
+        fail, naming them."""
+        return cls(**dataclass_values(cls, config, "agent", overrides))
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_steps * self.num_envs
+
+    @property
+    def updates_per_eval(self) -> int:
+        return max(1, self.total_timesteps // self.steps_per_update // self.num_evals)
+
+    @property
+    def num_updates(self) -> int:
+        """Updates actually run: a multiple of ``num_evals`` (total_timesteps rounded down)."""
+        return self.updates_per_eval * self.num_evals
+
+    def check(self) -> None:
+        if self.recurrent and self.num_envs % self.num_minibatches:
+            raise ValueError(f"recurrent PPO minibatches over environments: num_envs="
+                             f"{self.num_envs} must be divisible by num_minibatches="
+                             f"{self.num_minibatches}")
+        if self.steps_per_update % self.num_minibatches:
+            raise ValueError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
+                             f"by num_minibatches={self.num_minibatches}")
+
 
 @dataclass
 class EvaluationConfig:
@@ -390,10 +521,37 @@ class EvaluationConfig:
     num_consecutive_goals: int = 5  # goals reached one after another without reset
     consecutive_episodes: int = 8
     plant: bool = True  # also run on the ground-truth plant (the simulated arm for robot=sim)
+    # other fitted models to evaluate every controller in (cross-model): fit_model artifact
+    # folders or keys of this artifact store; observed like the training env, same goals
+    models: list[str] = field(default_factory=list)
     mpc_horizon: int = 2  # control periods a candidate command is held
     mpc_samples: int = 64
     mpc_iterations: int = 3
     seed: int = 0
+
+
+@dataclass
+class ControlConfig:
+    """``stage=control``: a trained policy drives the arm (``pipeline/control``).
+
+    Goals in mm in the mocap frame: ``goals`` (each held ``hold_s``), or ``goals_csv`` (waypoints
+    ``t,x,y,z``, t in s from the start, each in force until the next; the last for ``hold_s``), or
+    live on ``goal_topic`` (``geometry_msgs/msg/PointStamped`` in metres, robot=ros2 only).
+    """
+
+    policy: str = "ppo_ff"  # agent option (conf/agent/<policy>.yaml) of the train_ppo artifact
+    policy_file: str | None = None  # a policy.msgpack inside a train_ppo artifact, instead
+    seed: int | None = None  # seed of the stacked policy; None: best held-out median in training
+    goals: list[Any] = field(default_factory=list)  # [[x, y, z], ...] mm (checked by control)
+    goals_csv: str | None = None
+    goal_topic: str | None = None
+    duration_s: float | None = None  # live goals: stop after this long (None: until Ctrl-C)
+    hold_s: float = 20.0  # arm seconds each goal is held (the last waypoint too)
+    workspace_margin_mm: float = 2.0  # goals this far outside the training goals' box are allowed
+    max_pose_jump_mm: float = 20.0  # between consecutive frames: preload and stop
+    arm_seed: int = 0  # robot=sim: the simulated session (rest pose, mocap noise); as twin.seed
+    flush_every_s: float = 2.0  # wall: rows written to Parquet chunks this often
+    node_name: str = "sorolearn_control"
 
 
 @dataclass
@@ -409,6 +567,8 @@ class PathsConfig:
     data_dir: str = "${oc.env:SOROLEX_DIR,${paths.root_dir}/../shared/data/sorolex}"
     output_dir: str = "${paths.root_dir}/outputs"
     artifact_dir: str = "${paths.output_dir}/artifacts"
+    # JAX's persistent compilation cache, shared by runs, sweep jobs and tests; null: off
+    compile_cache_dir: str | None = "${oc.env:SOROLEARN_COMPILE_CACHE,${paths.output_dir}/jax_cache}"
 
 
 @dataclass
@@ -416,6 +576,8 @@ class Config:
     stage: Stage = Stage.all
     seed: int = 0
     force: bool = False  # recompute artifacts even when one with the same key exists
+    # policy types the chain trains at once (threads; each training is one compiled program)
+    train_workers: int = 2
     robot: Any = MISSING  # one of the RobotConfig subclasses, chosen by the robot group
     exploration: ExplorationConfig = MISSING
     dataset: DatasetConfig = MISSING
@@ -424,8 +586,160 @@ class Config:
     env: EnvConfig = MISSING
     agent: AgentConfig = MISSING
     evaluation: EvaluationConfig = MISSING
+    control: ControlConfig = MISSING
     logger: LoggerConfig = MISSING
     paths: PathsConfig = MISSING
+
+
+# --------------------------------------------------------------------------------------------
+# validation at composition (the router runs it before any work)
+# --------------------------------------------------------------------------------------------
+class ConfigError(ValueError):
+    """A composed config that cannot run: the message names the setting and its value."""
+
+
+# robot settings that are durations and must be finite and positive [s]
+_ROBOT_DURATIONS = ("watchdog_s", "command_timeout_s", "startup_timeout_s", "flush_every_s",
+                    "stop_timeout_s", "time_scale", "control_hz")
+
+
+def _walk_numbers(node: Any, path: str) -> Iterator[tuple[str, float]]:
+    """Every float in ``node`` (an OmegaConf node, mapping or list) with its dotted path."""
+    if OmegaConf.is_config(node):
+        if OmegaConf.is_list(node):
+            items = ((str(i), node[i]) for i in range(len(node)))
+        else:
+            items = ((str(k), node[k]) for k in node.keys()
+                     if not OmegaConf.is_missing(node, k))
+    elif isinstance(node, Mapping):
+        items = ((str(k), v) for k, v in node.items())
+    elif isinstance(node, list | tuple):
+        items = ((str(i), v) for i, v in enumerate(node))
+    else:
+        if isinstance(node, float):
+            yield path, node
+        return
+    for key, value in items:
+        yield from _walk_numbers(value, f"{path}.{key}" if path else key)
+
+
+def _check_inside_rating(robot: Any) -> None:
+    limits, rating, n = robot.limits, robot.rating, int(robot.n_valves)
+    if not float(rating.p_min) < float(rating.p_max):
+        raise ConfigError(f"robot.rating: p_min={rating.p_min} must be below "
+                          f"p_max={rating.p_max} kPa")
+    if not float(limits.p_min) < float(limits.p_max):
+        raise ConfigError(f"robot.limits: p_min={limits.p_min} must be below "
+                          f"p_max={limits.p_max} kPa")
+    if not n * float(limits.p_min) < float(limits.sum_max):
+        raise ConfigError(f"robot.limits: sum_max={limits.sum_max} kPa must exceed {n} x "
+                          f"p_min={limits.p_min} kPa")
+    for name, inside in (("p_min", float(limits.p_min) >= float(rating.p_min)),
+                         ("p_max", float(limits.p_max) <= float(rating.p_max)),
+                         ("sum_max", float(limits.sum_max) <= float(rating.sum_max))):
+        if not inside:
+            raise ConfigError(
+                f"robot.limits.{name}={limits[name]} kPa lies outside the arm's rating "
+                f"robot.rating.{name}={rating[name]} kPa (the limits may only tighten the rating)")
+    for what, values in (("robot.limits", limits), ("robot.rating", rating)):
+        preload = float(values.preload)
+        if not (float(values.p_min) <= preload <= float(values.p_max)
+                and n * preload <= float(values.sum_max)):
+            raise ConfigError(f"{what}.preload={preload} kPa is outside {what}: "
+                              f"[{values.p_min}, {values.p_max}] per valve, sum <= "
+                              f"{values.sum_max}")
+    if not (float(rating.p_min) <= float(limits.preload) <= float(rating.p_max)
+            and n * float(limits.preload) <= float(rating.sum_max)):
+        raise ConfigError(f"robot.limits.preload={limits.preload} kPa lies outside the arm's "
+                          f"rating robot.rating: [{rating.p_min}, {rating.p_max}] per valve, "
+                          f"sum <= {rating.sum_max}")
+
+
+def robot_file(choice: str, search_dirs: list[Path] | None = None) -> Path | None:
+    """The YAML file of robot group option ``choice`` (``conf/robot/<choice>.yaml``)."""
+    for folder in [*(search_dirs or []), PROJECT_ROOT / "conf"]:
+        path = Path(folder) / "robot" / f"{choice}.yaml"
+        if path.is_file():
+            return path
+    return None
+
+
+def rating_from_file(path: Path, search_dirs: list[Path] | None = None) -> dict[str, float]:
+    """The rating a robot's YAML file sets over the schema's defaults, following the robot
+    options its defaults list extends (``defaults: [ros2, _self_]``)."""
+    text = OmegaConf.load(path)
+    rating = OmegaConf.structured(PressureRating)
+    for entry in text.get("defaults") or []:
+        parent = robot_file(entry, search_dirs) if isinstance(entry, str) else None
+        if parent is not None and parent != path:
+            rating = OmegaConf.merge(rating, rating_from_file(parent, search_dirs))
+    rating = OmegaConf.merge(rating, text.get("rating") or {})
+    return {k: float(v) for k, v in rating.items()}
+
+
+def check_rating_source(robot: Any, choice: str | None,
+                        search_dirs: list[Path] | None = None) -> None:
+    """A real arm's rating must be the one its YAML file sets: an override cannot change it."""
+    if RobotKind(robot.kind) is not RobotKind.ros2:
+        return
+    choice = choice or str(robot.name)
+    path = robot_file(choice, search_dirs)
+    if path is None:
+        raise ConfigError(f"robot={choice}: no conf/robot/{choice}.yaml to read the arm's rating "
+                          f"from; a real arm's rating comes from its robot config file")
+    expected = rating_from_file(path, search_dirs)
+    for name, value in expected.items():
+        got = float(robot.rating[name])
+        if got != value and not (math.isnan(got) and math.isnan(value)):
+            raise ConfigError(
+                f"robot.rating.{name}={got} kPa differs from {value} kPa in {path}: the rating of "
+                f"a real arm (robot=ros2) cannot be overridden; edit {path} to change it (an "
+                f"override may tighten robot.limits instead)")
+
+
+def validate_config(cfg: Any, robot_choice: str | None = None,
+                    search_dirs: list[Path] | None = None) -> None:
+    """Refuse a composed config that cannot run safely or sensibly, naming setting and value.
+
+    NaN anywhere numeric; robot durations that are not finite and positive; limits outside the
+    rating (or a real arm's rating differing from its YAML file); exploration settings outside
+    their ranges. ``robot_choice`` is the robot group option (default: ``robot.name``).
+    """
+    for path, value in _walk_numbers(cfg, ""):
+        if math.isnan(value):
+            raise ConfigError(f"{path}=nan: a number is required")
+    robot = cfg.robot
+    for name in _ROBOT_DURATIONS:
+        if name in robot:
+            value = float(robot[name])
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"robot.{name}={robot[name]} must be finite and positive")
+    if "command_timeout_s" in robot:
+        period = 1.0 / float(robot.control_hz)
+        if float(robot.command_timeout_s) <= period:
+            raise ConfigError(
+                f"robot.command_timeout_s={robot.command_timeout_s} s must exceed one control "
+                f"period (1 / robot.control_hz = {period:g} s), or the arm falls back to the "
+                f"preload between commands")
+    check_rating_source(robot, robot_choice, search_dirs)
+    _check_inside_rating(robot)
+    low, high = list(robot.workspace.low_m), list(robot.workspace.high_m)
+    if len(low) != 3 or len(high) != 3 or not all(a < b for a, b in zip(low, high)):
+        raise ConfigError(f"robot.workspace: low_m={low} must lie below high_m={high} (x, y, z)")
+    exploration = cfg.get("exploration")
+    if exploration is not None:
+        alpha = float(exploration.alpha)
+        if not 0.0 <= alpha <= 1.0:
+            raise ConfigError(f"exploration.alpha={exploration.alpha} must lie in [0, 1] (1 keeps "
+                              f"the last pressure, 0 draws afresh)")
+        for name in ("beta", "noise_std", "p_max"):
+            if not math.isfinite(float(exploration[name])):
+                raise ConfigError(f"exploration.{name}={exploration[name]} must be finite")
+        if float(exploration.noise_std) < 0:
+            raise ConfigError(f"exploration.noise_std={exploration.noise_std} must be >= 0")
+        if float(exploration.p_max) > float(robot.rating.sum_max):
+            raise ConfigError(f"exploration.p_max={exploration.p_max} kPa exceeds the arm's "
+                              f"rating robot.rating.sum_max={robot.rating.sum_max} kPa")
 
 
 def dataclass_values(cls: type, config: Any, what: str,
@@ -467,5 +781,6 @@ def register_configs() -> None:
     cs.store(group="env", name="base_env", node=EnvConfig)
     cs.store(group="agent", name="base_agent", node=AgentConfig)
     cs.store(group="evaluation", name="base_evaluation", node=EvaluationConfig)
+    cs.store(group="control", name="base_control", node=ControlConfig)
     cs.store(group="logger", name="base_logger", node=LoggerConfig)
     cs.store(group="paths", name="base_paths", node=PathsConfig)

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 # Before JAX starts: one XLA thread per test worker (pytest -n 2 already fills the cores).
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # as the entry point (pipeline/__main__.py)
 os.environ.setdefault("XLA_FLAGS",
                       "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
 
@@ -14,11 +15,15 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from pipeline.config import PROJECT_ROOT, register_configs
+from pipeline.infra.compile_cache import use_compilation_cache
 
 CONF_DIR = PROJECT_ROOT / "conf"
 SOROLEX_DIR = Path(os.environ.get("SOROLEX_DIR", PROJECT_ROOT.parent / "shared/data/sorolex"))
 
 register_configs()
+# One compilation cache for every test worker and every pipeline process a test starts.
+os.environ.setdefault("SOROLEARN_COMPILE_CACHE", str(PROJECT_ROOT / "outputs" / "jax_cache"))
+use_compilation_cache(os.environ["SOROLEARN_COMPILE_CACHE"])
 
 
 def compose_config(output_dir: Path | str, *overrides: str) -> DictConfig:
@@ -40,3 +45,16 @@ def sorolex_dir() -> Path:
     if not sorted(SOROLEX_DIR.glob("Step_control_*.csv")):
         pytest.skip(f"real-arm data not found at {SOROLEX_DIR} (set SOROLEX_DIR)")
     return SOROLEX_DIR
+
+
+_domains = iter(range(100))
+
+
+@pytest.fixture
+def ros_domain() -> int:
+    """A ROS_DOMAIN_ID no other test of this session uses (per xdist worker: 20 ids); without
+    xdist the caller's ROS_DOMAIN_ID where set (tests then run one after another)."""
+    if "ROS_DOMAIN_ID" in os.environ and "PYTEST_XDIST_WORKER" not in os.environ:
+        return int(os.environ["ROS_DOMAIN_ID"])
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+    return 20 + (20 * worker) % 80 + next(_domains) % 20

@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.align import align_run, align_tables, resample
-from pipeline.schemas import ALIGNED, DataError, validate
+from pipeline.data.alignment import align_run, align_tables, resample
+from pipeline.data.schemas import ALIGNED, DataError, validate
 
 SETTINGS = SimpleNamespace(max_match_dt_s=0.05, max_gap_s=0.25, gap_policy="error",
                            resample_hz=None)
@@ -119,7 +119,7 @@ def test_a_run_without_commands_is_an_error():
 
 
 def test_command_locked_grid_puts_every_command_on_a_grid_point():
-    from pipeline.align import resample_command_locked
+    from pipeline.data.alignment import resample_command_locked
 
     # commands 0.5 s apart but drifting against the 10 Hz clock (0.503 s periods)
     times = [0.103 + 0.503 * i for i in range(3)]

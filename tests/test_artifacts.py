@@ -15,29 +15,28 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.align import align_key
-from pipeline.artifacts import ArtifactStore, MissingArtifactError, artifact_key, produce
-from pipeline.collect import collect_key
-from pipeline.schemas import COMMANDS, DataError, read_table, write_table
+from pipeline import keys
+from pipeline.data.schemas import COMMANDS, DataError, read_table, write_table
+from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError, artifact_key, produce
 
 
 def test_keys_follow_the_determining_config_only(make_cfg):
     base = make_cfg("experiment=quick")
-    assert collect_key(base) == collect_key(make_cfg("experiment=quick"))
+    assert keys.key("collect", base) == keys.key("collect", make_cfg("experiment=quick"))
     # settings of later stages do not touch upstream keys: sweeps share upstream artifacts
     for later in ("seed=3", "agent=ppo_rnn", "model.hidden=16", "dataset.window=8"):
         other = make_cfg("experiment=quick", later)
-        assert collect_key(other) == collect_key(base) and align_key(other) == align_key(base)
+        assert keys.key("collect", other) == keys.key("collect", base) and keys.key("align", other) == keys.key("align", base)
     # an align setting changes align only
     resampled = make_cfg("experiment=quick", "dataset.align.resample_hz=10")
-    assert collect_key(resampled) == collect_key(base)
-    assert align_key(resampled) != align_key(base)
+    assert keys.key("collect", resampled) == keys.key("collect", base)
+    assert keys.key("align", resampled) != keys.key("align", base)
     # an exploration setting changes both
     alpha = make_cfg("experiment=quick", "exploration.alpha=0.7")
-    assert collect_key(alpha) != collect_key(base) and align_key(alpha) != align_key(base)
+    assert keys.key("collect", alpha) != keys.key("collect", base) and keys.key("align", alpha) != keys.key("align", base)
     # where the outputs go is not part of any key
-    assert collect_key(make_cfg("experiment=quick", "paths.output_dir=/elsewhere")) == \
-        collect_key(base)
+    assert keys.key("collect", make_cfg("experiment=quick", "paths.output_dir=/elsewhere")) == \
+        keys.key("collect", base)
 
 
 def test_imported_data_is_keyed_by_content_not_location(make_cfg, sorolex_dir, tmp_path):
@@ -47,12 +46,12 @@ def test_imported_data_is_keyed_by_content_not_location(make_cfg, sorolex_dir, t
     (copy / name).write_bytes((sorolex_dir / name).read_bytes())
     here = make_cfg("robot=sorolex_csv", f"robot.data_dir={sorolex_dir}", f"robot.files=[{name}]")
     there = make_cfg("robot=sorolex_csv", f"robot.data_dir={copy}", f"robot.files=[{name}]")
-    assert collect_key(here) == collect_key(there)
+    assert keys.key("collect", here) == keys.key("collect", there)
     os.utime(copy / name, (0, 0))  # a new modification time alone changes nothing
-    assert collect_key(there) == collect_key(here)
+    assert keys.key("collect", there) == keys.key("collect", here)
     text = (sorolex_dir / name).read_text()
     (copy / name).write_text(text.replace("2.0,2.0,2.0", "2.0,2.0,2.1", 1))
-    assert collect_key(there) != collect_key(here)
+    assert keys.key("collect", there) != keys.key("collect", here)
 
 
 def build_table(writer):
@@ -67,7 +66,7 @@ def test_reuse_and_force(tmp_path, caplog):
     first = produce(store, "demo", {"a": 1}, {}, build_table)
     created = first.manifest["created"]
     inode = os.stat(first.file("commands.parquet")).st_ino
-    with caplog.at_level(logging.INFO, logger="pipeline.artifacts"):
+    with caplog.at_level(logging.INFO, logger="pipeline.infra.artifacts"):
         again = produce(store, "demo", {"a": 1}, {}, lambda w: pytest.fail("rebuilt"))
     assert again.path == first.path and "reusing" in caplog.text
     forced = produce(store, "demo", {"a": 1}, {}, build_table, force=True)
@@ -99,8 +98,8 @@ def test_a_failing_build_leaves_no_artifact_and_keeps_the_old_one(tmp_path):
 KILLED_WRITER = textwrap.dedent("""
     import sys, time, pathlib
     import pandas as pd
-    from pipeline.artifacts import ArtifactStore, produce
-    from pipeline.schemas import COMMANDS, write_table
+    from pipeline.infra.artifacts import ArtifactStore, produce
+    from pipeline.data.schemas import COMMANDS, write_table
 
     def slow(writer):
         frame = pd.DataFrame({"run_id": "a", "t": [0.0], "p_cmd_0": 2.0, "p_cmd_1": 2.0,
@@ -151,7 +150,7 @@ def test_reading_the_wrong_table_or_a_corrupt_file_is_a_clear_error(tmp_path):
     frame = pd.DataFrame({"run_id": "a", "t": [0.0], "p_cmd_0": 2.0, "p_cmd_1": 2.0,
                           "p_cmd_2": 2.0})
     write_table(frame, path, COMMANDS)
-    from pipeline.schemas import MOCAP
+    from pipeline.data.schemas import MOCAP
 
     with pytest.raises(DataError, match="holds a 'commands' table, expected 'mocap'"):
         read_table(path, MOCAP)

@@ -10,19 +10,19 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from pipeline import calibration as calib
-from pipeline import sim_arm
+from pipeline import keys
 from pipeline.__main__ import run, stages_to_run
-from pipeline.calibrate import (
+from pipeline.arm import calibration as calib
+from pipeline.arm import sim_arm
+from pipeline.config import SimPhysics, Stage
+from pipeline.data.schemas import read_table
+from pipeline.stages.calibrate import (
     PARAMETERS,
     _template,
     apply_physics_from,
-    calibrate_key,
     fold_weights,
     load_physics,
 )
-from pipeline.config import SimPhysics, Stage
-from pipeline.schemas import read_table
 
 INIT = calib.sim_physics_values(SimPhysics())
 INIT.pop("substeps")
@@ -121,7 +121,7 @@ def test_calibrate_stage_writes_its_artifact_and_reuses_it(make_cfg):
     cfg = make_cfg(*TINY)
     assert stages_to_run(cfg) == [Stage.collect, Stage.align, Stage.calibrate]
     artifact = run(cfg)["calibrate"]
-    assert artifact.key == calibrate_key(cfg)
+    assert artifact.key == keys.key("calibrate", cfg)
     first = artifact.file("artifact.json").stat().st_ino
     again = run(cfg)["calibrate"]
     assert again.path == artifact.path
@@ -143,7 +143,7 @@ def test_calibrate_stage_writes_its_artifact_and_reuses_it(make_cfg):
     assert artifact.file("figures/reconstruction.png").stat().st_size > 0
     # a different setting is a different artifact
     other = make_cfg(*TINY, "calibration.seed=1")
-    assert calibrate_key(other) != calibrate_key(cfg)
+    assert keys.key("calibrate", other) != keys.key("calibrate", cfg)
 
     # robot.physics_from by key (and by folder) replaces the physics, for sim and the twin
     sim_cfg = apply_physics_from(make_cfg(f"robot.physics_from={artifact.key}"))

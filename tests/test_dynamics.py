@@ -3,8 +3,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pipeline import dynamics
-from pipeline.dynamics import DynamicsConfig, DynamicsParams
+from pipeline.dynamics import model as dynamics
+from pipeline.dynamics.model import DynamicsConfig, DynamicsParams
 
 predict_sequence = jax.jit(dynamics.predict_sequence)  # one compilation per architecture
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from pipeline import dynamics
-from pipeline.envs import (
+from pipeline.arm.safety import SafeSet
+from pipeline.dynamics import model as dynamics
+from pipeline.rl.envs import (
     SoftArmReachEnv,
     default_linear_lag_params,
     hold,
@@ -18,8 +19,7 @@ from pipeline.envs import (
     make_env_params,
     sim_plant,
 )
-from pipeline.envs.factory import sim_plant_params, sim_rest_pose
-from pipeline.safety import SafeSet
+from pipeline.rl.envs.factory import sim_plant_params, sim_rest_pose
 from tests.conftest import compose_config
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
@@ -235,7 +235,7 @@ def test_simulated_arm_plant_reaches_by_feedback_and_rests_at_the_rest_pose(tmp_
 def test_gymnax_observations_scaled_by_the_space_bounds():
     import gymnax
 
-    from pipeline.envs.factory import BoundsScaledObservation
+    from pipeline.rl.envs.factory import BoundsScaledObservation
 
     raw_env, params = gymnax.make("Pendulum-v1")
     env = BoundsScaledObservation(raw_env)

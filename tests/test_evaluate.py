@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-import pytest
 
-from pipeline import rollouts
 from pipeline.__main__ import run
-from pipeline.envs.factory import make_sim_env
-from pipeline.metrics import episode_metrics
+from pipeline.evaluation import rollouts
+from pipeline.evaluation.metrics import episode_metrics
+from pipeline.infra.parquet import read_metadata
+from pipeline.rl.envs.factory import make_sim_env
 
 
 def test_plant_rollouts_under_vmap_match_single_ones(make_cfg):
@@ -55,10 +57,16 @@ TINY = ["experiment=quick", "robot.num_runs=2", "exploration.num_steps=40",
         "model.checkpoint_every=10", "dataset.window=32", "dataset.train_fraction=0.5"]
 
 
-@pytest.mark.slow  # ~3 min: two PPO trainings in fresh processes, and the whole chain
-def test_a_tiny_run_ends_with_a_report_with_every_section(make_cfg):
+def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg):
     cfg = make_cfg(*TINY)
-    results = run(cfg)  # the whole chain: evaluate trains the second policy type itself
+    results = run(cfg)  # collect -> align -> fit_model -> train_ppo (both types) -> evaluate
+    assert list(results) == ["collect", "align", "fit_model", "train_ppo", "evaluate"]
+    tables = sorted(Path(cfg.paths.artifact_dir).glob("*/[!.]*/*.parquet"))
+    assert len(tables) >= 12
+    for table in tables:  # every table says what it holds, in which units, made by what
+        metadata = read_metadata(table)
+        assert {"schema", "units", "config", "provenance"} <= set(metadata), table
+        assert metadata["units"], table
     artifact = results["evaluate"]
     markdown = artifact.file("report.md").read_text()
     for section in ("Summary", "Configuration", "Data", "Model accuracy", "Policy results",
@@ -78,3 +86,18 @@ def test_a_tiny_run_ends_with_a_report_with_every_section(make_cfg):
     assert len(episodes) == 2 * 4 * 4  # plants x controllers (one seed each) x episodes
     gap = pd.read_parquet(artifact.file("plant_gap.parquet"))
     assert len(gap) == 4 * 4 and np.isfinite(gap["final_gap_mm"]).all()
+
+    # the same policies in another fitted model (cross-model): here the fitted model itself,
+    # as a separate plant with its own settled starts, same goals and observation
+    model = results["fit_model"]
+    cfg.stage, cfg.evaluation.models = "evaluate", [str(model.path)]
+    crossed = run(cfg)["evaluate"]
+    assert crossed.key != artifact.key
+    summary = pd.read_parquet(crossed.file("summary.parquet"))
+    other = f"model {model.key}"
+    assert set(summary["plant"]) == {"learned", "plant", other}
+    in_model = summary.set_index(["plant", "controller"])["median_final_mm"]
+    for controller in ("ppo_ff", "ppo_rnn"):
+        assert np.isfinite(in_model[(other, controller)])
+        # its own model from nearly the same starts: close to the learned env's figure
+        assert abs(in_model[(other, controller)] - in_model[("learned", controller)]) < 2.0

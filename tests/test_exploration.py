@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.exploration import exploration_run, plot_walks, random_walk
-from pipeline.safety import SafeSet
+from pipeline.arm.exploration import exploration_run, plot_walks, random_walk
+from pipeline.arm.safety import SafeSet
 
 LIMITS = SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0, preload=2.0)
 

@@ -8,9 +8,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.align import align_run
-from pipeline.importers import read_plotjuggler_csv, read_sorolex_csv
-from pipeline.schemas import DataError
+from pipeline.data.alignment import align_run
+from pipeline.data.importers import read_plotjuggler_csv, read_sorolex_csv
+from pipeline.data.schemas import DataError
+from pipeline.infra.artifacts import ArtifactStore
+from pipeline.keys import key
+from pipeline.stages.collect import collect
 
 LIMITS = SimpleNamespace(p_min=-3.0, p_max=7.0, sum_max=13.0, preload=2.0)
 SETTINGS = SimpleNamespace(max_match_dt_s=0.05, max_gap_s=0.25, gap_policy="error",
@@ -74,7 +77,7 @@ def test_a_good_small_file_imports(tmp_path):
         ("", "empty", None, None),
         (HEADER, "no data rows", None, None),
         (HEADER.replace(",1_z", "") + good_rows(), r"missing column\(s\) \['1_z'\]", "1_z", None),
-        (HEADER + good_rows()[:-12], "truncated", "control_pressure_0", 19),
+        (HEADER + good_rows()[:-12] + "\n", "truncated last line", "control_pressure_0", 19),
         (HEADER + good_rows().replace("100.14,0.03,0.353", "100.14,0.03,nan"),
          "not a finite number", "1_y", 14),
         (HEADER + good_rows().replace("100.05", "100.04"), "duplicate timestamp", "time", 5),
@@ -138,3 +141,127 @@ def test_plotjuggler_partial_sample_and_missing_topic_are_errors(tmp_path):
     frame.to_csv(path, index=False)
     with pytest.raises(DataError, match="pressure topic"):
         read_plotjuggler_csv(path, LIMITS)
+
+
+# ---------------------------------------------------------------------------------------------
+# more bad input, each with a known answer
+# ---------------------------------------------------------------------------------------------
+def test_a_nan_mid_file_is_not_called_a_truncated_line(tmp_path):
+    path = write(tmp_path, HEADER + good_rows().replace("100.14,0.03,0.353", "100.14,0.03,nan"))
+    with pytest.raises(DataError) as err:
+        read_sorolex_csv(path, LIMITS)
+    assert str(err.value) == (f"{path}, column '1_y', row 14: not a finite number: 'nan' "
+                              f"(line 16)")
+
+
+def test_a_file_cut_inside_its_last_number_drops_that_line(tmp_path):
+    """The last line lost its final newline and the end of a number: 3.5 kPa reads as 3."""
+    rows = good_rows().replace("2.0,2.0,3.0\n", "2.0,2.0,3.5\n")
+    path = write(tmp_path, HEADER + rows[:-3])  # "...,2.0,2.0,3"
+    notes = {}
+    commands, mocap = read_sorolex_csv(path, LIMITS, notes=notes)
+    assert notes == {"incomplete_last_line": 1}
+    assert len(mocap) == 19 and mocap["t"].iloc[-1] == pytest.approx(100.18)
+    assert commands["p_cmd_2"].tolist() == [2.0, 3.5]
+    complete = {}
+    read_sorolex_csv(write(tmp_path, HEADER + rows, "whole.csv"), LIMITS, notes=complete)
+    assert complete == {"incomplete_last_line": 0}
+
+
+def test_the_dropped_line_is_counted_in_the_collect_summary(tmp_path, make_cfg):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "cut.csv").write_text(HEADER + good_rows()[:-3])
+    (data / "whole.csv").write_text(HEADER + good_rows())
+    cfg = make_cfg("robot=sorolex_csv", f"robot.data_dir={data}", "robot.pattern=*.csv")
+    summary = collect(cfg).manifest["summary"]
+    assert summary["incomplete_lines_dropped"] == {"cut": 1}
+    assert summary["frames"] == 39
+
+
+def test_extra_valve_columns_are_refused_with_the_columns_found(tmp_path):
+    header = HEADER.rstrip("\n") + ",control_pressure_3\n"
+    rows = "".join(line + ",2.0\n" for line in good_rows().splitlines())
+    path = write(tmp_path, header + rows)
+    with pytest.raises(DataError) as err:
+        read_sorolex_csv(path, LIMITS)
+    assert str(err.value) == (
+        f"{path}: found pressure columns ['control_pressure_0', 'control_pressure_1', "
+        f"'control_pressure_2', 'control_pressure_3']; expected exactly ['control_pressure_0', "
+        f"'control_pressure_1', 'control_pressure_2'] (3 valves)")
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR", "a binary file, not a CSV text file"),
+    (HEADER.replace("time", "temps_\xe9").encode("latin-1") + good_rows().encode(),
+     "not a UTF-8 text file: byte 0xe9 at offset 6 is not UTF-8"),
+])
+def test_binary_and_non_utf8_files_are_named(tmp_path, content, message):
+    path = tmp_path / "run.csv"
+    path.write_bytes(content)
+    with pytest.raises(DataError) as err:
+        read_sorolex_csv(path, LIMITS)
+    assert str(err.value).startswith(f"{path}: {message}")
+
+
+def test_positions_in_millimetres_are_recognised(tmp_path, make_cfg):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "mm.csv").write_text(HEADER + good_rows().replace("0.03,0.353,0.2", "30,353,200"))
+    cfg = make_cfg("robot=sorolex_csv", f"robot.data_dir={data}", "robot.pattern=*.csv")
+    with pytest.raises(DataError) as err:
+        collect(cfg)
+    assert str(err.value) == (
+        "run mm (mm.csv): positions look like millimetres, not metres: largest |x|, |y|, |z| = "
+        "30, 353, 200, outside robot.workspace [[-3.0, -3.0, -3.0], [3.0, 3.0, 3.0]] m; convert "
+        "the positions to metres")
+    assert not ArtifactStore(cfg.paths.artifact_dir).find("collect", key("collect", cfg))
+
+
+def test_positions_outside_the_workspace_but_not_millimetres(tmp_path, make_cfg):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "far.csv").write_text(HEADER + good_rows().replace("0.03,0.353,0.2", "0.03,0.353,5000.2"))
+    cfg = make_cfg("robot=sorolex_csv", f"robot.data_dir={data}", "robot.pattern=*.csv")
+    with pytest.raises(DataError, match=r"position \[0\.03, 0\.353, 5000\.2\] m lies outside "
+                                        r"robot\.workspace"):
+        collect(cfg)
+
+
+def test_plotjuggler_extra_field_is_refused_with_the_fields_found(tmp_path):
+    frame = plotjuggler_frame()
+    frame[f"{PRESSURE}.3"] = frame[f"{PRESSURE}.0"]
+    path = tmp_path / "pj.csv"
+    frame.to_csv(path, index=False)
+    with pytest.raises(DataError) as err:
+        read_plotjuggler_csv(path, LIMITS)
+    fields = [f"{PRESSURE}.{j}" for j in range(4)]
+    assert str(err.value) == (f"{path}: the pressure topic has 4 field(s) {fields}; expected "
+                              f"p_d.0..2 (or data.0..2): 3 valves")
+
+
+def test_plotjuggler_missing_field_names_the_fields_that_exist(tmp_path):
+    frame = plotjuggler_frame().drop(columns=[f"{PRESSURE}.2"])
+    path = tmp_path / "pj.csv"
+    frame.to_csv(path, index=False)
+    with pytest.raises(DataError) as err:
+        read_plotjuggler_csv(path, LIMITS)
+    fields = [f"{PRESSURE}.{j}" for j in range(2)]
+    assert str(err.value) == (f"{path}: the pressure topic has 2 field(s) {fields}; expected "
+                              f"p_d.0..2 (or data.0..2): 3 valves")
+    assert "found none" not in str(err.value)
+
+
+def test_plotjuggler_errors_name_the_csv_line(tmp_path):
+    frame = plotjuggler_frame()
+    # the 41st pose goes back in time; it lies on CSV line 2 + its row in the merged table
+    pose_rows = frame.index[frame[f"{BODY}/x"].notna()]
+    row = int(pose_rows[40])
+    frame.loc[row, "__time"] = frame.loc[int(pose_rows[39]), "__time"] - 0.001
+    path = tmp_path / "pj.csv"
+    frame.to_csv(path, index=False)
+    with pytest.raises(DataError) as err:
+        read_plotjuggler_csv(path, LIMITS)
+    assert row != 40 and err.value.row == row
+    assert str(err.value).endswith(f"(line {row + 2})")
+    assert "pose topic: timestamp goes backwards" in str(err.value)

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.metrics import episode_metrics, plant_gap, summarize
+from pipeline.evaluation.metrics import episode_metrics, plant_gap, summarize
 
 LIMITS = SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0)
 

@@ -8,10 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline import mpc, rollouts
-from pipeline.envs.learned import SoftArmReachEnv, make_env_params
-from pipeline.envs.plants import default_linear_lag_params, hold, linear_lag_plant
-from pipeline.safety import SafeSet
+from pipeline.arm.safety import SafeSet
+from pipeline.evaluation import mpc, rollouts
+from pipeline.rl.envs.learned import SoftArmReachEnv, make_env_params
+from pipeline.rl.envs.plants import default_linear_lag_params, hold, linear_lag_plant
 
 SAFE = SafeSet.from_limits(SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0))
 PLANT = linear_lag_plant(model_hz=10.0)

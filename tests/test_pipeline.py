@@ -12,11 +12,10 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.__main__ import run, stages_to_run
-from pipeline.align import align_key
-from pipeline.artifacts import ArtifactStore
-from pipeline.collect import collect_key
 from pipeline.config import PROJECT_ROOT, Stage
-from pipeline.schemas import ALIGNED, COMMANDS, MOCAP, RUNS, DataError, read_table, write_table
+from pipeline.data.schemas import ALIGNED, COMMANDS, MOCAP, RUNS, DataError, read_table, write_table
+from pipeline.infra.artifacts import ArtifactStore
+from pipeline.keys import key
 
 
 def pipeline_cmd(output_dir, *overrides):
@@ -68,8 +67,8 @@ def test_run_in_process_finds_inputs_from_the_config_alone(make_cfg):
     run(cfg)
     cfg.stage = "align"
     results = run(cfg)
-    assert results["align"].key == align_key(cfg)
-    assert results["align"].manifest["inputs"] == {"collect": collect_key(cfg)}
+    assert results["align"].key == key("align", cfg)
+    assert results["align"].manifest["inputs"] == {"collect": key("collect", cfg)}
 
 
 def test_a_stage_produces_what_it_needs_upstream_and_reuses_it(make_cfg):
@@ -77,7 +76,7 @@ def test_a_stage_produces_what_it_needs_upstream_and_reuses_it(make_cfg):
                    "stage=align", "force=true")
     results = run(cfg)
     assert list(results) == ["collect", "align"]
-    assert results["align"].manifest["inputs"] == {"collect": collect_key(cfg)}
+    assert results["align"].manifest["inputs"] == {"collect": key("collect", cfg)}
 
     def written(artifact):  # a rewritten artifact is a new folder renamed into place
         return artifact.file("artifact.json").stat().st_ino

@@ -8,25 +8,21 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from pipeline.arm.safety import SafeSet
 from pipeline.config import AgentConfig
-from pipeline.envs import (
+from pipeline.rl.envs import (
     SoftArmReachEnv,
     default_linear_lag_params,
     linear_lag_plant,
     make_env_params,
     make_gymnax_env,
 )
-from pipeline.networks import initial_hidden, make_network
-from pipeline.ppo import (
-    PPOConfig,
+from pipeline.rl.networks import initial_hidden, make_network
+from pipeline.rl.policy_io import deterministic_action, load_policy, save_policy, warm_start_params
+from pipeline.rl.ppo import (
     compute_gae,
-    deterministic_action,
-    load_policy,
-    save_policy,
     train_seeds,
-    warm_start_params,
 )
-from pipeline.safety import SafeSet
 from tests.conftest import compose_config
 
 GAMMA, LAMBDA = 0.9, 0.8
@@ -78,25 +74,24 @@ def test_gae_matches_a_plain_loop_with_termination_and_truncation():
 def test_agent_config_schema_and_ppo_config_agree(tmp_path):
     for name in ("ppo_ff", "ppo_rnn"):
         cfg = compose_config(tmp_path, f"agent={name}")
-        config = PPOConfig.from_any(cfg.agent)
+        config = AgentConfig.from_any(cfg.agent)
         assert config.recurrent == (name == "ppo_rnn")
-    assert set(PPOConfig.__dataclass_fields__) == set(AgentConfig.__dataclass_fields__)
     with pytest.raises(ValueError, match="unknown agent config keys"):
-        PPOConfig.from_any({"nmu_envs": 3})
+        AgentConfig.from_any({"nmu_envs": 3})
 
 
 def test_update_count_is_a_multiple_of_the_evaluations():
-    config = PPOConfig(num_envs=8, num_steps=4, total_timesteps=1000, num_evals=3)
+    config = AgentConfig(num_envs=8, num_steps=4, total_timesteps=1000, num_evals=3)
     assert config.num_updates == 30  # 1000 // 32 = 31 -> 10 per evaluation
     with pytest.raises(ValueError, match="divisible"):
-        PPOConfig(recurrent=True, num_envs=6, num_minibatches=4).check()
+        AgentConfig(recurrent=True, num_envs=6, num_minibatches=4).check()
 
 
 @pytest.mark.parametrize("recurrent, options", [
     (False, {}), (True, {}), (False, {"state_dependent_std": True}),
     (True, {"rnn_skip": True, "state_dependent_std": True})])
 def test_checkpoint_round_trip_acts_the_same(tmp_path, recurrent, options):
-    config = PPOConfig(recurrent=recurrent, hidden=8, rnn_hidden=8, **options)
+    config = AgentConfig(recurrent=recurrent, hidden=8, rnn_hidden=8, **options)
     network = make_network(config, 3)
     hidden = initial_hidden(network, 2)
     obs, resets = jnp.ones((1, 2, 6)), jnp.ones((1, 2), bool)
@@ -114,7 +109,7 @@ def test_checkpoint_round_trip_acts_the_same(tmp_path, recurrent, options):
 
 
 def test_state_dependent_std_starts_at_log_std_init_and_varies_with_the_state():
-    config = PPOConfig(hidden=16, log_std_init=-1.0, state_dependent_std=True)
+    config = AgentConfig(hidden=16, log_std_init=-1.0, state_dependent_std=True)
     network = make_network(config, 3)
     hidden = initial_hidden(network, 4)
     obs = jax.random.normal(jax.random.PRNGKey(1), (1, 4, 6))
@@ -134,7 +129,7 @@ def test_state_dependent_std_starts_at_log_std_init_and_varies_with_the_state():
 
 def test_rnn_skip_feeds_the_embedding_beside_the_gru_to_the_heads():
     def first_head_kernel(skip):
-        config = PPOConfig(recurrent=True, hidden=8, rnn_hidden=5, rnn_skip=skip)
+        config = AgentConfig(recurrent=True, hidden=8, rnn_hidden=5, rnn_skip=skip)
         network = make_network(config, 3)
         hidden = initial_hidden(network, 2)
         variables = network.init(jax.random.PRNGKey(0), hidden, jnp.ones((1, 2, 6)),
@@ -163,7 +158,7 @@ def toy_reaching():
 def test_tiny_ppo_run_improves_on_a_toy_arm():
     env, params = toy_reaching()
     # eval_envs=0: no evaluation rollouts, which roughly halves the compile time
-    agent = PPOConfig(num_seeds=1, num_envs=16, num_steps=10, total_timesteps=16 * 10 * 60,
+    agent = AgentConfig(num_seeds=1, num_envs=16, num_steps=10, total_timesteps=16 * 10 * 60,
                       num_evals=2, eval_envs=0, hidden=32, lr=1e-3, log_std_init=-1.0,
                       reward_scale=0.1, progress=False)
     output = train_seeds(agent, env, params)
@@ -192,7 +187,7 @@ def stacked_policy(path, config, num_seeds, obs_dim=6, action_dim=3, log_std=-0.
 
 
 def test_warm_start_maps_seeds_and_names_what_does_not_fit(tmp_path):
-    config = PPOConfig(hidden=8, num_seeds=2)
+    config = AgentConfig(hidden=8, num_seeds=2)
     path = tmp_path / "policy.msgpack"
     stacked = stacked_policy(path, config, num_seeds=2)
     agent = {**config.__dict__, "init_policy": str(path)}
@@ -230,7 +225,7 @@ def test_warm_start_begins_training_from_the_given_policy():
     env, params = toy_reaching()
     obs_dim = int(np.prod(env.observation_space(params).shape))
     # lr 0: training must hand back exactly the starting variables, the log std included
-    agent = PPOConfig(num_seeds=2, num_envs=8, num_steps=4, total_timesteps=8 * 4 * 2,
+    agent = AgentConfig(num_seeds=2, num_envs=8, num_steps=4, total_timesteps=8 * 4 * 2,
                       num_evals=1, eval_envs=0, hidden=8, lr=0.0, progress=False)
     network = make_network(agent, 3)
     hidden = initial_hidden(network, 1)
@@ -244,7 +239,7 @@ def test_warm_start_begins_training_from_the_given_policy():
     cold = train_seeds(agent, env, params)
     assert not np.allclose(jax.tree.leaves(cold.params)[0], jax.tree.leaves(start)[0])
 
-    wider = jax.vmap(lambda k: make_network(PPOConfig(hidden=16), 3).init(
+    wider = jax.vmap(lambda k: make_network(AgentConfig(hidden=16), 3).init(
         k, hidden, jnp.zeros((1, 1, obs_dim)), jnp.ones((1, 1), bool)))(
         jax.random.split(jax.random.PRNGKey(3), 2))
     with pytest.raises(ValueError, match=r"init_params do not fit the agent's network"):
@@ -254,25 +249,25 @@ def test_warm_start_begins_training_from_the_given_policy():
 
 
 def test_warm_start_policy_content_is_part_of_the_train_ppo_key(make_cfg, tmp_path):
-    from pipeline.train_ppo import train_ppo_key, train_ppo_spec
+    from pipeline.keys import key, train_ppo_spec
 
     path = tmp_path / "start.msgpack"
-    stacked_policy(path, PPOConfig(), num_seeds=1, log_std=-0.3)
-    cold = train_ppo_key(make_cfg("env=gymnax"))
+    stacked_policy(path, AgentConfig(), num_seeds=1, log_std=-0.3)
+    cold = key("train_ppo", make_cfg("env=gymnax"))
     # cold starts keep the keys they had before the option existed (cached artifacts stay valid)
     assert "init_policy" not in train_ppo_spec(make_cfg("env=gymnax"))[0]["agent"]
-    warm = train_ppo_key(make_cfg("env=gymnax", f"agent.init_policy={path}"))
-    stacked_policy(path, PPOConfig(), num_seeds=1, log_std=-0.4)  # same path, new content
-    rewritten = train_ppo_key(make_cfg("env=gymnax", f"agent.init_policy={path}"))
+    warm = key("train_ppo", make_cfg("env=gymnax", f"agent.init_policy={path}"))
+    stacked_policy(path, AgentConfig(), num_seeds=1, log_std=-0.4)  # same path, new content
+    rewritten = key("train_ppo", make_cfg("env=gymnax", f"agent.init_policy={path}"))
     assert len({cold, warm, rewritten}) == 3
     with pytest.raises(FileNotFoundError, match="no policy file"):
-        train_ppo_key(make_cfg("env=gymnax", f"agent.init_policy={tmp_path / 'none.msgpack'}"))
+        key("train_ppo", make_cfg("env=gymnax", f"agent.init_policy={tmp_path / 'none.msgpack'}"))
 
 
 @pytest.mark.slow
 def test_recurrent_ppo_improves_on_a_toy_arm():
     env, params = toy_reaching()
-    agent = PPOConfig(recurrent=True, num_seeds=1, num_envs=16, num_steps=10,
+    agent = AgentConfig(recurrent=True, num_seeds=1, num_envs=16, num_steps=10,
                       total_timesteps=16 * 10 * 100, num_evals=2, eval_envs=32, hidden=32,
                       rnn_hidden=32, lr=1e-3, log_std_init=-1.0, reward_scale=0.1,
                       progress=False)
@@ -288,14 +283,15 @@ def test_ppo_learns_pendulum_within_reach_of_the_optimum(make_cfg):
     # random starts each (-144 on 2048 common ones)
     cfg = make_cfg("experiment=pendulum", "agent.num_seeds=2", "agent.progress=false")
     env, params, _ = make_gymnax_env(cfg)  # as train_ppo builds it (options included)
-    output = train_seeds(PPOConfig.from_any(cfg.agent), env, params)
+    output = train_seeds(AgentConfig.from_any(cfg.agent), env, params)
     final = np.asarray(output.evaluation["mean_return"])[:, -1]
     assert np.all(final > -200), final
 
 
 @pytest.mark.slow
 def test_train_ppo_stage_writes_reuses_and_warm_starts(make_cfg):
-    from pipeline.train_ppo import train_ppo, training_curves
+    from pipeline.rl.results import training_curves
+    from pipeline.stages.train_ppo import train_ppo
 
     cfg_overrides = ("stage=train_ppo", "env=gymnax", "agent.num_seeds=2", "agent.num_envs=8",
                      "agent.num_steps=16", "agent.total_timesteps=2560", "agent.num_evals=2",

@@ -1,16 +1,25 @@
-"""The report writer lays out text, tables and figures in Markdown and HTML."""
+"""The report writer lays out text, tables and figures in Markdown and a self-contained HTML page;
+the report's sections label their columns and never hide who did not get there."""
 
 from __future__ import annotations
 
+import base64
+import re
+
+import numpy as np
 import pandas as pd
 
-from pipeline.report import Figure, Section, Table, write_report
+from pipeline.evaluation.metrics import median_steps, seed_spread, summarize
+from pipeline.evaluation.report import Figure, Section, Table, format_number, write_report
+from pipeline.evaluation.sections import consecutive_table
+
+PNG = b"\x89PNG\r\n\x1a\n-not-a-real-image"
 
 
 def test_report_has_every_section_table_and_figure(tmp_path):
-    figure = tmp_path / "artifacts" / "fig.png"
-    figure.parent.mkdir()
-    figure.write_bytes(b"\x89PNG")
+    figure = tmp_path / "artifacts" / "key" / "figures" / "fig.png"
+    figure.parent.mkdir(parents=True)
+    figure.write_bytes(PNG)
     sections = [
         Section("Configuration", ["Robot `sim`, **4** runs.", "```yaml\na: 1\n```"]),
         Section("Results", [Table(pd.DataFrame({"policy": ["ff", "a|b"], "mm": [0.51234, None]}),
@@ -20,8 +29,77 @@ def test_report_has_every_section_table_and_figure(tmp_path):
     text = md.read_text()
     assert "## Configuration" in text and "## Results" in text
     assert "| policy | mm |" in text and "| ff | 0.512 |" in text and "a\\|b" in text
-    assert "![a figure](../artifacts/fig.png)" in text
+    # the Markdown links a copy of the figure beside it
+    link = re.search(r"!\[a figure\]\((.+?)\)", text).group(1)
+    assert not link.startswith("..") and (md.parent / link).read_bytes() == PNG
     markup = page.read_text()
     assert "<code>sim</code>" in markup and "<b>4</b>" in markup
-    assert "src='../artifacts/fig.png'" in markup and "<pre>" in markup
-    assert markup.count("<h2") == 2 and "<details>" in markup
+    assert "<pre>" in markup and markup.count("<h2") == 2 and "<details>" in markup
+
+
+def test_the_html_report_is_self_contained(tmp_path):
+    figure = tmp_path / "elsewhere" / "fig.png"
+    figure.parent.mkdir()
+    figure.write_bytes(PNG)
+    _, page = write_report(tmp_path / "report", "Run", [Section("S", [Figure(figure, "f")])])
+    moved = tmp_path / "copied.html"
+    page.rename(moved)
+    figure.unlink()  # the page needs neither its folder nor the figure's
+    sources = re.findall(r"src='([^']*)'", moved.read_text())
+    assert len(sources) == 1 and sources[0].startswith("data:image/png;base64,")
+    assert base64.b64decode(sources[0].split(",", 1)[1]) == PNG
+    assert "href=" not in moved.read_text().replace('href="#s0"', "")
+
+
+def test_numbers_keep_three_significant_figures():
+    assert [format_number(v) for v in (0.47, 0.567, 12.0, 0.0625, 1234.5, 0.0)] == \
+        ["0.470", "0.567", "12.0", "0.0625", "1,234", "0"]
+    assert format_number(float("inf")) == "∞" and format_number(float("nan")) == "–"
+    page = Table(pd.DataFrame({"a": [0.47, 0.567]}))
+    text = write_report_text(page)
+    assert "0.470" in text and "0.567" in text
+
+
+def write_report_text(table: Table) -> str:
+    from pipeline.evaluation.report import render_html
+
+    return render_html("t", [Section("s", [table])])
+
+
+def test_steps_to_3mm_count_the_episodes_that_never_got_there():
+    # 7 episodes: 1 starts within 3 mm (step 0), 6 never get there; a median over the one that
+    # did would say 0 steps
+    table = pd.DataFrame({"controller": "preload", "final_distance_mm": np.arange(7.0) + 4,
+                          "success_1mm": False, "success_3mm": False,
+                          "steps_to_3mm": [0.0] + [np.nan] * 6, "smoothness_kpa": 0.0,
+                          "time_above_limits": 0.0})
+    row = summarize(table, ["controller"]).iloc[0]
+    assert row["reached_3mm"] == 1 / 7
+    assert row["median_steps_to_3mm"] == np.inf
+    # 3 of 4 got there at 2, 4, 6 steps: the median over all four is between 4 and 6
+    assert median_steps(pd.Series([2.0, 4.0, 6.0, np.nan])) == 5.0
+
+
+def test_seed_spread_is_over_each_seeds_median():
+    episodes = pd.DataFrame({"controller": "ff", "plant": "learned",
+                             "seed": [0, 0, 0, 1, 1, 1, 2, 2, 2],
+                             "final_distance_mm": [1, 2, 9, 3, 4, 5, 0.5, 0.6, 0.7]})
+    row = seed_spread(episodes, ["controller", "plant"]).iloc[0]
+    # seed medians 2, 4, 0.6
+    assert row["seeds"] == 3 and row["median_of_seed_medians"] == 2.0
+    assert row["min"] == 0.6 and row["max"] == 4.0 and row["q25"] == 1.3 and row["q75"] == 3.0
+
+
+def test_consecutive_goals_table_has_one_labelled_column_per_goal(tmp_path):
+    rows = [{"plant": plant, "controller": "ppo_ff", "seed": seed, "goal": goal,
+             "median_distance_mm": 1.0 + goal + seed, "success_3mm": 1.0 if goal == 0 else 0.0}
+            for plant in ("learned", "plant") for seed in (0, 1) for goal in range(3)]
+    table = consecutive_table(pd.DataFrame(rows))
+    assert list(table.columns) == ["controller", "evaluated on", "goal 1 [mm]", "goal 2 [mm]",
+                                   "goal 3 [mm]", "fraction ≤ 3 mm"]
+    assert table["evaluated on"].tolist() == ["learned model", "simulated arm"]
+    # median over the seeds (1 and 2 at goal 1), a third of the goals within 3 mm
+    assert table["goal 1 [mm]"].tolist() == [1.5, 1.5] and table["fraction ≤ 3 mm"].tolist() == [1 / 3] * 2
+    _, page = write_report(tmp_path, "Run", [Section("C", [Table(table)])])
+    headers = re.findall(r"<th>(.*?)</th>", page.read_text())
+    assert all(h.strip() for h in headers) and len(headers) == 6

@@ -13,9 +13,9 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from pipeline.align import align
-from pipeline.collect import collect
-from pipeline.schemas import CMD_COLUMNS, DataError
+from pipeline.data.schemas import CMD_COLUMNS, DataError
+from pipeline.stages.align import align
+from pipeline.stages.collect import collect
 
 NS = 1_000_000_000
 START_NS = 1_700_000_000 * NS

@@ -19,11 +19,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.align import align
-from pipeline.artifacts import ArtifactStore
-from pipeline.collect import STAGE, collect_key
-from pipeline.ros2.collector import exploration_plan
-from pipeline.schemas import CMD_COLUMNS, DataError
+from pipeline.arm.exploration import exploration_plan
+from pipeline.data.schemas import CMD_COLUMNS, DataError
+from pipeline.infra.artifacts import ArtifactStore
+from pipeline.keys import key
+from pipeline.stages.align import align
+from pipeline.stages.collect import STAGE
 from tests.conftest import compose_config
 
 pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
@@ -37,16 +38,6 @@ OVERRIDES = [
     "exploration.pad_steps=2",
     *(f"robot.limits.{k}={v}" for k, v in LIMITS.items()),
 ]
-_domains = iter(range(100))
-
-
-@pytest.fixture
-def ros_domain() -> int:
-    """A ROS_DOMAIN_ID no other test of this session uses (per xdist worker: 20 ids)."""
-    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-    return 20 + (20 * worker) % 80 + next(_domains) % 20
-
-
 class Pipeline:
     """Starts pipeline stages as subprocesses in one ROS domain, writing under ``tmp_path``."""
 
@@ -88,8 +79,9 @@ def stop(process: subprocess.Popen, timeout_s: float = 30.0) -> int:
 
 
 def received(record: Path) -> pd.DataFrame:
-    """The commands the twin received on the wire (its JSON-lines record)."""
-    rows = [json.loads(line) for line in record.read_text().splitlines()]
+    """The commands the twin received on the wire (its JSON-lines record, deadman lines aside)."""
+    rows = [row for line in record.read_text().splitlines()
+            if not (row := json.loads(line)).get("deadman")]
     return pd.DataFrame({"receipt_ns": [r["receipt_ns"] for r in rows],
                          **{c: [r["pressures"][j] for r in rows]
                             for j, c in enumerate(CMD_COLUMNS)}})
@@ -113,14 +105,16 @@ def test_twin_collect_align_end_to_end(tmp_path, ros_domain):
         assert stop(twin) == 0, pipe.log("twin")
 
     cfg = pipe.cfg()
-    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, collect_key(cfg))
+    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, key("collect", cfg))
     commands = pd.read_parquet(artifact.file("commands.parquet"))
     mocap = pd.read_parquet(artifact.file("mocap.parquet"))
     runs = pd.read_parquet(artifact.file("runs.parquet"))
     summary = artifact.manifest["summary"]
 
     # the commands: the exploration walk, projected onto the limits, at 2 Hz of the arm's time
-    (run_id, planned), = exploration_plan(cfg)
+    (planned,) = exploration_plan(cfg.exploration, cfg.robot.limits, cfg.robot.n_valves,
+                                  cfg.robot.num_runs).commands
+    run_id = "ros2-000"
     assert runs.to_dict("records") == [{
         "run_id": run_id, "source": f"{cfg.robot.pose_topic} [sorolearn_twin]", "complete": True,
         "n_commands": len(planned), "n_frames": len(mocap)}]
@@ -170,7 +164,7 @@ def _interrupted_collect(pipe: Pipeline, interrupt) -> tuple[int, str]:
 def _partial_artifact(pipe: Pipeline):
     """The collect artifact of this config: one run, cut short, every chunk in it."""
     cfg = pipe.cfg()
-    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, collect_key(cfg))
+    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, key("collect", cfg))
     runs = pd.read_parquet(artifact.file("runs.parquet"))
     commands = pd.read_parquet(artifact.file("commands.parquet"))
     assert not runs.loc[0, "complete"]

@@ -11,16 +11,19 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline import sim_arm
 from pipeline.__main__ import CHAIN, STAGES
-from pipeline.artifacts import ArtifactStore
-from pipeline.collect import STAGE, _set_aside_incomplete, collect_key
+from pipeline.arm import sim_arm
 from pipeline.config import Stage
-from pipeline.ros2 import RosUnavailableError, collect_ros2
+from pipeline.data.ros_messages import read_pressures, read_stamp_ns, set_field, write_stamp_ns
+from pipeline.infra.artifacts import ArtifactStore
+from pipeline.keys import key
+from pipeline.ros2.collector import collect_ros2
 from pipeline.ros2.gate import CommandGate
-from pipeline.ros2.messages import read_pressures, read_stamp_ns, set_field, write_stamp_ns
+from pipeline.ros2.node import RosUnavailableError
 from pipeline.ros2.recorder import ChunkedRecorder
-from pipeline.ros2.twin import ArmSimulator, twin
+from pipeline.ros2.twin import ArmSimulator
+from pipeline.stages.collect import STAGE, _set_aside_incomplete
+from pipeline.stages.twin import twin
 
 
 def test_without_rclpy_ros2_and_twin_fail_with_the_install_hint(monkeypatch, make_cfg):
@@ -36,6 +39,7 @@ def test_without_rclpy_ros2_and_twin_fail_with_the_install_hint(monkeypatch, mak
 
 def test_twin_is_a_stage_but_not_part_of_all():
     assert Stage.twin in STAGES and Stage.twin not in CHAIN
+    assert Stage.guard in STAGES and Stage.guard not in CHAIN
     assert CHAIN[0] is Stage.collect and CHAIN[-1] is Stage.evaluate
 
 
@@ -48,7 +52,7 @@ def test_gate_projects_then_checks_in_float64():
     crowded = gate(np.array([6.9, 6.9, 6.9]))
     assert crowded.sum() <= 13.0 and crowded.max() <= 6.9
     np.testing.assert_array_equal(gate(np.array([np.nan, 1.0, 1.0])), [0.0, 1.0, 1.0])
-    with pytest.raises(ValueError, match="outside the safe set"):
+    with pytest.raises(ValueError, match=r"outside robot\.limits: \[0\.0, 6\.9\] per valve"):
         gate.check(np.array([7.0, 0.0, 0.0]))
 
 
@@ -107,11 +111,11 @@ def test_twin_simulator_follows_the_simulated_arm(make_cfg):
 
 
 def test_collect_key_follows_what_is_recorded_not_how(make_cfg):
-    key = collect_key(make_cfg("robot=ros2"))
-    assert key == collect_key(make_cfg("robot=ros2", "robot.reuse_incomplete=true",
+    first = key("collect", make_cfg("robot=ros2"))
+    assert first == key("collect", make_cfg("robot=ros2", "robot.reuse_incomplete=true",
                                        "robot.domain_id=5", "robot.flush_every_s=1"))
-    assert key != collect_key(make_cfg("robot=ros2", "robot.session=rehearsal"))
-    assert key != collect_key(make_cfg("robot=ros2", "robot.time_scale=4"))
+    assert first != key("collect", make_cfg("robot=ros2", "robot.session=rehearsal"))
+    assert first != key("collect", make_cfg("robot=ros2", "robot.time_scale=4"))
 
 
 def test_incomplete_artifact_is_set_aside_unless_reused(tmp_path):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from pipeline import sim_arm
+from pipeline.arm import sim_arm
 from pipeline.config import SimRobotConfig
 
 ROBOT = OmegaConf.structured(SimRobotConfig)

@@ -32,24 +32,23 @@ def test_agent_and_seed_sweep_composes(tmp_path):
 
 def test_exploration_sweep_changes_the_policy_key(tmp_path):
     """An exploration sweep reaches train_ppo through the fit_model input key (env=learned)."""
-    pytest.importorskip("pipeline.fit_model")
-    from pipeline.train_ppo import train_ppo_key
+    from pipeline.keys import key
 
     jobs = expand_sweep(["stage=train_ppo", "exploration.alpha=0.3,0.8",
                          "exploration.beta=0.05,0.15"])
     assert len(jobs) == 4
-    keys = {train_ppo_key(compose_config(tmp_path, *job)) for job in jobs}
+    keys = {key("train_ppo", compose_config(tmp_path, *job)) for job in jobs}
     assert len(keys) == 4
 
 
 def test_policy_key_ignores_display_only_settings(tmp_path):
-    from pipeline.train_ppo import train_ppo_key
+    from pipeline.keys import key
 
     base = compose_config(tmp_path, "env=gymnax")
     quiet = compose_config(tmp_path, "env=gymnax", "agent.progress=false")
     other_seed = compose_config(tmp_path, "env=gymnax", "seed=1")
-    assert train_ppo_key(base) == train_ppo_key(quiet)
-    assert train_ppo_key(base) != train_ppo_key(other_seed)
+    assert key("train_ppo", base) == key("train_ppo", quiet)
+    assert key("train_ppo", base) != key("train_ppo", other_seed)
 
 
 @pytest.mark.parametrize("launcher,target", [

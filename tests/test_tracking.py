@@ -7,7 +7,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.tracking import Tracker, tracking
+from pipeline.infra.tracking import Tracker, tracking
 
 
 def test_tracking_is_a_no_op_by_default(make_cfg):

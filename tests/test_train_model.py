@@ -2,8 +2,8 @@ import jax
 import numpy as np
 import pytest
 
-from pipeline import train_model
-from pipeline.train_model import ModelTrainConfig
+from pipeline.dynamics import training as train_model
+from pipeline.dynamics.training import ModelTrainConfig
 
 
 def first_order_runs(num_runs=3, num_steps=60, seed=0):
@@ -138,3 +138,21 @@ def test_lagged_features_and_linear_baseline_known_answer():
     run = {"p": p, "pos": pos}
     errors = train_model.baseline_linear_lagged([run], run, num_lags=2)
     assert errors["mean_mm"] < 1e-6
+
+
+def test_a_corrupt_checkpoint_is_named_and_set_aside(tmp_path, caplog):
+    """The newest checkpoint was cut off; the one before it is resumed from."""
+    runs = first_order_runs(2, 40)
+    config = dict(TINY, num_steps=40)
+    checkpoints = tmp_path / "ckpt"
+    train_model.fit(runs, config, window=12, checkpoint_dir=checkpoints, progress=False,
+                    stop_after_steps=20)
+    corrupt = checkpoints / "step_00000030.msgpack"
+    corrupt.write_bytes(b"\x85\xa5model\x00cut off")
+    with caplog.at_level("WARNING"):
+        _, _, table = train_model.fit(runs, config, window=12, checkpoint_dir=checkpoints,
+                                      progress=False)
+    assert f"checkpoint {corrupt} cannot be read" in caplog.text
+    assert f"moved it to {corrupt}.corrupt and trying the one before" in caplog.text
+    assert (checkpoints / "step_00000030.msgpack.corrupt").is_file() and not corrupt.exists()
+    assert list(table.step) == list(range(1, 41))  # 20 restored + 20 trained

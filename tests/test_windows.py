@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pipeline.windows import (
+from pipeline.data.windows import (
     batches_per_epoch,
     gather_windows,
     make_windows,

@@ -1,6 +1,6 @@
 """``collect`` with ``robot=ros2``: play the exploration on the arm over ROS 2 and record it.
 
-Each of ``robot.num_runs`` runs is one :func:`pipeline.exploration.exploration_run` (same draws as
+Each of ``robot.num_runs`` runs is one :func:`pipeline.arm.exploration.exploration_run` (same draws as
 ``robot=sim`` with the same ``exploration.seed``), published command by command at
 ``control_hz`` on ``robot.command_topic``, while every pose on ``robot.pose_topic`` is recorded.
 
@@ -33,15 +33,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts import ArtifactWriter
-from pipeline.collect import STAGE, write_raw
-from pipeline.exploration import exploration_run, plot_walks
-from pipeline.ros2.gate import CommandGate
-from pipeline.ros2.messages import (
+from pipeline.arm.exploration import exploration_plan, plot_walks
+from pipeline.data.raw import STAGE, write_raw
+from pipeline.data.ros_messages import (
     NS_PER_S,
     is_finite,
     message_class,
@@ -49,7 +46,9 @@ from pipeline.ros2.messages import (
     read_stamp_ns,
     write_pressures,
 )
-from pipeline.ros2.node import StopSignals, qos_profile, ros_node
+from pipeline.infra.artifacts import ArtifactWriter
+from pipeline.ros2.gate import CommandGate
+from pipeline.ros2.node import StopSignals, qos_profile, require_rclpy, ros_node
 from pipeline.ros2.recorder import ChunkedRecorder
 
 log = logging.getLogger(__name__)
@@ -326,14 +325,6 @@ class Session:
 # --------------------------------------------------------------------------------------------
 # the collect stage's entry (through pipeline.ros2.collect_ros2)
 # --------------------------------------------------------------------------------------------
-def exploration_plan(cfg: Any) -> list[tuple[str, np.ndarray]]:
-    """``(run_id, commands [N, n_valves] kPa)`` per run: the same walks as ``robot=sim``."""
-    robot, exploration = cfg.robot, cfg.exploration
-    walk_key, _, _ = jax.random.split(jax.random.key(int(exploration.seed)), 3)
-    return [(f"ros2-{i:03d}", exploration_run(key, exploration, robot.limits, robot.n_valves))
-            for i, key in enumerate(jax.random.split(walk_key, int(robot.num_runs)))]
-
-
 def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interruption | None:
     """Run a session on the arm and fill ``writer`` like ``robot=sim`` does (see module doc)."""
     robot = cfg.robot
@@ -343,8 +334,8 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
         log.warning("collect: robot.time_scale=%s: the arm's time runs %sx wall time, which only "
                     "a digital twin with the same time_scale can follow", robot.time_scale,
                     robot.time_scale)
-    plan = exploration_plan(cfg)
-    gate = CommandGate(robot.limits, robot.n_valves)
+    plan = exploration_plan(cfg.exploration, robot.limits, robot.n_valves, robot.num_runs)
+    gate = CommandGate.for_robot(robot)
     started = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
     recovery = Path(cfg.paths.output_dir) / "recovery" / f"{STAGE}-{writer.key}-{started}"
     recorder = ChunkedRecorder(recovery, spec, {"stage": STAGE, "robot": robot.name,
@@ -356,7 +347,8 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
         session = Session(robot, ArmLink(node, executor, robot), gate, recorder, signals)
         try:
             session.wait_for_arm()
-            interruption = session.play(plan)
+            interruption = session.play(
+                (f"ros2-{i:03d}", run) for i, run in enumerate(plan.commands))
         finally:
             try:
                 session.stop_safely()
@@ -375,10 +367,20 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
         for r in session.runs])
     write_raw(writer, cfg, spec, commands, mocap, runs)
     plot_walks(writer.file("figures/exploration_alphas.png"),
-               jax.random.split(jax.random.key(int(cfg.exploration.seed)), 3)[2],
+               plan.figure_key,
                cfg.exploration, robot.limits, robot.control_hz, robot.n_valves)
     writer.summary["ros2"] = session.link_summary()
     if interruption is not None:
         writer.summary["interrupted"] = interruption.reason
     shutil.rmtree(recovery)  # the artifact's temporary folder now holds every row
     return interruption
+
+
+def collect_ros2(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interruption | None:
+    """Record ``robot.num_runs`` exploration runs on the arm into ``writer``; see the module doc.
+
+    Returns None when every run completed, else the :class:`Interruption`
+    (the artifact then holds the runs recorded so far, the last one marked incomplete).
+    """
+    require_rclpy()
+    return record(cfg, writer, spec)

@@ -9,9 +9,28 @@ from collections.abc import Iterator
 from typing import Any
 
 from pipeline.config import QosDurability, QosReliability
-from pipeline.ros2 import require_rclpy
 
 log = logging.getLogger(__name__)
+
+
+ROS_INSTALL_HINT = (
+    "robot=ros2 and stage=twin need ROS 2's rclpy, which is not installed: "
+    "`pip install -e .[ros]` (or `make setup-ros`) adds it"
+)
+
+
+class RosUnavailableError(ImportError):
+    """rclpy (the ``ros`` extra) is missing."""
+
+
+def require_rclpy() -> Any:
+    """The rclpy module, or :class:`RosUnavailableError` with the install hint."""
+    try:
+        import rclpy
+    except ImportError as err:
+        raise RosUnavailableError(f"{ROS_INSTALL_HINT} ({err})") from err
+    return rclpy
+
 
 
 def qos_profile(qos: Any) -> Any:

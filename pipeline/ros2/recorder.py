@@ -2,7 +2,7 @@
 
 Rows are buffered in memory and :meth:`ChunkedRecorder.flush` writes the new ones as numbered
 chunk files (``commands-00000.parquet``, ``mocap-00000.parquet``, ... in the raw schemas of
-``pipeline/schemas.py``) into a recovery folder. A crash or a kill (SIGKILL, power loss) loses at
+``pipeline/data/schemas.py``) into a recovery folder. A crash or a kill (SIGKILL, power loss) loses at
 most the rows since the last flush; the chunks are plain Parquet tables readable with pandas.
 """
 
@@ -14,7 +14,7 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.schemas import CMD_COLUMNS, COMMANDS, MOCAP, XYZ, read_table, write_table
+from pipeline.data.schemas import CMD_COLUMNS, COMMANDS, MOCAP, XYZ, read_table, write_table
 
 
 class ChunkedRecorder:

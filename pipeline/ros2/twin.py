@@ -3,18 +3,21 @@
 It listens to the valve commands on ``robot.command_topic`` and publishes the marker pose on
 ``robot.pose_topic`` (``robot.pose_type``, stamped, frame ``robot.twin.frame_id``) at
 ``robot.twin.mocap.rate_hz`` of the arm's time, with the mocap noise, timestamp jitter and dropped
-frames of ``pipeline/sim_arm.py`` (a dropped frame is simply not published, as a mocap driver
+frames of ``pipeline/arm/sim_arm.py`` (a dropped frame is simply not published, as a mocap driver
 does). With ``robot.time_scale`` > 1 the arm's time runs that much faster than the wall clock
 (collect must use the same value), so a rehearsal or a test of the ROS 2 path takes seconds.
 
 Frames are due on a fixed schedule; when the process falls behind it publishes the late frames at
 once, each with its nominal stamp (like a camera clock). Commands take effect at the next frame;
-a command outside ``robot.limits`` is logged as an error, counted (the stage then fails at the
-end) and applied as the valves would: saturated onto the safe set.
+a command outside ``robot.limits`` or the arm's ``robot.rating`` is logged as an error, counted
+(the stage then fails at the end) and applied as the valves would: saturated onto the safe set.
+Deadman (:class:`pipeline.ros2.guard.Deadman`, as the guard node): when no command arrived within
+``robot.command_timeout_s`` of the last one, the arm returns to the rating's preload.
 
 Runs until SIGINT/SIGTERM or ``robot.twin.max_duration_s`` (wall). With ``robot.twin.record_path``
 every command received is appended to a JSON-lines file (receipt time in ROS ns, pressures in
-kPa, whether within the limits), flushed line by line so that it survives a kill.
+kPa, whether within the limits), flushed line by line so that it survives a kill; a return to
+the preload by the deadman is a line with ``"deadman": true``.
 """
 
 from __future__ import annotations
@@ -30,19 +33,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline import sim_arm
+from pipeline.arm import sim_arm
+from pipeline.arm.safety import UnsafeCommandError, validate_limits
 from pipeline.config import RobotKind
-from pipeline.ros2 import require_rclpy
-from pipeline.ros2.gate import CommandGate
-from pipeline.ros2.messages import (
+from pipeline.data.ros_messages import (
     NS_PER_S,
     message_class,
     read_pressures,
     write_position,
     write_stamp_ns,
 )
-from pipeline.ros2.node import StopSignals, qos_profile, ros_node
-from pipeline.safety import assert_safe, validate_limits
+from pipeline.ros2.gate import CommandGate
+from pipeline.ros2.guard import Deadman, rating_preload
+from pipeline.ros2.node import StopSignals, qos_profile, require_rclpy, ros_node
 
 log = logging.getLogger(__name__)
 NODE_NAME = "sorolearn_twin"
@@ -131,7 +134,10 @@ class TwinNode:
         self._simulator, self._record = simulator, record
         self._stamp_field, self._position_field = robot.stamp_field, robot.position_field
         self._frame_id = str(robot.twin.frame_id)
-        self._gate = CommandGate(robot.limits, robot.n_valves)
+        self._gate = CommandGate.for_robot(robot)
+        self._preload = rating_preload(robot)
+        self.deadman = Deadman(float(robot.command_timeout_s) / float(robot.time_scale))
+        self._at_preload = True  # the simulated arm starts at rest
         self._pose_type = message_class(robot.pose_type)
         self._publisher = node.create_publisher(self._pose_type, robot.pose_topic,
                                                 qos_profile(robot.pose_qos))
@@ -141,26 +147,46 @@ class TwinNode:
         self.frames_dropped = 0
         self.commands_received = 0
         self.commands_outside_limits = 0
+        self.deadman_returns = 0
 
     def _now_ns(self) -> int:
         return self._node.get_clock().now().nanoseconds
 
     def _on_command(self, message: Any) -> None:
         receipt = self._now_ns()
+        self.deadman.feed(time.monotonic())
         pressures = read_pressures(message, self._robot.command_field, self._robot.n_valves)
         self.commands_received += 1
         try:
-            assert_safe(pressures, self._robot.limits)
+            self._gate.check(pressures)
             within = True
         except ValueError as err:
             within = False
             self.commands_outside_limits += 1
             log.error("twin: received an unsafe command: %s", err)
-        self._simulator.set_command(self._gate(pressures))
+        applied = self._gate(pressures)
+        self._simulator.set_command(applied)
+        self._at_preload = bool(np.array_equal(applied, self._preload))
+        self._write({"receipt_ns": receipt, "pressures": pressures.tolist(),
+                     "within_limits": within})
+
+    def _write(self, row: dict[str, Any]) -> None:
         if self._record is not None:
-            self._record.write(json.dumps({"receipt_ns": receipt, "pressures": pressures.tolist(),
-                                           "within_limits": within}) + "\n")
+            self._record.write(json.dumps(row) + "\n")
             self._record.flush()
+
+    def _check_deadman(self, now: float) -> None:
+        """Back to the preload once no command arrived within robot.command_timeout_s."""
+        if self._at_preload or not self.deadman.stale(now):
+            return
+        self._simulator.set_command(self._preload)
+        self._at_preload = True
+        self.deadman_returns += 1
+        log.warning("twin: no command on %s for robot.command_timeout_s=%s s: back to the "
+                    "preload %s kPa", self._robot.command_topic, self._robot.command_timeout_s,
+                    self._preload.tolist())
+        self._write({"receipt_ns": self._now_ns(), "pressures": self._preload.tolist(),
+                     "within_limits": True, "deadman": True})
 
     def _publish(self, stamp_ns: int, position: np.ndarray) -> None:
         message = self._pose_type()
@@ -185,6 +211,7 @@ class TwinNode:
             now = time.monotonic()
             if max_wall_s is not None and now - start > float(max_wall_s):
                 return f"robot.twin.max_duration_s={max_wall_s} s elapsed"
+            self._check_deadman(now)
             due = start + frame * period_wall_s
             if now < due or now - spun > _SPIN_EVERY_S:
                 self._executor.spin_once(timeout_sec=min(max(due - now, 0.0), _SPIN_SLICE_S))
@@ -201,7 +228,7 @@ class TwinNode:
         return f"{signals.received} received"
 
 
-def twin(cfg: Any) -> None:
+def serve(cfg: Any) -> None:
     """Serve the digital twin on ``cfg.robot``'s topics (``robot=ros2``) until stopped."""
     robot = cfg.robot
     if RobotKind(robot.kind) is not RobotKind.ros2:
@@ -226,7 +253,11 @@ def twin(cfg: Any) -> None:
     log.info("twin: stopped (%s): %d frames published, %d dropped by the simulated mocap, "
              "%d commands received", reason, node_.frames_published, node_.frames_dropped,
              node_.commands_received)
+    if node_.deadman_returns:
+        log.info("twin: the deadman returned the arm to the preload %d time(s)",
+                 node_.deadman_returns)
     if node_.commands_outside_limits:
-        raise RuntimeError(f"twin: {node_.commands_outside_limits} of the "
-                           f"{node_.commands_received} commands received were outside robot.limits")
+        raise UnsafeCommandError(f"twin: {node_.commands_outside_limits} of the "
+                                 f"{node_.commands_received} commands received were outside "
+                                 f"robot.limits or the arm's rating robot.rating")
 

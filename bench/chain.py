@@ -1,0 +1,95 @@
+"""The default chain end to end, cold and warm: what a user waits for.
+
+Runs ``python -m pipeline`` (or the given overrides) in fresh processes into fresh output
+folders: first with an empty compilation cache (cold), then again into another fresh output
+folder with the cache the first run filled (warm). Prints each stage's wall time and, for
+train_ppo, its compile and training seconds, side by side. ``--ref COMMIT`` adds the same chain
+run from that commit (a temporary git worktree, with its own cold runs), where it still runs.
+
+    python -m bench chain [--ref a8a1940] [overrides ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from pipeline.config import PROJECT_ROOT
+
+STAGE_LINE = re.compile(r"stage (\S+(?: \([^)]*\))?) done in ([\d.]+) s")
+TRAIN_LINE = re.compile(r"train_ppo: (\{.*\})")
+
+
+def run_chain(root: Path, output: Path, cache: Path | None, overrides: list[str]) -> dict:
+    """Run the chain from checkout ``root``; return wall time, stage times and train timings."""
+    env = {**os.environ, "PYTHONPATH": str(root), "JAX_PLATFORMS": "cpu"}
+    env.pop("SOROLEARN_COMPILE_CACHE", None)
+    args = [sys.executable, "-m", "pipeline", f"paths.output_dir={output}", *overrides]
+    if cache is not None:
+        args.append(f"paths.compile_cache_dir={cache}")
+    started = time.perf_counter()
+    result = subprocess.run(args, cwd=root, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - started
+    log = result.stdout + result.stderr
+    if result.returncode != 0:
+        return {"wall_s": wall, "error": log[-2000:]}
+    stages = {name: float(s) for name, s in STAGE_LINE.findall(log)}
+    trainings = [json.loads(m) for m in TRAIN_LINE.findall(log)]
+    return {"wall_s": wall, "stages": stages,
+            "train": {t["agent"]: (t["compile_seconds"], t["train_seconds"]) for t in trainings}}
+
+
+def table(runs: dict[str, dict]) -> str:
+    names = list(dict.fromkeys(n for r in runs.values() for n in r.get("stages", {})))
+    lines = ["| | " + " | ".join(runs) + " |", "|---" * (len(runs) + 1) + "|"]
+    lines.append("| whole chain (wall s) | " + " | ".join(f"{r['wall_s']:.1f}" for r in
+                                                         runs.values()) + " |")
+    for name in names:
+        lines.append(f"| {name} | " + " | ".join(
+            f"{r['stages'][name]:.1f}" if name in r.get("stages", {}) else "—"
+            for r in runs.values()) + " |")
+    agents = list(dict.fromkeys(a for r in runs.values() for a in r.get("train", {})))
+    for agent in agents:
+        lines.append(f"| {agent}: compile / train s | " + " | ".join(
+            "{:.1f} / {:.1f}".format(*r["train"][agent]) if agent in r.get("train", {})
+            else "—" for r in runs.values()) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ref", help="also run the chain of this commit (cold)")
+    parser.add_argument("overrides", nargs="*")
+    args = parser.parse_args(argv)
+    runs = {}
+    with tempfile.TemporaryDirectory(prefix="bench-chain-") as tmp:
+        tmp = Path(tmp)
+        cache = tmp / "cache"
+        runs["cold"] = run_chain(PROJECT_ROOT, tmp / "cold", cache, args.overrides)
+        runs["warm (cache kept)"] = run_chain(PROJECT_ROOT, tmp / "warm", cache, args.overrides)
+        if args.ref:
+            checkout = tmp / "ref"
+            subprocess.run(["git", "worktree", "add", "--detach", str(checkout), args.ref],
+                           cwd=PROJECT_ROOT, check=True, capture_output=True)
+            try:
+                runs[f"{args.ref} (cold)"] = run_chain(checkout, tmp / "ref-out", None,
+                                                      args.overrides)
+            finally:
+                subprocess.run(["git", "worktree", "remove", "--force", str(checkout)],
+                               cwd=PROJECT_ROOT, capture_output=True)
+    for name, result in runs.items():
+        if "error" in result:
+            print(f"{name}: the chain failed:\n{result['error']}")
+    print(f"cores: {os.cpu_count()}; overrides: {' '.join(args.overrides) or '(default chain)'}")
+    print(table({k: v for k, v in runs.items() if "error" not in v}))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,88 @@
+"""The arm over ROS 2 for the control loop, in real time on the arm's clock.
+
+Built on collect's node (:class:`pipeline.ros2.collector.ArmLink`: command publisher, pose
+subscriber) and its session helpers (:meth:`~pipeline.ros2.collector.Session.wait_for_arm`,
+:meth:`~pipeline.ros2.collector.Session.stop_safely`: the preload published last and its
+delivery awaited). Arm time is ROS time since :meth:`RosArm.start` times ``robot.time_scale``;
+pose times are their header stamps on the same clock. Live goals arrive as
+``geometry_msgs/msg/PointStamped`` (metres) on ``control.goal_topic``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from pipeline.control.loop import Frame, Stop
+from pipeline.data.ros_messages import NS_PER_S, message_class
+from pipeline.ros2.collector import ArmLink, Session
+from pipeline.ros2.gate import CommandGate
+
+_SPIN_SLICE_S = 0.002  # wall: longest wait inside the executor
+
+
+class RosArm:
+    def __init__(self, node: Any, executor: Any, robot: Any, control: Any, gate: CommandGate,
+                 signals: Any):
+        self.link = ArmLink(node, executor, robot)
+        self.session = Session(robot, self.link, gate, None, signals)
+        self.robot, self.signals = robot, signals
+        self.scale = float(robot.time_scale)
+        self.watchdog_wall_s = float(robot.watchdog_s) / self.scale
+        self._t0_ns = 0
+        self._goals: list[np.ndarray] = []
+        if control.goal_topic:
+            from rclpy.qos import QoSProfile
+
+            node.create_subscription(message_class("geometry_msgs/msg/PointStamped"),
+                                     str(control.goal_topic), self._on_goal, QoSProfile(depth=10))
+
+    def _on_goal(self, message: Any) -> None:
+        point = message.point
+        self._goals.append(np.array([point.x, point.y, point.z], np.float64))
+
+    def _arm_time(self, ns: int) -> float:
+        return (ns - self._t0_ns) / NS_PER_S * self.scale
+
+    def start(self) -> None:
+        self.session.wait_for_arm()
+        self._t0_ns = self.link.now_ns()
+
+    def now(self) -> float:
+        return self._arm_time(self.link.now_ns())
+
+    def advance(self, until: float) -> None:
+        if self.signals.received:
+            raise Stop(f"{self.signals.received} received")
+        remaining_wall = (until - self.now()) / self.scale
+        self.link.spin_once(min(max(remaining_wall, 0.0), _SPIN_SLICE_S))
+        silent = time.monotonic() - self.link.last_pose_at
+        if silent > self.watchdog_wall_s:
+            self.link.spin_once(0.0)  # a pose may be queued behind a stall of this process
+            silent = time.monotonic() - self.link.last_pose_at
+            if silent > self.watchdog_wall_s:
+                raise Stop(f"mocap watchdog: no pose on {self.robot.pose_topic} for "
+                           f"{silent * self.scale:.2f} s (robot.watchdog_s="
+                           f"{self.robot.watchdog_s})")
+
+    def receive(self) -> None:
+        """Run the callbacks of messages already queued (up to the pose queue's depth)."""
+        for _ in range(int(self.robot.pose_qos.depth)):
+            self.link.spin_once(0.0)
+
+    def take_frames(self) -> list[Frame]:
+        return [(self._arm_time(stamp), self._arm_time(receipt), np.asarray(xyz, np.float64))
+                for stamp, receipt, xyz in self.link.take_poses()]
+
+    def take_goals(self) -> list[np.ndarray]:
+        goals, self._goals = self._goals, []
+        return goals
+
+    def publish(self, pressures: np.ndarray) -> float:
+        return self._arm_time(self.link.publish(pressures))
+
+    def stop_safely(self) -> bool | None:
+        self.session.stop_safely()
+        return self.session.preload_acknowledged

@@ -1,0 +1,1 @@
+"""Data: table schemas, importers of recordings, alignment, training windows, raw streams."""

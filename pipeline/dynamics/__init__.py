@@ -1,0 +1,1 @@
+"""The learned forward-dynamics model (``model``), its training (``training``), its figures."""

@@ -1,0 +1,1 @@
+"""Evaluation: closed-loop rollouts, MPC, metrics, figures and the report."""

@@ -1,0 +1,269 @@
+"""Closed-loop rollouts of every controller on the learned environment and on the plant.
+
+For every policy type (all seeds) and every baseline (``preload``: do nothing; ``random``: random
+safe actions; ``mpc``: sampling-based MPC on the learned model, :mod:`pipeline.evaluation.mpc`), on
+the same held-out goals and start states: on the **learned environment**, on the **plant** (the
+simulated arm for ``robot=sim``, observed through the same normalization the policies were
+trained with) and on a **consecutive-goals** task (several targets in a row, no reset).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from pipeline.config import RobotKind
+from pipeline.evaluation import mpc, rollouts
+from pipeline.evaluation.metrics import MM_PER_M, episode_metrics, plant_gap, summarize
+from pipeline.infra.artifacts import Artifact
+from pipeline.rl.envs.factory import (
+    common_params,
+    observation_options,
+    sim_plant_params,
+    sim_rest_pose,
+)
+from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv, make_env_params
+from pipeline.rl.envs.plants import learned_plant, sim_plant
+from pipeline.rl.networks import initial_hidden
+from pipeline.rl.policy_io import load_policy
+
+
+def _plant_env(cfg: Any, learned_env: SoftArmReachEnv, learned_params: EnvParams,
+               key: jax.Array) -> tuple[SoftArmReachEnv, EnvParams] | None:
+    """The ground-truth plant as an environment observed like the learned one (same goals and
+    normalization), or None when this robot has no simulator."""
+    if RobotKind(cfg.robot.kind) is not RobotKind.sim or not cfg.evaluation.plant:
+        return None
+    mocap_hz = float(cfg.robot.mocap.rate_hz)
+    frames = round(mocap_hz / float(cfg.dataset.model_hz))
+    # observed exactly like the learned env, which make_learned_env built from the same options
+    env = SoftArmReachEnv(sim_plant(mocap_hz, frames), learned_env.control_hz,
+                          **observation_options(cfg.env))
+    plant = sim_plant_params(cfg)
+    params = make_env_params(
+        env, plant, key=key, safe_set=learned_params.safe_set, preload=plant.preload,
+        rest_pose=sim_rest_pose(plant),
+        rest_pose_std=jnp.asarray(cfg.robot.physics.rest_pose_std_m, jnp.float32),
+        goal_set=learned_params.goal_set, obs_mean=learned_params.obs_mean,
+        obs_scale=learned_params.obs_scale, **common_params(cfg))
+    return env, params
+
+
+def _starts(params: EnvParams, count: int) -> tuple[Any, jax.Array]:
+    index = jnp.arange(count) % params.reset_positions.shape[0]
+    return (jax.tree.map(lambda leaf: leaf[index], params.reset_carries),
+            params.reset_positions[index])
+
+
+class Controllers(NamedTuple):
+    """One kind of controller for every seed: ``make(params, env_params)`` builds it from its
+    parameters, ``params`` (leaves ``[S, ...]``, ``S = 1`` for a baseline) and ``carries``
+    (leaves ``[S, E, ...]``, one per episode) are passed to the compiled program as arguments."""
+
+    make: Callable[[Any, EnvParams], rollouts.Controller]
+    params: Any
+    carries: Any
+
+
+def rollout_program(env: SoftArmReachEnv, make: Callable[[Any, EnvParams], rollouts.Controller]
+                    ) -> Callable[..., tuple[jax.Array, jax.Array]]:
+    """One compiled program for a controller kind on ``env``, every seed and episode at once:
+    ``(env_params, params [S], carries [S, E], keys [E], starts [E], goals [E, T, 3])
+    -> positions [S, E, T + 1, 3], commands [S, E, T, 3]``. Seeds see the same keys, starts and
+    goals."""
+
+    def one(env_params, params, carry, key, start_carry, start_position, goal_path):
+        return rollouts.rollout(env, env_params, make(params, env_params), carry, key,
+                                start_carry, start_position, goal_path)
+
+    episodes = jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0, 0))
+    return jax.jit(jax.vmap(episodes, in_axes=(None, 0, 0, None, None, None, None)))
+
+
+def _controllers(cfg, env, params, learned_params, policies_loaded, num_episodes
+                 ) -> dict[str, Controllers]:
+    """Every policy type (all its seeds) and every baseline on ``env`` with ``params``, by name.
+
+    ``learned_params`` are the learned environment's: the MPC's model starts from its settled
+    states (the same ones the learned environment starts from).
+    """
+    out = {}
+    for name, (network, stacked, num_seeds) in policies_loaded.items():
+        hidden = initial_hidden(network, 1)
+        carries = (jnp.broadcast_to(hidden, (num_seeds, num_episodes, *hidden.shape)),
+                   jnp.ones((num_seeds, num_episodes), bool))
+        out[name] = Controllers(
+            lambda params, env_params, n=network: rollouts.policy_controller(n, params),
+            stacked, carries)
+    none, dummy = jnp.zeros((1,)), jnp.zeros((1, num_episodes))
+    for baseline in cfg.evaluation.baselines:
+        if baseline == "preload":
+            out[baseline] = Controllers(
+                lambda params, env_params: rollouts.preload_controller(env, env_params),
+                none, dummy)
+        elif baseline == "random":
+            out[baseline] = Controllers(lambda params, env_params: rollouts.random_controller(),
+                                        none, dummy)
+        elif baseline == "mpc":
+            settings = mpc.CEMSettings(horizon=int(cfg.evaluation.mpc_horizon),
+                                       num_samples=int(cfg.evaluation.mpc_samples),
+                                       num_iterations=int(cfg.evaluation.mpc_iterations))
+            model = learned_plant(float(cfg.dataset.model_hz))
+            model_carries, model_starts = _starts(learned_params, num_episodes)
+            carries = jax.vmap(mpc.initial_carry, in_axes=(0, 0, None))(
+                model_carries, model_starts, params.preload)
+            out[baseline] = Controllers(
+                lambda params, env_params, m=model, s=settings: mpc.mpc_controller(
+                    env, env_params, m, params, s),
+                jax.tree.map(lambda x: x[None], learned_params.plant),
+                jax.tree.map(lambda x: x[None], carries))
+        else:
+            raise ValueError(f"evaluation.baselines: unknown baseline {baseline!r}; "
+                             "known: preload, random, mpc")
+    return out
+
+
+class _Programs:
+    """The compiled rollout program of each (plant, controller kind), built on first use."""
+
+    def __init__(self):
+        self._programs: dict[tuple[str, str], Callable[..., Any]] = {}
+
+    def run(self, plant: str, name: str, env: SoftArmReachEnv, env_params: EnvParams,
+            controllers: Controllers, keys, starts, goals) -> tuple[np.ndarray, np.ndarray]:
+        if (plant, name) not in self._programs:
+            self._programs[(plant, name)] = rollout_program(env, controllers.make)
+        start_carries, start_positions = starts
+        positions, commands = self._programs[(plant, name)](
+            env_params, controllers.params, controllers.carries, keys, start_carries,
+            start_positions, goals)
+        return np.asarray(positions), np.asarray(commands)
+
+
+def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: Any,
+               key: jax.Array, cfg: Any) -> EnvParams:
+    """Another fitted model as a plant of the same environment: its own settled starts from
+    the learned env's start poses, the same safe set, goals and observation normalization."""
+    starts = eval_params.reset_positions
+    return make_env_params(
+        env, dynamics_params, key=key, safe_set=eval_params.safe_set,
+        preload=eval_params.preload, rest_pose=starts.mean(axis=0),
+        rest_pose_std=starts.std(axis=0), goal_set=eval_params.goal_set,
+        obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale, **common_params(cfg))
+
+
+def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv,
+                   eval_params: EnvParams, models: dict[str, Any] | None = None
+                   ) -> dict[str, Any]:
+    """Roll out every controller of ``policies`` (train_ppo artifacts by policy type) and every
+    baseline on the learned env (``env`` with its evaluation parameters), on the plant and in
+    each of ``models`` (other fitted models' ``DynamicsParams`` by plant name); return tables
+    and arrays."""
+    evaluation = cfg.evaluation
+    episodes, steps = int(evaluation.num_episodes), int(cfg.env.max_steps)
+    key = jax.random.key(int(evaluation.seed))
+    goal_key, plant_key, rollout_key, consecutive_key = jax.random.split(key, 4)
+
+    goal_index = jax.random.randint(goal_key, (episodes,), 0, eval_params.goal_set.shape[0])
+    goals = eval_params.goal_set[goal_index]
+    goal_paths = jnp.broadcast_to(goals[:, None], (episodes, steps, 3))
+    plants = {"learned": (env, eval_params)}
+    plant_env = _plant_env(cfg, env, eval_params, plant_key)
+    if plant_env is not None:
+        plants["plant"] = plant_env
+    for number, (name, dynamics_params) in enumerate((models or {}).items()):
+        plants[name] = (env, _model_env(env, eval_params, dynamics_params,
+                                        jax.random.fold_in(plant_key, number + 1), cfg))
+
+    loaded = {}
+    for name, artifact in policies.items():
+        network, stacked, _ = load_policy(artifact.file("policy.msgpack"))
+        loaded[name] = (network, stacked, jax.tree.leaves(stacked)[0].shape[0])
+
+    limits = cfg.robot.limits
+    rows, finals, paths = [], {}, {}
+    keys = jax.random.split(rollout_key, episodes)
+    programs = _Programs()
+    for plant_name, (plant_env_i, plant_params) in plants.items():
+        controllers = _controllers(cfg, plant_env_i, plant_params, eval_params, loaded, episodes)
+        starts = _starts(plant_params, episodes)
+        for controller, batch in controllers.items():
+            positions, commands = programs.run(plant_name, controller, plant_env_i, plant_params,
+                                               batch, keys, starts, goal_paths)
+            for seed in range(positions.shape[0]):
+                table = episode_metrics(positions[seed], np.asarray(goals), commands[seed],
+                                        limits)
+                table.insert(0, "episode", np.arange(episodes))
+                table.insert(0, "seed", seed)
+                table.insert(0, "controller", controller)
+                table.insert(0, "plant", plant_name)
+                rows.append(table)
+                finals[(plant_name, controller, seed)] = positions[seed, :, -1]
+                paths[(plant_name, controller, seed)] = positions[seed]
+    episodes_table = pd.concat(rows, ignore_index=True)
+    summary = summarize(episodes_table, ["plant", "controller"])
+    gaps = _gap_table(episodes_table, finals) if "plant" in plants else pd.DataFrame()
+    consecutive = _consecutive(cfg, plants, loaded, consecutive_key, eval_params, programs)
+    headline = {
+        f"{row.plant}/{row.controller}": {"median_final_mm": float(row.median_final_mm),
+                                          "success_1mm": float(row.success_1mm),
+                                          "success_3mm": float(row.success_3mm)}
+        for row in summary.itertuples()}
+    return {"tables": {"episodes": episodes_table, "summary": summary, "plant_gap": gaps,
+                       "consecutive": consecutive},
+            "paths": paths, "goals": np.asarray(goals), "headline": headline}
+
+
+def _gap_table(episodes: pd.DataFrame, finals: dict) -> pd.DataFrame:
+    rows = []
+    for (plant, controller, seed), final in finals.items():
+        if plant != "plant":
+            continue
+        learned = episodes[(episodes.plant == "learned") & (episodes.controller == controller)
+                           & (episodes.seed == seed)]
+        on_plant = episodes[(episodes.plant == "plant") & (episodes.controller == controller)
+                            & (episodes.seed == seed)]
+        gap = plant_gap(learned, on_plant, finals[("learned", controller, seed)], final)
+        gap.insert(0, "seed", seed)
+        gap.insert(0, "controller", controller)
+        rows.append(gap)
+    return pd.concat(rows, ignore_index=True)
+
+
+def _consecutive(cfg, plants, loaded, key, eval_params, programs: _Programs) -> pd.DataFrame:
+    """Reach ``num_consecutive_goals`` goals one after another (``max_steps`` each, no reset);
+    the distance at the end of each goal's time is recorded."""
+    count = int(cfg.evaluation.num_consecutive_goals)
+    episodes = int(cfg.evaluation.consecutive_episodes)
+    per_goal = int(cfg.env.max_steps)
+    if count < 1 or episodes < 1:
+        return pd.DataFrame()
+    goal_key, rollout_key = jax.random.split(key)
+    index = jax.random.randint(goal_key, (episodes, count), 0, eval_params.goal_set.shape[0])
+    goals = np.repeat(np.asarray(eval_params.goal_set[index]), per_goal, axis=1)
+    keys = jax.random.split(rollout_key, episodes)
+    rows = []
+    for plant_name, (env, params) in plants.items():
+        controllers = _controllers(cfg, env, params, eval_params, loaded, episodes)
+        starts = _starts(params, episodes)
+        for controller, batch in controllers.items():
+            if controller in ("preload", "random"):
+                continue
+            positions, _ = programs.run(plant_name, controller, env, params, batch, keys, starts,
+                                        jnp.asarray(goals))
+            ends = positions[:, :, per_goal::per_goal]  # pose at the end of each goal's time
+            targets = goals[:, per_goal - 1::per_goal]
+            distance = np.linalg.norm(ends - targets, axis=-1) * MM_PER_M  # [S, E, goals]
+            for seed in range(positions.shape[0]):
+                for goal_number in range(count):
+                    at_goal = distance[seed, :, goal_number]
+                    rows.append({"plant": plant_name, "controller": controller, "seed": seed,
+                                 "goal": goal_number,
+                                 "median_distance_mm": float(np.median(at_goal)),
+                                 "success_3mm": float((at_goal <= 3).mean())})
+    return pd.DataFrame(rows)

@@ -1,0 +1,238 @@
+"""The sections of the evaluation report (:mod:`pipeline.evaluation.report` renders them).
+
+Where the words come from: ``plant`` in the tables is the simulated arm (``robot=sim``: its own
+hysteresis, creep and rest-pose spread, equations the model never saw), ``learned`` the fitted
+model the policies were trained in; the report says so in words.
+"""
+
+from __future__ import annotations
+
+import pandas as pd
+from omegaconf import OmegaConf
+
+from pipeline.evaluation.metrics import seed_spread
+from pipeline.evaluation.report import Figure, Section, Table, format_number
+from pipeline.infra.artifacts import Artifact
+
+PLANT_NAMES = {"learned": "learned model", "plant": "simulated arm"}
+# the summary's columns as the report shows them (units in the name)
+SUMMARY_COLUMNS = {
+    "controller": "controller", "plant": "evaluated on", "episodes": "episodes",
+    "median_final_mm": "median final [mm]", "mean_final_mm": "mean final [mm]",
+    "p90_final_mm": "p90 final [mm]", "success_1mm": "final ≤ 1 mm", "success_3mm": "final ≤ 3 mm",
+    "reached_3mm": "ever ≤ 3 mm", "median_steps_to_3mm": "median steps to 3 mm",
+    "smoothness_kpa": "smoothness [kPa/step]", "time_above_limits": "time above limits",
+}
+STEPS_NOTE = ("'ever ≤ 3 mm' is the fraction of episodes that came within 3 mm of the goal at "
+              "any time; 'median steps to 3 mm' the median over all episodes of when they first "
+              "did, those that never did counted as never (∞ when fewer than half did). "
+              "Smoothness: mean |change| of the command between consecutive control periods, "
+              "per valve. Fractions are of episodes; 'time above limits' the largest fraction "
+              "of an episode's steps outside the safe set (0 is required).")
+
+
+def _plant_label(name: str) -> str:
+    return PLANT_NAMES.get(name, name)
+
+
+def _ordered(frame: pd.DataFrame, order: list[str]) -> pd.DataFrame:
+    rank = {name: i for i, name in enumerate(order)}
+    return frame.sort_values("controller", key=lambda c: c.map(rank), kind="stable")
+
+
+def _summary_table(summary: pd.DataFrame) -> pd.DataFrame:
+    shown = summary.assign(plant=summary["plant"].map(_plant_label))
+    return shown[[c for c in SUMMARY_COLUMNS if c in shown]].rename(columns=SUMMARY_COLUMNS)
+
+
+def _model_sentence(model: Artifact) -> str:
+    held = model.manifest["summary"]
+    tested = list(held.get("test_runs", []))
+    runs = (f"the {len(tested)} held-out run{'s' if len(tested) != 1 else ''} "
+            f"({', '.join(tested)})" if tested else "the training runs (no run was held out)")
+    return (f"Dynamics model: **{format_number(held['lstm_mean_mm'])} mm** mean and "
+            f"{format_number(held['lstm_p95_mm'])} mm 95th-percentile open-loop error over "
+            f"{runs}, each predicted over its entire length from its commands alone "
+            f"(mean-position baseline {format_number(held['mean_position_mean_mm'])} mm, linear "
+            f"lagged-pressure baseline {format_number(held['linear_lagged_mean_mm'])} mm).")
+
+
+def _summary_section(cfg, model, summary: pd.DataFrame, order: list[str]) -> Section:
+    """The headline: model accuracy, and each controller's median final distance."""
+    section = Section("Summary")
+    if model is not None:
+        section.add(_model_sentence(model))
+    if "plant" in set(summary["plant"]):
+        section.add("Every controller is run on the **learned model** (the fitted LSTM the "
+                    "policies were trained in) and on the **simulated arm** (the plant: "
+                    "`robot=sim`'s own physics, with hysteresis, creep and a rest pose that "
+                    "differs between sessions, which the model only saw through recorded data).")
+    wide = summary.pivot_table(index="controller", columns="plant",
+                               values="median_final_mm").reset_index()
+    wide.columns.name = None
+    wide = _ordered(wide, order).rename(
+        columns={p: f"on the {_plant_label(p)} [mm]" for p in PLANT_NAMES})
+    section.add(Table(wide, f"median final distance to held-out goals after {cfg.env.max_steps} "
+                            "control periods, every seed's episodes pooled"))
+    return section
+
+
+def _model_section(model: Artifact | None) -> Section:
+    accuracy = Section("Model accuracy")
+    if model is None:
+        accuracy.add("No dynamics model in this run.")
+        return accuracy
+    metrics = pd.read_parquet(model.file("metrics.parquet"))
+    held = model.manifest["summary"]
+    trained, tested = list(held.get("train_runs", [])), list(held.get("test_runs", []))
+    accuracy.add(f"{len(trained)} training run{'s' if len(trained) != 1 else ''} and "
+                 f"{len(tested)} held-out run{'s' if len(tested) != 1 else ''}. Open-loop error "
+                 "over each entire run, predicted from its commands alone: the mean and the "
+                 "95th percentile over time of the distance between predicted and measured "
+                 "position, next to two baselines.")
+    per_run = metrics.pivot_table(index=["split", "run_id"], columns="model",
+                                  values=["mean_mm", "p95_mm"]).reset_index()
+    names = {"mean_mm": "mean [mm]", "p95_mm": "p95 [mm]"}
+    per_run.columns = [f"{model_name} {names[stat]}" if model_name else stat
+                       for stat, model_name in per_run.columns]
+    models = [m for m in ("lstm", "linear_lagged", "mean_position") if m in set(metrics["model"])]
+    columns = ["split", "run_id"] + [f"{m} {s}" for m in models for s in names.values()]
+    per_run = per_run.sort_values("split", key=lambda c: c.map({"train": 0, "test": 1}))
+    accuracy.add(Table(per_run[columns], "open-loop error per run (split test: held out)"))
+    for name, caption in (
+            ("loss.png", "loss curves: training loss (raw and EMA-smoothed) and the held-out "
+                         "runs' loss and open-loop error"),
+            ("reconstruction.png", "open-loop reconstruction of a training and an unseen run: "
+                                   "measured and predicted x, y, z, the error over time, and a "
+                                   "zoom (right of each run) into the shaded window")):
+        if model.file(f"figures/{name}").is_file():
+            accuracy.add(Figure(model.file(f"figures/{name}"), caption))
+    return accuracy
+
+
+def _chatter_sentence(summary: pd.DataFrame, policies: list[str]) -> str | None:
+    """MPC's command smoothness on the simulated arm against the policies', in words."""
+    on_plant = summary[summary["plant"] == "plant"].set_index("controller")["smoothness_kpa"]
+    if "mpc" not in on_plant or not any(p in on_plant for p in policies):
+        return None
+    mpc = float(on_plant["mpc"])
+    others = {p: float(on_plant[p]) for p in policies if p in on_plant}
+    against = ", ".join(f"{format_number(v)} for {p}" for p, v in others.items())
+    smoothest = min(others.values())
+    sentence = (f"On the simulated arm MPC's commands change by {format_number(mpc)} kPa per "
+                f"control period and valve on average, against {against}")
+    if smoothest > 0 and mpc > 3 * smoothest:
+        sentence += (f": MPC chatters ({format_number(mpc / smoothest)} times the smoothest "
+                     "policy's change). It searches a new command every period (cross-entropy "
+                     "method on the learned model, from fresh random samples, with the goal "
+                     "shifted by the arm-minus-model offset), so consecutive commands jump.")
+    else:
+        sentence += "."
+    return sentence
+
+
+def report_sections(cfg, policies, results, figures, collect: Artifact | None = None,
+                    aligned: Artifact | None = None, model: Artifact | None = None
+                    ) -> list[Section]:
+    """The report of an evaluation; ``collect``, ``aligned``, ``model``: the upstream artifacts
+    where there are any (env=learned)."""
+    tables = results["tables"]
+    summary = tables["summary"]
+    episodes = tables["episodes"]
+    names = list(policies)
+    order = names + list(cfg.evaluation.baselines)
+    sections = [_summary_section(cfg, model, summary, order)]
+
+    config = Section("Configuration")
+    config.add(f"Robot `{cfg.robot.name}`; exploration alpha {cfg.exploration.alpha}, beta "
+               f"{cfg.exploration.beta}, P_max {cfg.exploration.p_max} kPa; model "
+               f"{cfg.model.hidden} units at {cfg.dataset.model_hz} Hz; policies "
+               f"{', '.join(cfg.evaluation.policies)}; baselines "
+               f"{', '.join(cfg.evaluation.baselines)}.")
+    config.add("```yaml\n" + OmegaConf.to_yaml(cfg, resolve=True) + "```")
+    sections.append(config)
+
+    data = Section("Data")
+    if collect is not None:
+        collected = collect.manifest["summary"]
+        data.add(f"{collected.get('runs')} runs, {collected.get('commands')} commands, "
+                 f"{collected.get('frames')} motion-capture frames "
+                 f"({collected.get('dropped_frames')} dropped). Artifact `{collect.path}`.")
+        for name, caption in (("exploration_alphas.png", "exploration walk for several alpha "
+                                                         "(the same random draws for each)"),
+                              ("runs.png", "recorded commands and positions")):
+            if collect.file(f"figures/{name}").is_file():
+                data.add(Figure(collect.file(f"figures/{name}"), caption))
+    if aligned is not None:
+        counts = aligned.manifest["summary"]
+        data.add(Table(pd.DataFrame({"count": list(counts), "value": list(counts.values())}),
+                       "alignment counts, summed over runs"))
+    sections.append(data)
+    sections.append(_model_section(model))
+
+    is_policy = summary["controller"].isin(names)
+    seeds = sorted(episodes["seed"].unique()) if "seed" in episodes else [0]
+    policy_episodes = episodes[episodes["controller"].isin(names)]
+    spread = seed_spread(policy_episodes, ["controller", "plant"])
+    spread = _ordered(spread.assign(plant=spread["plant"].map(_plant_label)), order).rename(
+        columns={"plant": "evaluated on", "median_of_seed_medians": "median [mm]",
+                 "q25": "q25 [mm]", "q75": "q75 [mm]", "min": "min [mm]", "max": "max [mm]"})
+    sections.append(Section("Policy results", [
+        f"Final distance to held-out goals after {cfg.env.max_steps} control periods: the "
+        "controller must reach the goal and stay there. Below, every seed's episodes pooled; "
+        f"then the spread over the {len(seeds)} seeds of each seed's median.",
+        Table(_summary_table(_ordered(summary[is_policy], order)), STEPS_NOTE),
+        Table(spread, "spread over seeds of each seed's median final distance: median, "
+                      "quartiles and extremes over seeds"),
+        figures["returns"], figures["distance"], figures["trajectories"]]))
+
+    baselines = Section("Baselines", [
+        "Preload (do nothing), random safe actions, and sampling-based MPC on the learned model "
+        "(offset-corrected on the simulated arm), on the same goals and starts.",
+        Table(_summary_table(_ordered(summary[~is_policy], order)), STEPS_NOTE)])
+    chatter = _chatter_sentence(summary, names)
+    if chatter:
+        baselines.add(chatter)
+    sections.append(baselines)
+
+    gap_section = Section("Plant gap")
+    if len(tables["plant_gap"]):
+        gap = tables["plant_gap"].groupby("controller").agg(
+            median_final_gap_mm=("final_gap_mm", "median"),
+            median_position_gap_mm=("final_position_gap_mm", "median")).reset_index()
+        gap = _ordered(gap, order).rename(columns={
+            "median_final_gap_mm": "median final-distance gap [mm]",
+            "median_position_gap_mm": "median final-pose gap [mm]"})
+        gap_section.add("The learned model against the simulated arm for the same goals: the "
+                        "final distance on the simulated arm minus that on the learned model "
+                        "(positive: worse on the arm), and the distance between the two final "
+                        "poses.")
+        gap_section.add(Table(gap))
+    else:
+        gap_section.add(f"No plant for robot `{cfg.robot.name}`: evaluated on the learned "
+                        "model only.")
+    sections.append(gap_section)
+
+    consecutive = tables["consecutive"]
+    if len(consecutive):
+        sections.append(Section("Consecutive goals", [
+            f"{cfg.evaluation.num_consecutive_goals} goals in a row, {cfg.env.max_steps} "
+            "control periods each, no reset: the distance at the end of each goal's time.",
+            Table(consecutive_table(consecutive, order),
+                  "median over seeds of each seed's median distance [mm] at the end of goal "
+                  "1, 2, ...; the last column: the fraction of all goals (every seed's episodes) ended "
+                  "within 3 mm")]))
+    return sections
+
+
+def consecutive_table(consecutive: pd.DataFrame, order: list[str] | None = None
+                      ) -> pd.DataFrame:
+    """One row per (controller, plant), one labelled column per goal (``goal 1 [mm]`` ...)."""
+    per_goal = (consecutive.groupby(["controller", "plant", "goal"], sort=False)
+                ["median_distance_mm"].median().unstack("goal"))
+    per_goal.columns = [f"goal {int(g) + 1} [mm]" for g in per_goal.columns]
+    within = consecutive.groupby(["controller", "plant"], sort=False)["success_3mm"].mean()
+    table = per_goal.assign(**{"fraction ≤ 3 mm": within}).reset_index()
+    table["plant"] = table["plant"].map(_plant_label)
+    table = table.rename(columns={"plant": "evaluated on"})
+    return _ordered(table, order) if order else table

@@ -1,0 +1,1 @@
+"""Infrastructure: the artifact store, Parquet and atomic writes, experiment tracking."""

@@ -1,0 +1,193 @@
+"""What determines each stage's artifact: its spec (the config it reads) and its inputs (the keys
+of the upstream artifacts it reads), hashed into the artifact key (:func:`artifact_key`).
+
+One place for the whole lineage, so that a stage finds its inputs from the config alone without
+importing the stage that made them, and sweeps share upstream artifacts.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from pipeline.config import PROJECT_ROOT, EnvName, RobotKind
+from pipeline.data.importers import list_recordings, recording_digest
+from pipeline.infra.artifacts import MANIFEST, artifact_key
+from pipeline.rl.policy_io import init_policy_file
+
+Spec = tuple[dict[str, Any], dict[str, str]]
+
+IMPORT_KINDS = (RobotKind.sorolex_csv, RobotKind.plotjuggler_csv, RobotKind.rosbag)
+# How a ROS 2 session runs, not what it records: kept out of the key (so that, e.g.,
+# robot.reuse_incomplete=true finds the interrupted artifact it is meant to reuse).
+_ROS2_OPERATIONAL = ("node_name", "domain_id", "startup_timeout_s", "flush_every_s",
+                     "stop_timeout_s", "reuse_incomplete")
+# Checks of the commands and data, not what is recorded: a run that passes them records the same
+# data whatever they are (the limits, which shape the commands, stay in the key).
+_SAFETY_ONLY = ("rating", "workspace", "command_timeout_s", "guard")
+# the dataset settings of the model (alignment has its own key)
+_MODEL_DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order", "train_fraction",
+                       "split_seed")
+# agent fields that do not change the result (display only)
+_NON_DETERMINING_AGENT_KEYS = ("progress",)
+
+
+def _container(node: Any) -> Any:
+    return OmegaConf.to_container(node, resolve=True)
+
+
+def collect_spec(cfg: Any) -> Spec:
+    """The raw data: the robot and, where it is driven, the exploration."""
+    robot = _container(cfg.robot)
+    for setting in _SAFETY_ONLY:
+        robot.pop(setting, None)
+    kind = RobotKind(cfg.robot.kind)
+    if kind in IMPORT_KINDS:
+        # Imported data is keyed by its content, not by where it lies.
+        for where in ("data_dir", "pattern", "files", "num_runs"):
+            robot.pop(where, None)
+        files = {p.name: recording_digest(p) for p in list_recordings(cfg.robot)}
+        return {"robot": robot, "files": files}, {}
+    if kind is RobotKind.ros2:
+        for setting in _ROS2_OPERATIONAL:
+            robot.pop(setting, None)
+    return {"robot": robot, "exploration": _container(cfg.exploration)}, {}
+
+
+def align_spec(cfg: Any) -> Spec:
+    return ({"align": _container(cfg.dataset.align)},
+            {"collect": artifact_key(*collect_spec(cfg))})
+
+
+def calibrate_spec(cfg: Any) -> Spec:
+    """The simulator fitted to the aligned runs: the calibration settings and the rate its
+    errors are scored at."""
+    spec = {"calibration": _container(cfg.calibration),
+            "dataset": {"model_hz": float(cfg.dataset.model_hz)}}
+    return spec, {"align": artifact_key(*align_spec(cfg))}
+
+
+def fit_model_spec(cfg: Any) -> Spec:
+    dataset = _container(cfg.dataset)
+    spec = {"model": _container(cfg.model),
+            "dataset": {k: dataset[k] for k in _MODEL_DATASET_KEYS}}
+    return spec, {"align": artifact_key(*align_spec(cfg))}
+
+
+def train_ppo_spec(cfg: Any) -> Spec:
+    """The policies: env, agent, seed and, by env, the robot or the model."""
+    env_name = EnvName(cfg.env.name)
+    agent = _container(cfg.agent)
+    for name in _NON_DETERMINING_AGENT_KEYS:
+        agent.pop(name, None)
+    for name in ("init_policy", "init_policy_seed", "init_policy_log_std"):
+        if agent.get(name) is None:  # cold starts keep the keys they had before warm starts
+            agent.pop(name, None)
+    spec: dict[str, Any] = {"env": _container(cfg.env), "agent": agent, "seed": int(cfg.seed)}
+    if agent.get("init_policy"):  # a warm start: the starting policy's content decides too
+        path = init_policy_file(agent["init_policy"])
+        spec["init_policy_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
+    inputs: dict[str, str] = {}
+    if env_name is EnvName.sim:
+        spec["robot"] = _container(cfg.robot)
+        spec["model_hz"] = float(cfg.dataset.model_hz)
+    elif env_name is EnvName.learned:
+        spec["limits"] = _container(cfg.robot.limits)
+        spec["control_hz"] = float(cfg.robot.control_hz)
+        inputs["fit_model"] = artifact_key(*fit_model_spec(cfg))
+    return spec, inputs
+
+
+def agent_option(name: str, base: Any) -> Any:
+    """``base`` (the composed ``agent``) with the settings of option ``name`` laid over it.
+
+    The option file (``conf/agent/<name>.yaml``) says what makes the policy type (name,
+    recurrent, ...); everything else, e.g. an experiment's seeds and budget, carries over.
+    """
+    path = PROJECT_ROOT / "conf" / "agent" / f"{name}.yaml"
+    if not path.is_file():
+        options = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise ValueError(f"evaluation.policies: no agent config {name!r}; options: {options}")
+    node = OmegaConf.load(path)
+    node.pop("defaults", None)
+    return OmegaConf.merge(base, node)
+
+
+def policy_configs(cfg: Any) -> dict[str, Any]:
+    """One full config per evaluated policy type: ``cfg`` with its ``agent`` replaced."""
+    variants = {}
+    for name in cfg.evaluation.policies:
+        variant = cfg.copy()
+        variant.agent = agent_option(name, cfg.agent)
+        variants[name] = variant
+    return variants
+
+
+def evaluate_spec(cfg: Any) -> Spec:
+    spec = {"evaluation": _container(cfg.evaluation), "env": _container(cfg.env)}
+    inputs = {f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
+              for name, variant in policy_configs(cfg).items()}
+    spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do
+    for entry in cfg.evaluation.models:
+        inputs[f"fit_model/{Path(str(entry)).name}"] = Path(str(entry)).name
+    return spec, inputs
+
+
+def control_policy_config(cfg: Any) -> Any:
+    """The config that trained ``control.policy``: ``cfg`` with that agent option laid over its
+    ``agent`` (as :func:`policy_configs` does for evaluate)."""
+    variant = cfg.copy()
+    variant.agent = agent_option(str(cfg.control.policy), cfg.agent)
+    return variant
+
+
+def control_policy_key(cfg: Any) -> str:
+    """The train_ppo key of the policy ``stage=control`` runs: that of ``control.policy_file``'s
+    artifact folder, else that of ``control.policy`` under this config."""
+    if cfg.control.policy_file:
+        path = Path(str(cfg.control.policy_file))
+        manifest = path.parent / MANIFEST
+        if not path.is_file():
+            raise FileNotFoundError(f"control.policy_file: no file at {path}")
+        if not manifest.is_file() or json.loads(manifest.read_text()).get("stage") != "train_ppo":
+            raise ValueError(f"control.policy_file={path} is not inside a train_ppo artifact "
+                             f"(no train_ppo {MANIFEST} beside it): the environment it was "
+                             f"trained in, hence its observation, cannot be rebuilt")
+        return str(json.loads(manifest.read_text())["key"])
+    return artifact_key(*train_ppo_spec(control_policy_config(cfg)))
+
+
+# settings of stage=control that do not change what is commanded
+_CONTROL_OPERATIONAL = ("policy", "policy_file", "goals_csv", "flush_every_s", "node_name")
+
+
+def control_spec(cfg: Any) -> Spec:
+    """A control session: the policy (its train_ppo key), the goals, the robot and its session
+    label (``robot.session`` on ROS 2; a new label runs anew)."""
+    control = _container(cfg.control)
+    for setting in _CONTROL_OPERATIONAL:
+        control.pop(setting, None)
+    if cfg.control.goals_csv:
+        control["goals_csv_sha256"] = hashlib.sha256(
+            Path(str(cfg.control.goals_csv)).read_bytes()).hexdigest()
+    robot = _container(cfg.robot)
+    if RobotKind(cfg.robot.kind) is RobotKind.ros2:
+        for setting in _ROS2_OPERATIONAL:
+            robot.pop(setting, None)
+        robot.pop("twin", None)  # the twin is another process: its settings are not ours
+        control.pop("arm_seed", None)
+    return {"control": control, "robot": robot}, {"train_ppo": control_policy_key(cfg)}
+
+
+SPECS = {"collect": collect_spec, "align": align_spec, "fit_model": fit_model_spec,
+         "train_ppo": train_ppo_spec, "evaluate": evaluate_spec, "control": control_spec,
+         "calibrate": calibrate_spec}
+
+
+def key(stage: str, cfg: Any) -> str:
+    """The artifact key of ``stage`` under ``cfg``."""
+    return artifact_key(*SPECS[stage](cfg))

@@ -1,0 +1,1 @@
+"""Reinforcement learning: environments, PPO, networks, policy checkpoints, training results."""

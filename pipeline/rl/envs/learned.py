@@ -1,0 +1,313 @@
+"""Goal-reaching with a soft arm as a gymnax environment, on any :class:`~pipeline.rl.envs.Plant`.
+
+One environment step is one control period (``1 / control_hz`` s, 2 Hz as in the recorded data):
+the action is held while the plant advances ``plant.model_hz / control_hz`` of its own steps
+(zero-order hold, as the data was recorded).
+
+- **Action** ``[3]`` in ``[-1, 1]`` (clipped), mapped linearly onto each valve's range
+  ``[p_min, p_max]`` kPa, plus Gaussian action noise (kPa), then projected onto the safe set
+  (:func:`pipeline.arm.safety.project`) before it reaches the plant.
+- **Observation** ``[6]``: the measured position (plus Gaussian noise, m) and the goal, both
+  standardized with ``obs_mean`` / ``obs_scale``; with ``include_error`` ``+3``, the error
+  ``goal - measured`` divided by ``error_scale`` (a few mm, so that the last millimetres are not
+  a hundredth of an input's range); with ``include_last_action`` ``+3``, the last applied
+  pressure mapped back to ``[-1, 1]``.
+- **Reward** ``-||goal - position||`` in **millimetres** at the end of the control period.
+- **Terminated** when the distance is within ``goal_tolerance`` (1 mm); **truncated** by gymnax
+  at ``max_steps_in_episode`` steps. Both are returned separately (gymnax 1.x).
+- **Reset.** The plant rests at the preload: an initial pose (rest pose ± its spread) seeds the
+  plant's carry, the preload is held for ``settle_seconds`` and the episode starts from the
+  resulting pose. Settling takes tens of plant steps, and gymnax computes a reset on every step
+  (auto-reset), so the settled states are computed once, in :func:`make_env_params`, into a bank
+  of ``reset_bank_size`` states in ``EnvParams``; a reset draws one of them.
+- **Goal.** ``goal_mode=data``: uniform over ``goal_set`` (positions seen in the data or predicted
+  by the model); ``goal_mode=perturb`` (the paper): ``initial_pose + N(0, 1) * perturbation``.
+
+Everything that varies between fitted models or settings is in :class:`EnvParams`; only the
+plant's static description and the step counts live on the environment object.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from gymnax.environments import environment, spaces
+
+from pipeline.arm.safety import SafeSet, project
+from pipeline.rl.envs import observation
+from pipeline.rl.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
+
+GOAL_MODES = ("data", "perturb")
+MM_PER_M = 1000.0
+
+
+@struct.dataclass
+class EnvState:
+    """State of one episode (a pytree).
+
+    plant_carry: the plant's carry after the last step.
+    position: [3] m, true marker position at the end of the last control period.
+    goal: [3] m.
+    last_pressure: [3] kPa, the last command applied (the preload after a reset).
+    time: int32 scalar, control periods since the reset.
+    """
+
+    plant_carry: Any
+    position: jax.Array
+    goal: jax.Array
+    last_pressure: jax.Array
+    time: jax.Array
+
+
+@struct.dataclass
+class EnvParams:
+    """Everything that varies: the plant, limits, resets, goals, noise (a pytree: vmap it).
+
+    plant: the plant's parameters (e.g. ``DynamicsParams``, ``SimPlantParams``).
+    safe_set: pressure limits (kPa).
+    preload: [3] kPa.
+    reset_carries: bank of settled plant carries, every leaf with a leading [N] axis.
+    reset_positions: [N, 3] m, the pose of each settled carry.
+    goal_set: [G, 3] m, the goals of ``goal_mode=data``.
+    goal_from_data: bool scalar, True for ``goal_mode=data``, False for ``perturb``.
+    goal_perturbation: [3] m, std of the ``perturb`` goals around the initial pose.
+    goal_tolerance: m, terminate when the distance is within it.
+    obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
+    obs_noise_std: m, Gaussian noise on the observed position.
+    error_scale: m, divides ``goal - measured`` in the observation (``include_error``).
+    action_noise_std: kPa, Gaussian noise on the commanded pressures (before projection).
+    max_steps_in_episode: control periods before truncation.
+    """
+
+    plant: Any
+    safe_set: SafeSet
+    preload: jax.Array
+    reset_carries: Any
+    reset_positions: jax.Array
+    goal_set: jax.Array
+    goal_from_data: jax.Array
+    goal_perturbation: jax.Array
+    goal_tolerance: jax.Array
+    obs_mean: jax.Array
+    obs_scale: jax.Array
+    obs_noise_std: jax.Array
+    error_scale: jax.Array
+    action_noise_std: jax.Array
+    max_steps_in_episode: int = struct.field(pytree_node=False)
+
+
+class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
+    """Reach a goal position with a pneumatic soft arm; see the module docstring.
+
+    Args:
+      plant: the dynamics (static functions and rate).
+      control_hz: rate of the actions; ``plant.model_hz / control_hz`` must be an integer.
+      settle_seconds: how long the preload is held before an episode (used by
+        :func:`make_env_params` to fill the reset bank).
+      include_last_action: append the last applied pressure (in ``[-1, 1]``) to the observation.
+      include_error: append ``(goal - measured) / error_scale`` to the observation.
+    """
+
+    def __init__(self, plant: Plant, control_hz: float = 2.0, settle_seconds: float = 5.0,
+                 include_last_action: bool = False, include_error: bool = False):
+        super().__init__()
+        ratio = plant.model_hz / control_hz
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
+            raise ValueError(
+                f"plant rate {plant.model_hz} Hz must be an integer multiple of the control rate "
+                f"{control_hz} Hz")
+        self.plant = plant
+        self.control_hz = float(control_hz)
+        self.steps_per_action = round(ratio)
+        self.settle_steps = max(1, round(settle_seconds * plant.model_hz))
+        self.include_last_action = bool(include_last_action)
+        self.include_error = bool(include_error)
+
+    # -----------------------------------------------------------------------------------------
+    # gymnax API
+    # -----------------------------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return f"SoftArmReach-{self.plant.name}"
+
+    @property
+    def num_actions(self) -> int:
+        return NUM_VALVES
+
+    @property
+    def default_params(self) -> EnvParams:
+        raise ValueError("SoftArmReachEnv has no default parameters: build them with "
+                         "pipeline.rl.envs.make_env_params(env, plant_params, ...)")
+
+    @property
+    def obs_dim(self) -> int:
+        return (2 * POSITION_DIM + (POSITION_DIM if self.include_error else 0)
+                + (NUM_VALVES if self.include_last_action else 0))
+
+    def action_space(self, params: EnvParams | None = None) -> spaces.Box:
+        return spaces.Box(-1.0, 1.0, (NUM_VALVES,), jnp.float32)
+
+    def observation_space(self, params: EnvParams | None = None) -> spaces.Box:
+        return spaces.Box(-jnp.inf, jnp.inf, (self.obs_dim,), jnp.float32)
+
+    def reset_env(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
+        """Draw a settled start state and a goal; returns ``(obs [obs_dim], state)``."""
+        index_key, perturb_key, obs_key = jax.random.split(key, 3)
+        # one draw of two indices: [start state in the bank, goal in the goal set]
+        bank_index, goal_index = jax.random.randint(
+            index_key, (2,), 0, jnp.array([params.reset_positions.shape[0],
+                                           params.goal_set.shape[0]]))
+        carry = jax.tree.map(lambda leaf: leaf[bank_index], params.reset_carries)
+        position = params.reset_positions[bank_index]
+        perturbed_goal = position + params.goal_perturbation * jax.random.normal(
+            perturb_key, (POSITION_DIM,))
+        data_goal = params.goal_set[goal_index]
+        goal = jnp.where(params.goal_from_data, data_goal, perturbed_goal)
+        state = EnvState(carry, position, goal, params.preload, jnp.zeros((), jnp.int32))
+        return self.observe(obs_key, state, None, params), state
+
+    def step_env(self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
+                 ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
+        """One control period: ``action [3]`` in [-1, 1] held for ``steps_per_action`` steps.
+
+        Returns ``(obs, state, reward [mm, <= 0], terminated, info)``; ``info["distance_m"]`` is
+        the distance to the goal at the end of the period and ``info["pressure"]`` the applied
+        (projected) command in kPa.
+        """
+        chex.assert_shape(action, (NUM_VALVES,))
+        action_noise_key, obs_key = jax.random.split(key)
+        pressure = self.pressure_command(action, params)
+        pressure = pressure + params.action_noise_std * jax.random.normal(
+            action_noise_key, (NUM_VALVES,))
+        pressure = project(pressure, params.safe_set)
+        carry, positions = hold(self.plant, params.plant, state.plant_carry, pressure,
+                                self.steps_per_action)
+        position = positions[-1]
+        distance = jnp.linalg.norm(state.goal - position)
+        state = EnvState(carry, position, state.goal, pressure, state.time + 1)
+        terminated = distance <= params.goal_tolerance
+        reward = -MM_PER_M * distance
+        obs = self.observe(obs_key, state, None, params)
+        obs, state = self._apply_transition_gradient_policy(obs, state)
+        return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
+
+    def observe(self, key: jax.Array, state: EnvState, action: Any, params: EnvParams
+                ) -> jax.Array:
+        """``[obs_dim]``: standardized noisy position, standardized goal (, scaled error)
+        (, last pressure); see :func:`pipeline.rl.envs.observation.observe`."""
+        measured = state.position + params.obs_noise_std * jax.random.normal(
+            key, (POSITION_DIM,))
+        return observation.observe(measured, state.goal, state.last_pressure, params,
+                                   include_error=self.include_error,
+                                   include_last_action=self.include_last_action)
+
+    def is_terminated(self, state: EnvState, params: EnvParams) -> jax.Array:
+        return jnp.linalg.norm(state.goal - state.position) <= params.goal_tolerance
+
+    # -----------------------------------------------------------------------------------------
+    # helpers
+    # -----------------------------------------------------------------------------------------
+    @staticmethod
+    def pressure_command(action: jax.Array, params: EnvParams) -> jax.Array:
+        """``[..., 3]`` action in [-1, 1] (clipped) -> pressures in ``[p_min, p_max]`` kPa.
+
+        Not yet projected onto the sum constraint (``step_env`` does that after the noise).
+        """
+        safe = params.safe_set
+        unit = (jnp.clip(action, -1.0, 1.0) + 1.0) / 2.0
+        return safe.p_min + unit * (safe.p_max - safe.p_min)
+
+    @staticmethod
+    def pressure_to_action(pressure: jax.Array, params: EnvParams) -> jax.Array:
+        """Inverse of :meth:`pressure_command`: kPa -> [-1, 1]."""
+        return observation.pressure_to_action(pressure, params.safe_set)
+
+    def settle(self, plant_params: Any, initial_pose: jax.Array, preload: jax.Array
+               ) -> tuple[Any, jax.Array]:
+        """Carry and pose ``[3]`` m after holding the preload for ``settle_steps`` from rest."""
+        carry = self.plant.init_carry(plant_params, initial_pose)
+        carry, positions = hold(self.plant, plant_params, carry, preload, self.settle_steps)
+        return carry, positions[-1]
+
+
+def make_env_params(
+    env: SoftArmReachEnv,
+    plant_params: Any,
+    *,
+    key: jax.Array,
+    safe_set: SafeSet,
+    preload: float | jax.Array,
+    rest_pose: jax.Array,
+    rest_pose_std: float | jax.Array = 0.0,
+    goal_set: jax.Array | None = None,
+    goal_mode: str = "data",
+    goal_perturbation_m: float | jax.Array = 0.01,
+    goal_tolerance_m: float = 0.001,
+    obs_noise_std_m: float = 0.0,
+    error_scale_m: float = 0.005,
+    action_noise_std_kpa: float = 0.0,
+    max_steps: int = 40,
+    reset_bank_size: int = 64,
+    obs_mean: jax.Array | None = None,
+    obs_scale: jax.Array | None = None,
+) -> EnvParams:
+    """Build :class:`EnvParams`, settling ``reset_bank_size`` start states on the plant.
+
+    Args:
+      rest_pose: [3] m, the pose observed at rest at the preload (e.g. the mean first pose of the
+        recorded runs); each bank entry starts from ``rest_pose + rest_pose_std * N(0, 1)``.
+      goal_set: [G, 3] m goals of ``goal_mode=data``; required there, optional for ``perturb``.
+      obs_mean, obs_scale: [3] m; default: the goal set's mean and per-axis std (at least 1 mm).
+    """
+    if goal_mode not in GOAL_MODES:
+        raise ValueError(f"goal_mode must be one of {GOAL_MODES}, got {goal_mode!r}")
+    if goal_mode == "data" and goal_set is None:
+        raise ValueError("goal_mode=data needs a goal_set [G, 3] (positions from the data)")
+    rest_pose = jnp.asarray(rest_pose, jnp.float32)
+    chex.assert_shape(rest_pose, (POSITION_DIM,))
+    preload = jnp.broadcast_to(jnp.asarray(preload, jnp.float32), (NUM_VALVES,))
+    poses = rest_pose + jnp.asarray(rest_pose_std, jnp.float32) * jax.random.normal(
+        key, (reset_bank_size, POSITION_DIM))
+    carries, positions = jax.jit(jax.vmap(env.settle, in_axes=(None, 0, None)))(
+        plant_params, poses, preload)
+    if goal_set is None:
+        goal_set = positions
+    goal_set = jnp.asarray(goal_set, jnp.float32)
+    chex.assert_shape(goal_set, (None, POSITION_DIM))
+    if obs_mean is None:
+        obs_mean = goal_set.mean(axis=0)
+    if obs_scale is None:
+        spread = goal_set.std(axis=0) if goal_set.shape[0] > 1 else jnp.zeros(POSITION_DIM)
+        obs_scale = jnp.maximum(spread, 1e-3)
+    f32 = lambda value: jnp.asarray(value, jnp.float32)  # noqa: E731
+    return EnvParams(
+        plant=plant_params,
+        safe_set=safe_set,
+        preload=preload,
+        reset_carries=carries,
+        reset_positions=positions,
+        goal_set=goal_set,
+        goal_from_data=jnp.asarray(goal_mode == "data"),
+        goal_perturbation=jnp.broadcast_to(f32(goal_perturbation_m), (POSITION_DIM,)),
+        goal_tolerance=f32(goal_tolerance_m),
+        obs_mean=f32(obs_mean),
+        obs_scale=f32(obs_scale),
+        obs_noise_std=f32(obs_noise_std_m),
+        error_scale=f32(error_scale_m),
+        action_noise_std=f32(action_noise_std_kpa),
+        max_steps_in_episode=int(max_steps),
+    )
+
+
+def split_goals(positions: np.ndarray, held_out_fraction: float, seed: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Random split of ``positions [N, 3]`` into (training goals, held-out goals)."""
+    positions = np.asarray(positions, np.float32)
+    order = np.random.default_rng(seed).permutation(len(positions))
+    num_held_out = max(1, round(held_out_fraction * len(positions)))
+    return positions[order[num_held_out:]], positions[order[:num_held_out]]

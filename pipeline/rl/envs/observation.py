@@ -1,0 +1,42 @@
+"""The reaching task's observation, one function for training and for the arm.
+
+:class:`pipeline.rl.envs.learned.SoftArmReachEnv` builds its observations with :func:`observe`, and
+so does the control loop on the arm (:mod:`pipeline.control.loop`), from the measured pose: a
+policy sees on the arm exactly the inputs it was trained on (same standardization, error scaling
+and last action).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+
+def pressure_to_action(pressure: jax.Array, safe_set: Any) -> jax.Array:
+    """``[..., 3]`` kPa -> ``[-1, 1]`` on each valve's range ``[p_min, p_max]`` (unclipped)."""
+    return 2.0 * (pressure - safe_set.p_min) / (safe_set.p_max - safe_set.p_min) - 1.0
+
+
+def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, params: Any, *,
+            include_error: bool, include_last_action: bool) -> jax.Array:
+    """``[obs_dim]`` float32: standardized measured position, standardized goal (, scaled error)
+    (, last pressure in ``[-1, 1]``).
+
+    Args:
+      measured: [3] m, the position as measured (the environment adds its observation noise).
+      goal: [3] m.
+      last_pressure: [3] kPa, the last command applied (the preload before the first).
+      params: anything with ``obs_mean``, ``obs_scale`` ([3] m), ``error_scale`` (m) and
+        ``safe_set`` (an ``EnvParams``).
+      include_error: append ``(goal - measured) / error_scale`` [3].
+      include_last_action: append the last pressure mapped to ``[-1, 1]`` [3].
+    """
+    parts = [(measured - params.obs_mean) / params.obs_scale,
+             (goal - params.obs_mean) / params.obs_scale]
+    if include_error:
+        parts.append((goal - measured) / params.error_scale)
+    if include_last_action:
+        parts.append(pressure_to_action(last_pressure, params.safe_set))
+    return jnp.concatenate(parts).astype(jnp.float32)

@@ -1,0 +1,381 @@
+"""PPO in the PureJaxRL style: the whole training run is one pure, jittable function.
+
+``make_train(agent, env, env_params)`` returns ``train(rng) -> TrainOutput``; jit it once and
+``vmap`` it over seeds (``train_seeds`` does both). Inside, ``lax.scan`` runs
+
+    evaluation chunks (agent.num_evals)
+      └ updates (num_updates / num_evals)
+          ├ rollout: agent.num_steps steps of agent.num_envs environments (vmap)
+          ├ GAE (bootstrapped on truncation, not on termination)
+          └ agent.update_epochs x agent.num_minibatches clipped-PPO gradient steps
+      └ deterministic evaluation: agent.eval_envs episodes on the evaluation parameters
+
+Feed-forward and recurrent (GRU) actor-critics share one code path (``pipeline.rl.networks``); the
+recurrent one is trained on whole rollout sequences, minibatched over environments, starting from
+the hidden state at the start of the rollout.
+
+Time indices in a rollout of length T: ``obs[t]`` is seen, ``action[t]`` taken, ``reward[t]``,
+``terminated[t]``, ``truncated[t]`` come back; ``reset[t]`` says ``obs[t]`` starts an episode.
+When ``truncated[t]`` (and not ``terminated[t]``), the return is bootstrapped with the value of
+the episode's final observation (``bootstrap_value[t]``, gymnax's ``info["final_observation"]``);
+when ``terminated[t]`` nothing is bootstrapped.
+
+Actions: the Gaussian policy acts in ``[-1, 1]`` units; samples are clipped and mapped linearly to
+the environment's ``Box`` bounds (identity for the soft-arm environment, whose own action is
+``[-1, 1]``). Log-probabilities are of the unclipped samples.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax.training.train_state import TrainState
+
+from pipeline.config import AgentConfig
+from pipeline.rl.evaluation import evaluate_policy
+from pipeline.rl.losses import compute_gae, ppo_loss
+from pipeline.rl.minibatches import sequence_minibatches, step_minibatches
+from pipeline.rl.networks import initial_hidden, make_network
+from pipeline.rl.policy_io import NETWORK_FIELDS
+from pipeline.rl.spaces import action_bounds, to_env_action
+
+
+# ---------------------------------------------------------------------------------------------
+# data carried through the scans
+# ---------------------------------------------------------------------------------------------
+class Transition(NamedTuple):
+    """One rollout step of every environment (leading axis [B]; stacked: [T, B])."""
+
+    obs: jax.Array  # [B, obs_dim]
+    reset: jax.Array  # [B] bool: obs starts an episode
+    action: jax.Array  # [B, action_dim] unclipped policy sample, [-1, 1] units
+    log_prob: jax.Array  # [B]
+    value: jax.Array  # [B] V(obs)
+    reward: jax.Array  # [B] scaled by agent.reward_scale
+    terminated: jax.Array  # [B] bool
+    truncated: jax.Array  # [B] bool
+    bootstrap_value: jax.Array  # [B] V(final obs of the episode); used where truncated
+
+
+class RunnerState(NamedTuple):
+    train_state: TrainState
+    env_state: Any  # [B] environment states
+    obs: jax.Array  # [B, obs_dim] the next observation
+    reset: jax.Array  # [B] bool: obs starts an episode
+    hidden: jax.Array  # [B, H] policy hidden state before obs
+    episode_return: jax.Array  # [B] unscaled return of the running episodes
+    episode_length: jax.Array  # [B] int32
+    rng: jax.Array
+
+
+class TrainOutput(NamedTuple):
+    """``params``: final network variables. ``metrics``: [num_updates] arrays per name.
+    ``evaluation``: per evaluation, [num_evals] summaries and [num_evals, eval_envs] episodes."""
+
+    params: Any
+    metrics: dict[str, jax.Array]
+    evaluation: dict[str, jax.Array]
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------
+def _masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
+    """Mean of ``values`` where ``mask``; NaN where nothing is selected."""
+    count = mask.sum()
+    return jnp.where(count > 0, jnp.where(mask, values, 0.0).sum() / jnp.maximum(count, 1),
+                     jnp.nan)
+
+
+class ThrottledProgress:
+    """A tqdm bar on the host fed from ``jax.debug.callback``; redraws at most every
+    ``min_interval_s`` seconds. Under ``vmap`` over seeds it receives each seed's index and
+    shows the furthest one.
+
+    The callbacks of different seeds may run at the same time on different host threads: the
+    count is updated under a lock and set to the furthest update seen (never past ``total``), so
+    two calls cannot both add the same updates. ``train_return`` is the mean return of the
+    training episodes (stochastic policy, training goals) that ended in the latest update, not
+    the deterministic evaluation on held-out goals that ``final_eval_mean_return`` reports."""
+
+    def __init__(self, total: int, desc: str = "ppo", min_interval_s: float = 1.0,
+                 disable: bool = False):
+        import threading
+
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=total, desc=desc, disable=disable, mininterval=min_interval_s,
+                        unit="update")
+        self.total = int(total)
+        self.min_interval_s = min_interval_s
+        self.done = 0
+        self.last_draw = 0.0
+        self.lock = threading.Lock()
+
+    def __call__(self, update_index: Any, mean_return: Any) -> None:
+        done = min(int(np.max(np.asarray(update_index))) + 1, self.total)
+        returns = np.asarray(mean_return, np.float64)
+        with self.lock:
+            now = time.monotonic()
+            if done > self.done and (now - self.last_draw >= self.min_interval_s
+                                     or done >= self.total):
+                if np.isfinite(returns).any():
+                    self.bar.set_postfix(train_return=f"{np.nanmean(returns):.3g}",
+                                         refresh=False)
+                self.bar.update(done - self.done)
+                self.done = done
+                self.last_draw = now
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# training
+# ---------------------------------------------------------------------------------------------
+def make_train(
+    agent: Any,
+    env: Any,
+    env_params: Any,
+    eval_env_params: Any = None,
+    eval_steps: int | None = None,
+    progress: Callable[[Any, Any], None] | None = None,
+) -> Callable[..., TrainOutput]:
+    """Build ``train(rng, env_params=None, eval_env_params=None, init_params=None)
+    -> TrainOutput``; ``init_params`` (network variables of this agent's network) replace the
+    random initialisation: a warm start.
+
+    Args:
+      agent: the agent config (``AgentConfig`` or anything :meth:`AgentConfig.from_any` reads).
+      env: a gymnax environment with a ``Box`` action space.
+      env_params: training parameters; ``eval_env_params`` (default: the same) are used for the
+        deterministic evaluations. Both may be passed to ``train`` instead, as arguments, so large
+        parameters (model weights) are not baked into the compiled program as constants.
+      eval_steps: steps per evaluation (one episode per environment); default
+        ``env_params.max_steps_in_episode``.
+      progress: host function ``(update_index, mean_return)`` called every update through
+        ``jax.debug.callback`` (e.g. :class:`ThrottledProgress`).
+    """
+    config = AgentConfig.from_any(agent)
+    config.check()
+    eval_env_params = env_params if eval_env_params is None else eval_env_params
+    if eval_steps is None:
+        eval_steps = int(env_params.max_steps_in_episode)
+    low, high = action_bounds(env, env_params)
+    action_dim = int(np.prod(low.shape))
+    obs_shape = tuple(env.observation_space(env_params).shape)
+    network = make_network(config, action_dim)
+    num_envs, num_steps = config.num_envs, config.num_steps
+    num_minibatches, num_updates = config.num_minibatches, config.num_updates
+    has_distance = _has_distance(env, env_params)
+
+    def learning_rate(count):
+        fraction = 1.0 - (count // (num_minibatches * config.update_epochs)) / num_updates
+        return config.lr * fraction
+
+    def apply_step(params, hidden, obs, reset):
+        """One time step for a batch: [B, H], [B, D], [B] -> hidden, pi, value [B]."""
+        hidden, pi, value = network.apply(params, hidden, obs[None], reset[None])
+        return hidden, pi, value[0]
+
+    def env_step(keys, state, action, params):
+        return jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            keys, state, to_env_action(action, low, high), params)
+
+    def train(rng: jax.Array, env_params=env_params, eval_env_params=eval_env_params,
+              init_params=None) -> TrainOutput:
+        # ---------------------------------------------------------------- init network, optimizer
+        init_key, reset_key, runner_key = jax.random.split(rng, 3)
+        hidden0 = initial_hidden(network, num_envs)
+        variables = network.init(init_key, hidden0, jnp.zeros((1, num_envs, *obs_shape)),
+                                 jnp.zeros((1, num_envs), bool))
+        if init_params is not None:  # warm start (e.g. a policy trained on another model)
+            check_same_variables(variables, init_params, "init_params")
+            variables = jax.tree.map(jnp.asarray, init_params)
+        lr = learning_rate if config.anneal_lr else config.lr
+        tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
+                         optax.adam(learning_rate=lr, eps=1e-5))
+        train_state = TrainState.create(apply_fn=network.apply, params=variables, tx=tx)
+
+        # ---------------------------------------------------------------- init environments
+        obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(
+            jax.random.split(reset_key, num_envs), env_params)
+        runner = RunnerState(train_state, env_state, obs, jnp.ones(num_envs, bool), hidden0,
+                             jnp.zeros(num_envs), jnp.zeros(num_envs, jnp.int32), runner_key)
+
+        # ---------------------------------------------------------------- one update
+        def update_step(runner: RunnerState, update_index):
+            # ------------------------------------------------------------ collect a rollout
+            def rollout_step(runner: RunnerState, _):
+                rng, action_key, step_key = jax.random.split(runner.rng, 3)
+                params = runner.train_state.params
+                hidden, pi, value = apply_step(params, runner.hidden, runner.obs, runner.reset)
+                action = pi.sample(seed=action_key)[0]
+                log_prob = pi.log_prob(action[None])[0]
+                obs, env_state, reward, terminated, truncated, info = env_step(
+                    jax.random.split(step_key, num_envs), runner.env_state, action, env_params)
+                _, _, bootstrap_value = apply_step(params, hidden, info["final_observation"],
+                                                   jnp.zeros(num_envs, bool))
+                done = jnp.logical_or(terminated, truncated)
+                episode_return = runner.episode_return + reward
+                episode_length = runner.episode_length + 1
+                transition = Transition(
+                    runner.obs, runner.reset, action, log_prob, value,
+                    reward * config.reward_scale, terminated, truncated, bootstrap_value)
+                episode = {
+                    "done": done,
+                    "terminated": terminated,
+                    "return": episode_return,
+                    "length": episode_length,
+                    "distance": info["distance_m"] if has_distance else jnp.zeros(num_envs),
+                }
+                runner = RunnerState(
+                    runner.train_state, env_state, obs, done, hidden,
+                    jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length),
+                    rng)
+                return runner, (transition, episode)
+
+            rollout_hidden = runner.hidden
+            runner, (trajectory, episodes) = jax.lax.scan(rollout_step, runner, None, num_steps)
+
+            # ------------------------------------------------------------ advantages
+            _, _, last_value = apply_step(runner.train_state.params, runner.hidden, runner.obs,
+                                          runner.reset)
+            advantages, targets = compute_gae(
+                trajectory.reward, trajectory.value, trajectory.terminated,
+                trajectory.truncated, trajectory.bootstrap_value, last_value, config.gamma,
+                config.gae_lambda)
+
+            # ------------------------------------------------------------ PPO epochs
+            def minibatch_step(train_state: TrainState, minibatch):
+                hidden, batch, advantage, target = minibatch
+                (total, aux), grads = jax.value_and_grad(ppo_loss, has_aux=True)(
+                    train_state.params, network, hidden, batch, advantage, target, config)
+                return train_state.apply_gradients(grads=grads), {"total_loss": total, **aux}
+
+            def epoch_step(carry, _):
+                train_state, rng = carry
+                rng, permute_key = jax.random.split(rng)
+                data = (trajectory, advantages, targets)
+                if config.recurrent:
+                    hidden, data = sequence_minibatches(permute_key, data, rollout_hidden,
+                                                        num_minibatches)
+                else:
+                    hidden, data = step_minibatches(permute_key, data, num_minibatches)
+                train_state, losses = jax.lax.scan(
+                    minibatch_step, train_state, (hidden, *data))
+                return (train_state, rng), losses
+
+            rng, epoch_key = jax.random.split(runner.rng)
+            (train_state, _), losses = jax.lax.scan(
+                epoch_step, (runner.train_state, epoch_key), None, config.update_epochs)
+            runner = runner._replace(train_state=train_state, rng=rng)
+
+            # ------------------------------------------------------------ metrics
+            done = episodes["done"]
+            metrics = {k: v.mean() for k, v in losses.items()}
+            metrics.update({
+                "timesteps": (update_index + 1) * num_steps * num_envs,
+                "episodes": done.sum(),
+                "mean_return": _masked_mean(episodes["return"], done),
+                "mean_length": _masked_mean(episodes["length"].astype(jnp.float32), done),
+                "success_rate": _masked_mean(episodes["terminated"].astype(jnp.float32), done),
+                "final_distance_m": (_masked_mean(episodes["distance"], done)
+                                     if has_distance else jnp.nan),
+            })
+            if progress is not None:
+                jax.debug.callback(progress, update_index, metrics["mean_return"])
+            return runner, metrics
+
+        # ---------------------------------------------------------------- chunks of updates
+        def chunk_step(runner: RunnerState, chunk_index):
+            update_indices = chunk_index * config.updates_per_eval + jnp.arange(
+                config.updates_per_eval)
+            runner, metrics = jax.lax.scan(update_step, runner, update_indices)
+            rng, eval_key = jax.random.split(runner.rng)
+            evaluation = evaluate_policy(env, eval_env_params, network, runner.train_state.params,
+                                         eval_key, config.eval_envs, eval_steps, has_distance)
+            evaluation["timesteps"] = metrics["timesteps"][-1]
+            return runner._replace(rng=rng), (metrics, evaluation)
+
+        runner, (metrics, evaluation) = jax.lax.scan(
+            chunk_step, runner, jnp.arange(config.num_evals))
+        metrics = jax.tree.map(lambda x: x.reshape(num_updates, *x.shape[2:]), metrics)
+        return TrainOutput(runner.train_state.params, metrics, evaluation)
+
+    return train
+
+
+def check_same_variables(expected: Any, given: Any, what: str) -> None:
+    """Raise a ValueError naming ``what`` unless ``given`` has ``expected``'s tree and shapes."""
+    expected_leaves = jax.tree_util.tree_leaves_with_path(expected)
+    given_leaves = jax.tree_util.tree_leaves_with_path(given)
+    expected_shapes = {jax.tree_util.keystr(k): tuple(np.shape(v)) for k, v in expected_leaves}
+    given_shapes = {jax.tree_util.keystr(k): tuple(np.shape(v)) for k, v in given_leaves}
+    if expected_shapes != given_shapes:
+        missing = sorted(set(expected_shapes) - set(given_shapes))
+        extra = sorted(set(given_shapes) - set(expected_shapes))
+        wrong = sorted(f"{k}: {given_shapes[k]}, expected {v}" for k, v in expected_shapes.items()
+                       if k in given_shapes and given_shapes[k] != v)
+        raise ValueError(f"{what} do not fit the agent's network (the same agent "
+                         f"{', '.join(NETWORK_FIELDS)} and environment spaces needed): missing "
+                         f"{missing[:4]}, unexpected {extra[:4]}, wrong shapes {wrong[:4]}")
+
+
+def _has_distance(env: Any, env_params: Any) -> bool:
+    """Whether the environment reports ``info["distance_m"]`` (abstract evaluation only)."""
+
+    def probe(key):
+        _, state = env.reset(key, env_params)
+        low, high = action_bounds(env, env_params)
+        return env.step(key, state, jnp.asarray((low + high) / 2), env_params)[-1]
+
+    info = jax.eval_shape(probe, jax.random.PRNGKey(0))
+    return "distance_m" in info
+
+
+def seed_keys(seed: int, num_seeds: int) -> jax.Array:
+    """``[num_seeds]`` keys: ``fold_in(PRNGKey(seed), i)`` for seed index i."""
+    base = jax.random.PRNGKey(int(seed))
+    return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
+
+
+def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = None,
+                seed: int = 0, progress: bool | None = None, desc: str = "ppo",
+                timings: dict[str, float] | None = None, init_params: Any = None
+                ) -> TrainOutput:
+    """Train ``agent.num_seeds`` seeds at once (one jit, vmap over seeds); arrays come back with
+    a leading [num_seeds] axis. ``timings`` (if given) receives ``compile_s`` and ``run_s``.
+    ``init_params`` (optional): starting network variables, stacked over seeds
+    (``[num_seeds, ...]`` leaves, as :func:`load_policy` returns them)."""
+    config = AgentConfig.from_any(agent)
+    show = config.progress if progress is None else progress
+    bar = ThrottledProgress(config.num_updates, desc=desc, disable=not show) if show else None
+    eval_env_params = env_params if eval_env_params is None else eval_env_params
+    train = make_train(config, env, env_params, eval_env_params, progress=bar)
+    try:
+        keys = seed_keys(seed, config.num_seeds)
+        if init_params is not None:
+            sizes = {int(np.shape(x)[0]) if np.ndim(x) else 0
+                     for x in jax.tree.leaves(init_params)}
+            if sizes != {config.num_seeds}:
+                raise ValueError(f"init_params must be stacked over agent.num_seeds="
+                                 f"{config.num_seeds} seeds; leading sizes {sorted(sizes)}")
+        started = time.perf_counter()
+        compiled = jax.jit(jax.vmap(train, in_axes=(0, None, None, 0))).lower(
+            keys, env_params, eval_env_params, init_params).compile()
+        compiled_at = time.perf_counter()
+        output = jax.block_until_ready(compiled(keys, env_params, eval_env_params, init_params))
+        if timings is not None:
+            timings.update(compile_s=compiled_at - started,
+                           run_s=time.perf_counter() - compiled_at)
+    finally:
+        if bar is not None:
+            bar.close()
+    return output

@@ -1,0 +1,107 @@
+"""Stage ``train_ppo``: PPO policies in the learned environment, many seeds at once.
+
+``env.name`` picks the environment (``pipeline.rl.envs.factory``):
+
+- ``learned`` (default): the fitted LSTM of the fit_model artifact of this config; goals
+  (``goal_mode=data``) are the model's open-loop predictions along the training runs' commands
+  (``env.goal_source=predicted``, reachable in the model's world) or their measured positions
+  (``measured``); evaluation goals come from the held-out runs (the split recorded by fit_model);
+  the rest pose is the mean measured first pose of the runs.
+- ``sim``: the simulated arm itself (no model needed; the upper bound for the learned env).
+- ``gymnax``: a standard gymnax environment (``env.gymnax_name``) to check the PPO.
+
+``agent.num_seeds`` seeds train in one jitted, vmapped program (``pipeline.rl.ppo.train_seeds``).
+
+Artifact: ``metrics.parquet`` (per seed and update: timesteps, mean episodic return, final
+distance, success rate, losses), ``evaluation.parquet`` (per seed and evaluation on held-out
+goals), ``episodes.parquet`` (the last evaluation's episodes), ``policy.msgpack`` (the policies of
+all seeds, stacked; ``pipeline.rl.ppo.load_policy``) and ``figures/returns.png`` (mean ± std over
+seeds).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import Any
+
+import numpy as np
+
+from pipeline import keys
+from pipeline.config import AgentConfig, EnvName
+from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
+from pipeline.infra.tracking import tracking
+from pipeline.rl.envs.factory import environment
+from pipeline.rl.policy_io import save_policy, warm_start_params
+from pipeline.rl.ppo import action_bounds, train_seeds
+from pipeline.rl.results import evaluation_tables, metrics_table, plot_returns, write_results
+
+log = logging.getLogger(__name__)
+STAGE = "train_ppo"
+
+
+def train_ppo(cfg: Any) -> Artifact:
+    """Train ``agent.num_seeds`` PPO policies in this config's environment (see module doc)."""
+    store = ArtifactStore(cfg.paths.artifact_dir)
+    spec, inputs = keys.train_ppo_spec(cfg)
+    agent = AgentConfig.from_any(cfg.agent)
+    model = aligned = None
+    if EnvName(cfg.env.name) is EnvName.learned:
+        model = store.require("fit_model", inputs["fit_model"])
+        aligned = store.require("align", keys.key("align", cfg))
+
+    def build(writer):
+        env, train_params, eval_params = environment(cfg, model, aligned)
+        low, high = action_bounds(env, train_params)
+        obs_dim = int(np.prod(env.observation_space(train_params).shape))
+        action_dim = int(np.prod(low.shape))
+        init_params = (warm_start_params(agent, obs_dim, action_dim)
+                       if agent.init_policy else None)
+        timings: dict[str, float] = {}
+        output = train_seeds(agent, env, train_params, eval_params, seed=int(cfg.seed),
+                             desc=f"{STAGE} {agent.name} on {env.name}", timings=timings,
+                             init_params=init_params)
+        steps = agent.num_seeds * agent.num_updates * agent.steps_per_update
+        config = {"env": spec["env"], "agent": spec["agent"], "seed": spec["seed"],
+                  "init_policy_sha256": spec.get("init_policy_sha256")}
+
+        metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()},
+                                int(train_params.max_steps_in_episode), agent.num_steps)
+        summary, episodes = evaluation_tables(
+            {k: np.asarray(v) for k, v in output.evaluation.items()})
+        write_results(metrics, writer.file("metrics.parquet"), config, STAGE)
+        write_results(summary, writer.file("evaluation.parquet"), config, STAGE)
+        write_results(episodes, writer.file("episodes.parquet"), config, STAGE)
+
+        save_policy(writer.file("policy.msgpack"), output.params, {
+            "agent": spec["agent"], "env": spec["env"], "env_name": env.name,
+            "obs_dim": obs_dim, "init_policy_sha256": spec.get("init_policy_sha256"),
+            "action_dim": action_dim, "action_low": low.tolist(),
+            "action_high": high.tolist(), "num_seeds": agent.num_seeds,
+        })
+        plot_returns(writer.file("figures/returns.png"), metrics, summary,
+                     f"{agent.name} on {env.name}")
+        with tracking(cfg, STAGE) as tracker:
+            per_update = metrics.drop(columns=["seed"]).groupby("update").mean()
+            tracker.log_table(per_update.reset_index().rename(columns={"update": "step"}))
+
+        final = episodes["final_distance_m"].to_numpy()
+        per_seed = episodes.groupby("seed")["final_distance_m"].median()
+        writer.summary = {
+            "env": env.name, "agent": agent.name, "num_seeds": agent.num_seeds,
+            "timesteps_per_seed": agent.num_updates * agent.steps_per_update,
+            "compile_seconds": round(timings["compile_s"], 1),
+            "train_seconds": round(timings["run_s"], 1),
+            "env_steps_per_second": round(steps / timings["run_s"], 1),
+            "final_eval_mean_return": float(summary.groupby("seed")["mean_return"].last().mean()),
+            "final_eval_success_rate": (float(episodes["success"].mean())
+                                        if np.isfinite(final).any() else None),
+            "final_eval_median_distance_mm": (float(np.nanmedian(final) * 1000)
+                                              if np.isfinite(final).any() else None),
+            "final_eval_median_distance_mm_per_seed": [
+                None if not np.isfinite(v) else round(float(v) * 1000, 3) for v in per_seed],
+        }
+        log.info("train_ppo: %s", json.dumps(writer.summary))
+
+    return produce(store, STAGE, spec, inputs, build, force=cfg.force)
+

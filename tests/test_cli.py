@@ -1,0 +1,51 @@
+"""The command line: a short --help that names the stages, and a mistyped key called unknown."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+from pipeline.__main__ import STAGES
+from pipeline.cli import unknown_key_message
+from pipeline.config import PROJECT_ROOT
+
+
+def _pipeline(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(PROJECT_ROOT)}
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True,
+                          text=True, cwd=PROJECT_ROOT, env=env, timeout=120)
+
+
+def test_help_names_the_stages_and_groups_in_under_40_lines():
+    done = _pipeline("--help")
+    assert done.returncode == 0, done.stderr
+    text = done.stdout
+    assert len(text.strip().splitlines()) < 40, text
+    for stage in STAGES:
+        assert f"  {stage.value} " in text, stage
+    for line in ("agent:", "ppo_ff, ppo_rnn", "robot:", "sorolex_csv", "experiment:", "quick"):
+        assert line in text, line
+    assert "base_" not in text
+    assert "make setup run" in text and "make test" in text
+    assert "artifacts" in text and "report.html" in text
+
+
+def test_a_mistyped_key_is_called_unknown_with_close_matches():
+    message = unknown_key_message(["agent.lrr=0.1", "robot=sorolex_csv"])
+    assert "Unknown config key 'agent.lrr'" in message and "agent.lr" in message
+    assert "+agent" not in message
+    message = unknown_key_message(["agnet.num_seeds=2"])
+    assert "did you mean agent.num_seeds?" in message
+    assert unknown_key_message(["agent.lr=0.1", "agent=ppo_rnn", "+foo=1", "seed=3"]) is None
+    # a key that only one robot's schema has is known with that robot only
+    assert unknown_key_message(["robot.physics.bend_gain=0.1"]) is None
+    assert "robot.physics.bend_gain" in unknown_key_message(["robot=sorolex_csv",
+                                                              "robot.physics.bend_gain=0.1"])
+
+
+def test_the_command_line_exits_with_that_message():
+    done = _pipeline("stage=collect", "exploration.alpah=0.5")
+    assert done.returncode == 1
+    assert "Unknown config key 'exploration.alpah'" in done.stderr
+    assert "exploration.alpha" in done.stderr and "+exploration" not in done.stderr

@@ -1,0 +1,285 @@
+"""stage=control on the in-process simulated arm: the loop, its records and its safe stops."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from pipeline.arm.safety import SafeSet
+from pipeline.control.goals import GoalError, goal_schedule, workspace_problem
+from pipeline.control.loop import ControlLoop, SimArm
+from pipeline.control.policy import load_deployment
+from pipeline.control.records import PeriodRecorder
+from pipeline.control.results import goal_metrics
+from pipeline.control.session import ControlInterrupted, control
+from pipeline.data.schemas import CMD_COLUMNS
+from pipeline.infra.artifacts import ArtifactStore
+from pipeline.keys import key
+from pipeline.rl.envs.learned import EnvState
+from pipeline.rl.envs.observation import observe
+from pipeline.ros2.gate import CommandGate
+from tests.conftest import compose_config
+from tests.control_fixtures import SMALL, goals_mm, write_policy
+
+LIMITS = {"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0}
+
+
+def assert_within_limits(commands: np.ndarray) -> None:
+    commands = np.asarray(commands, np.float64)
+    assert np.isfinite(commands).all()
+    assert commands.min() >= LIMITS["p_min"] and commands.max() <= LIMITS["p_max"]
+    assert commands.sum(axis=1).max() <= LIMITS["sum_max"]
+
+
+# ---- the observation: one function for the env and the arm ------------------------------------
+def test_observation_by_hand_and_identical_in_the_env():
+    class Params:
+        obs_mean = np.array([0.03, 0.35, 0.20], np.float32)
+        obs_scale = np.array([0.01, 0.001, 0.01], np.float32)
+        error_scale = np.float32(0.005)
+        safe_set = SafeSet(np.zeros(3, np.float32), np.full(3, 7.0, np.float32), np.float32(13))
+
+    measured = np.array([0.04, 0.351, 0.19], np.float32)
+    goal = np.array([0.035, 0.35, 0.21], np.float32)
+    last = np.array([0.0, 3.5, 7.0], np.float32)
+    obs = observe(measured, goal, last, Params, include_error=True, include_last_action=True)
+    np.testing.assert_allclose(obs, [1.0, 1.0, -1.0, 0.5, 0.0, 1.0, -1.0, -0.2, 4.0, -1, 0, 1],
+                               atol=1e-4)
+
+    from pipeline.rl.envs.learned import SoftArmReachEnv
+    from pipeline.rl.envs.plants import linear_lag_plant
+
+    env = SoftArmReachEnv(linear_lag_plant(4.0), 2.0, include_error=True,
+                          include_last_action=True)
+    params = type("P", (), {**{k: getattr(Params, k) for k in
+                               ("obs_mean", "obs_scale", "error_scale", "safe_set")},
+                            "obs_noise_std": np.float32(0.0)})
+    state = EnvState(None, measured, goal, last, np.int32(0))
+    import jax
+
+    np.testing.assert_array_equal(env.observe(jax.random.key(0), state, None, params), obs)
+
+
+# ---- goals ----------------------------------------------------------------------------------------
+WORKSPACE = np.array([[0.020, 0.350, 0.190], [0.045, 0.354, 0.215]])
+
+
+def test_a_goal_outside_the_workspace_is_refused_saying_by_how_much():
+    assert workspace_problem(np.array([0.03, 0.352, 0.2]), WORKSPACE, 2.0) is None
+    problem = workspace_problem(np.array([0.060, 0.352, 0.185]), WORKSPACE, 2.0)
+    assert "x by 13.0 mm" in problem and "z by 3.0 mm" in problem and "y by" not in problem
+    assert "x [20.0, 45.0]" in problem and "z [190.0, 215.0]" in problem
+
+
+def test_goal_schedules(tmp_path):
+    def control_cfg(**values):
+        base = {"goals": [], "goals_csv": None, "goal_topic": None, "duration_s": None,
+                "hold_s": 2.0, "workspace_margin_mm": 2.0}
+        return OmegaConf.create({**base, **values})
+
+    schedule = goal_schedule(control_cfg(goals=[[30, 352, 200], [40, 353, 210]]), 2.0, WORKSPACE)
+    assert schedule.end == 8 and schedule.goal(0)[0] == 0 and schedule.goal(4)[0] == 1
+    np.testing.assert_allclose(schedule.goal(7)[1], [0.040, 0.353, 0.210])
+    with pytest.raises(GoalError, match=r"control.goals: refused: goal \[80.0, 352.0, 200.0\]"):
+        goal_schedule(control_cfg(goals=[[30, 352, 200], [80, 352, 200]]), 2.0, WORKSPACE)
+    with pytest.raises(GoalError, match="exactly one of"):
+        goal_schedule(control_cfg(goals=[[30, 352, 200]], goal_topic="/goal"), 2.0, WORKSPACE)
+
+    csv = tmp_path / "waypoints.csv"
+    csv.write_text("t,x,y,z\n0,30,352,200\n1.5,35,352,205\n")
+    schedule = goal_schedule(control_cfg(goals_csv=str(csv)), 2.0, WORKSPACE)
+    assert schedule.starts.tolist() == [0, 3] and schedule.end == 7
+    csv.write_text("t,x,y\n0,30,352\n")
+    with pytest.raises(GoalError, match=r"missing column\(s\) \['z'\]"):
+        goal_schedule(control_cfg(goals_csv=str(csv)), 2.0, WORKSPACE)
+
+
+def test_goal_metrics_by_hand():
+    # one goal, 4 periods of 0.5 s: distances 4, 2, 0.5 (past the goal by 0.5), 0.8, 0.8 mm
+    x = np.array([-4.0, -2.0, 0.5, 0.8, 0.8]) / 1e3
+    periods = pd.DataFrame({"period": range(5), "t": np.arange(5) * 0.5, "x": x, "y": 0.0,
+                            "z": 0.0, "goal_index": [0, 0, 0, 0, -1], "goal_x": 0.0,
+                            "goal_y": 0.0, "goal_z": 0.0,
+                            **{c: [1.0, 2.0, 2.0, 4.0, np.nan] for c in CMD_COLUMNS}})
+    (row,) = goal_metrics(periods, 0.5).to_dict("records")
+    assert row["final_distance_mm"] == pytest.approx(0.8)
+    assert row["time_to_1mm_s"] == 1.0 and row["time_to_3mm_s"] == 0.5
+    assert row["overshoot_mm"] == pytest.approx(0.8)
+    assert row["steady_state_error_mm"] == pytest.approx(0.8)
+    assert row["smoothness_kpa"] == pytest.approx(1.0)
+
+
+# ---- the stage on the simulated arm ---------------------------------------------------------------
+@pytest.fixture(scope="module")
+def policies(tmp_path_factory):
+    """Configs of a feed-forward and a recurrent policy artifact (random networks), by name."""
+    out = tmp_path_factory.mktemp("control") / "outputs"
+    cfgs = {}
+    for name in ("ppo_ff", "ppo_rnn"):
+        cfg = compose_config(out, *SMALL, f"control.policy={name}", "stage=control")
+        _, train_params = write_policy(cfg)
+        cfg.control.goals = goals_mm(train_params)
+        cfg.control.hold_s = 2.0
+        cfgs[name] = cfg
+    return cfgs
+
+
+@pytest.fixture(scope="module")
+def deployment(policies):
+    cfg = policies["ppo_rnn"]
+    return load_deployment(cfg, ArtifactStore(cfg.paths.artifact_dir))
+
+
+@pytest.mark.parametrize("policy", ["ppo_ff", "ppo_rnn"])
+def test_control_on_the_simulated_arm_records_every_period_and_ends_at_the_preload(policies,
+                                                                                    policy):
+    cfg = policies[policy]
+    artifact = control(cfg)
+    assert artifact.key == key("control", cfg)
+    periods = pd.read_parquet(artifact.file("periods.parquet"))
+    goals = pd.read_parquet(artifact.file("goals.parquet"))
+    commanded = periods[periods["goal_index"] >= 0]
+    assert len(commanded) == 12 and periods["goal_index"].iloc[-1] == -1  # 3 goals x 4 periods
+    assert commanded["goal_index"].tolist() == [0] * 4 + [1] * 4 + [2] * 4
+    np.testing.assert_allclose(commanded["t"], np.arange(12) * 0.5)
+    assert_within_limits(commanded[CMD_COLUMNS].to_numpy())
+    assert (commanded["pose_age_s"] < 0.03).all()  # the latest frame: within 3 frames
+    # the observation as the env builds it: position, goal, error / 5 mm, last command in [-1, 1]
+    obs = commanded.filter(like="obs_").to_numpy()
+    assert obs.shape[1] == 12
+    error = commanded[["goal_x", "goal_y", "goal_z"]].to_numpy() - commanded[["x", "y", "z"]]
+    np.testing.assert_allclose(obs[:, 6:9], error / 0.005, rtol=1e-4, atol=1e-3)
+    sent = commanded[CMD_COLUMNS].to_numpy()
+    last = np.vstack([[2.0, 2.0, 2.0], sent[:-1]])
+    np.testing.assert_allclose(obs[:, 9:], 2 * last / 7.0 - 1, atol=1e-5)
+    assert len(goals) == 3 and np.isfinite(goals["final_distance_mm"]).all()
+    summary = artifact.manifest["summary"]
+    assert summary["seed"] == 1  # the better held-out median of the two
+    assert "interrupted" not in summary
+    assert artifact.file("report.html").is_file()
+    assert {p.name for p in artifact.file("figures").iterdir()} == {
+        "distance.png", "path_xz.png", "pressures.png"}
+    assert not list((artifact.path.parents[2] / "recovery").glob("*/*"))
+
+
+def _loop(cfg, deployment, arm_factory, tmp_path):
+    schedule = goal_schedule(cfg.control, deployment.control_hz, deployment.workspace_m)
+    gate = CommandGate(cfg.robot.limits, 3)
+    arm = arm_factory(SimArm(cfg.robot, 0, gate))
+    recorder = PeriodRecorder(tmp_path / "chunks", deployment.env.obs_dim, {}, {})
+    # robot=sim has no watchdog setting; the loop reads it where the robot has one
+    robot = OmegaConf.create({**OmegaConf.to_container(cfg.robot), "watchdog_s": 0.2})
+    return ControlLoop(deployment, schedule, gate, arm, recorder, cfg.control, robot).run(), arm
+
+
+class Faulty:
+    """The simulated arm with a fault from arm time ``at`` on: ``kind`` jump | silent | error."""
+
+    def __init__(self, arm, kind, at=1.2):
+        self.arm, self.kind, self.at = arm, kind, at
+        self.commands = arm.commands
+
+    def __getattr__(self, name):
+        return getattr(self.arm, name)
+
+    def take_frames(self):
+        frames = self.arm.take_frames()
+        if self.arm.now() < self.at:
+            return frames
+        if self.kind == "silent":
+            return []
+        if self.kind == "error":
+            raise OSError("the mocap driver went away")
+        return [(s, r, xyz + np.array([0.03, 0.0, 0.0])) for s, r, xyz in frames]
+
+
+@pytest.mark.parametrize(("kind", "reason"), [
+    ("jump", "ControlFault: pose jump of 30.0 mm"),
+    ("silent", "mocap watchdog: the latest pose is"),
+    ("error", "OSError: the mocap driver went away")])
+def test_faults_stop_at_the_preload(policies, deployment, tmp_path, kind, reason):
+    outcome, arm = _loop(policies["ppo_rnn"], deployment, lambda a: Faulty(a, kind), tmp_path)
+    assert outcome.reason.startswith(reason), outcome.reason
+    commands = np.asarray(arm.commands)
+    assert 2 <= len(commands) <= 4  # stopped at the period after the fault (1.2 s)
+    np.testing.assert_array_equal(commands[-1], [2.0, 2.0, 2.0])
+    assert_within_limits(commands)
+    chunks = pd.concat(pd.read_parquet(p) for p in sorted((tmp_path / "chunks").glob("*")))
+    assert len(chunks) == len(commands) - 1  # every command but the preload is recorded
+
+
+def test_a_stop_signal_ends_the_session_at_the_preload(policies, deployment, tmp_path):
+    class Signals:
+        received = None
+
+    signals = Signals()
+
+    def with_signal(arm):
+        arm.signals = signals
+        original = arm.publish
+
+        def publish(pressures):
+            if len(arm.commands) == 3:
+                signals.received = "SIGTERM"
+            return original(pressures)
+
+        arm.publish = publish
+        return arm
+
+    outcome, arm = _loop(policies["ppo_rnn"], deployment, with_signal, tmp_path)
+    assert outcome.reason == "SIGTERM received"
+    assert len(arm.commands) == 5
+    np.testing.assert_array_equal(arm.commands[-1], [2.0, 2.0, 2.0])
+
+
+def test_a_non_finite_policy_output_stops_with_a_clear_error(make_cfg):
+    cfg = make_cfg(*SMALL, "stage=control")
+    _, train_params = write_policy(cfg, scale=np.nan)
+    cfg.control.goals = goals_mm(train_params)
+    with pytest.raises(ControlInterrupted, match="non-finite policy output at period 0"):
+        control(cfg)
+    assert ArtifactStore(cfg.paths.artifact_dir).find("control", key("control", cfg)) is None
+
+
+def test_live_goals_take_effect_at_the_next_period_and_bad_ones_are_refused(policies,
+                                                                            deployment, tmp_path):
+    cfg = policies["ppo_rnn"].copy()
+    cfg.control.goals = []
+    cfg.control.goal_topic = "/goal"
+    cfg.control.duration_s = 3.0
+    inside = np.asarray(cfg_goals := policies["ppo_rnn"].control.goals, np.float64) / 1e3
+
+    class Live:
+        def __init__(self, arm):
+            self.arm, self.commands, self.sent = arm, arm.commands, []
+
+        def __getattr__(self, name):
+            return getattr(self.arm, name)
+
+        def take_goals(self):
+            now = self.arm.now()
+            due = [(0.9, inside[0]), (1.0, np.array([0.5, 0.35, 0.2])), (2.0, inside[1])]
+            out = [g for t, g in due if t <= now and t not in self.sent]
+            self.sent += [t for t, _ in due if t <= now and t not in self.sent]
+            return out
+
+    outcome, arm = _loop(cfg, deployment, Live, tmp_path)
+    assert outcome.reason is None and outcome.periods == 6, outcome
+    chunks = pd.concat(pd.read_parquet(p) for p in sorted((tmp_path / "chunks").glob("*")))
+    commanded = chunks[chunks["goal_index"] >= 0]
+    assert commanded["period"].tolist() == [2, 3, 4, 5]  # periods 0, 1 held the preload
+    assert commanded["goal_index"].tolist() == [0, 0, 1, 1]  # the far goal was refused
+    np.testing.assert_allclose(commanded[["goal_x", "goal_y", "goal_z"]].to_numpy()[-1],
+                               np.asarray(cfg_goals[1]) / 1e3)
+    np.testing.assert_array_equal(np.asarray(arm.commands)[[0, 1, -1]], [[2.0] * 3] * 3)
+
+
+def test_control_is_routed_alone_and_never_by_the_chain(make_cfg):
+    from pipeline.__main__ import CHAIN, STAGES, stages_to_run
+    from pipeline.config import Stage
+
+    assert Stage.control in STAGES and Stage.control not in CHAIN
+    assert stages_to_run(make_cfg("stage=control", "robot=ros2")) == [Stage.control]
+    assert stages_to_run(make_cfg("stage=control")) == [Stage.control]

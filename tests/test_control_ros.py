@@ -1,0 +1,172 @@
+"""stage=control over ROS 2 against the digital twin, each stage a separate rclpy process.
+
+The twin and the controller run with the arm's time 4x the wall clock, on their own ROS_DOMAIN_ID
+with discovery limited to localhost (see tests/test_ros2_link.py). The same policy, goals and
+start (``robot.twin.seed`` = ``control.arm_seed``) on the twin and in-process on the simulated arm
+end at the same distances from the goals: the deployed observation is the training one.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.control.session import control
+from pipeline.data.schemas import CMD_COLUMNS
+from pipeline.infra.artifacts import ArtifactStore
+from tests.conftest import compose_config
+from tests.control_fixtures import SMALL, goals_mm, write_policy
+from tests.test_ros2_link import (
+    Pipeline,
+    received,
+    ros_domain,  # noqa: F401 (a fixture)
+    stop,
+)
+
+pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
+pytestmark = pytest.mark.ros
+
+TIME_SCALE = 4.0
+ROS = ["robot=ros2", f"robot.time_scale={TIME_SCALE}", "robot.watchdog_s=1.0",
+       "robot.stop_timeout_s=2.0", "robot.startup_timeout_s=60", "control.flush_every_s=0.2"]
+PRELOAD = [2.0, 2.0, 2.0]
+
+
+def assert_within_limits(pressures: np.ndarray) -> None:
+    assert np.isfinite(pressures).all()
+    assert pressures.min() >= 0.0 and pressures.max() <= 7.0
+    assert pressures.sum(axis=1).max() <= 13.0
+
+
+def sim_policy(tmp_path, policy: str, **overrides):
+    """The sim config of a policy artifact (random networks) and its policy file."""
+    cfg = compose_config(tmp_path / "sim", *SMALL, f"control.policy={policy}", "stage=control")
+    artifact, train_params = write_policy(cfg)
+    cfg.control.goals = goals_mm(train_params)
+    for name, value in overrides.items():
+        cfg.control[name] = value
+    return cfg, artifact.file("policy.msgpack")
+
+
+def control_overrides(cfg, policy_file) -> list[str]:
+    goals = str(cfg.control.goals).replace(" ", "")
+    return [f"control.policy_file={policy_file}", f"control.goals={goals}",
+            f"control.hold_s={cfg.control.hold_s}"]
+
+
+def final_distances(artifact) -> np.ndarray:
+    return pd.read_parquet(artifact.file("goals.parquet"))["final_distance_mm"].to_numpy()
+
+
+def start_twin(pipe: Pipeline, record):
+    return pipe.start("twin", f"robot.twin.record_path={record}", "robot.twin.max_duration_s=900")
+
+
+def control_artifact(pipe: Pipeline, *overrides: str):
+    cfg = pipe.cfg(*overrides)
+    from pipeline.keys import key
+
+    return ArtifactStore(cfg.paths.artifact_dir).require("control", key("control", cfg))
+
+
+def test_twin_matches_the_simulated_arm_then_sigterm_stops_at_the_preload(tmp_path,
+                                                                          ros_domain):  # noqa: F811
+    sim_cfg, policy_file = sim_policy(tmp_path, "ppo_rnn", hold_s=3.0)
+    in_process = final_distances(control(sim_cfg))
+
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = ROS
+    record = tmp_path / "twin_received.jsonl"
+    twin = start_twin(pipe, record)
+    overrides = control_overrides(sim_cfg, policy_file)
+    try:
+        run = pipe.start("control", *overrides)
+        assert run.wait(timeout=240) == 0, pipe.log("control")
+        on_twin = final_distances(control_artifact(pipe, *overrides))
+        assert np.median(np.abs(on_twin - in_process)) <= 0.3, (on_twin, in_process)
+        time.sleep(0.2)
+        wire = received(record)[CMD_COLUMNS].to_numpy()
+        assert len(wire) == 3 * 6 + 1  # 3 goals x 6 periods, then the preload
+        np.testing.assert_allclose(wire[-1], PRELOAD)
+        assert_within_limits(wire)
+
+        # ---- SIGTERM mid-session: the preload goes out last, the periods so far are kept ------
+        long = [*overrides[:-1], "control.hold_s=60", "robot.session=sigterm"]
+        run = pipe.start("control", *long)
+        pipe.wait_for_log("control", "arm ready", timeout_s=240)
+        time.sleep(1.5)  # 6 s of the arm's time: about 12 periods
+        run.send_signal(signal.SIGTERM)
+        code = run.wait(timeout=60)
+    finally:
+        assert stop(twin) == 0, pipe.log("twin")
+    log = pipe.log("control")
+    assert code != 0, log
+    assert "SIGTERM received: stopping safely" in log
+    assert "ControlInterrupted: control interrupted: SIGTERM received" in log
+    artifact = control_artifact(pipe, *long)
+    assert artifact.manifest["summary"]["interrupted"] == "SIGTERM received"
+    periods = pd.read_parquet(artifact.file("periods.parquet"))
+    assert 4 <= (periods["goal_index"] >= 0).sum() < 60
+    wire = received(record)[CMD_COLUMNS].to_numpy()
+    np.testing.assert_allclose(wire[-1], PRELOAD)
+    assert_within_limits(wire)
+
+
+def test_the_watchdog_stops_at_the_preload_when_the_poses_stop(tmp_path, ros_domain):  # noqa: F811
+    sim_cfg, policy_file = sim_policy(tmp_path, "ppo_ff", hold_s=60.0)
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = [*ROS, "robot.stop_timeout_s=10"]
+    record = tmp_path / "twin_received.jsonl"
+    twin = start_twin(pipe, record)
+    try:
+        run = pipe.start("control", *control_overrides(sim_cfg, policy_file))
+        pipe.wait_for_log("control", "arm ready", timeout_s=240)
+        time.sleep(1.0)
+        twin.send_signal(signal.SIGSTOP)  # the arm's driver hangs: no pose, no acknowledgement
+        pipe.wait_for_log("control", "mocap watchdog", timeout_s=30)
+        time.sleep(0.5)
+        twin.send_signal(signal.SIGCONT)  # the preload, still being resent, now arrives
+        code = run.wait(timeout=60)
+        time.sleep(0.5)
+    finally:
+        twin.send_signal(signal.SIGCONT)
+        assert stop(twin) == 0, pipe.log("twin")
+    log = pipe.log("control")
+    assert code != 0, log
+    assert "ControlInterrupted: control interrupted: mocap watchdog: no pose on" in log
+    assert "commanded the preload [2.0, 2.0, 2.0] kPa (acknowledged" in log
+    wire = received(record)[CMD_COLUMNS].to_numpy()
+    np.testing.assert_allclose(wire[-1], PRELOAD)
+    assert_within_limits(wire)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("policy", ["ppo_ff", "ppo_rnn"])
+def test_trained_policies_end_at_the_same_distances_on_the_twin_and_in_process(
+        tmp_path, ros_domain, policy):  # noqa: F811
+    """experiment=quick policies trained on the simulated arm's data (env=learned)."""
+    from pipeline.__main__ import run
+
+    out = tmp_path / "sim"
+    train_cfg = compose_config(out, "experiment=quick", f"agent={policy}", "stage=train_ppo")
+    trained = run(train_cfg)["train_ppo"]
+    goals = "[[28.6,352.3,202.1],[34,352.5,206.5],[32.8,352.3,207.2]]"
+    common = [f"control.policy_file={trained.file('policy.msgpack')}", f"control.goals={goals}",
+              "control.hold_s=10"]
+    sim_cfg = compose_config(out, "experiment=quick", "stage=control", *common)
+    in_process = final_distances(control(sim_cfg))
+
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = ROS
+    twin = start_twin(pipe, tmp_path / "twin_received.jsonl")
+    try:
+        runner = pipe.start("control", *common)
+        assert runner.wait(timeout=300) == 0, pipe.log("control")
+    finally:
+        assert stop(twin) == 0, pipe.log("twin")
+    on_twin = final_distances(control_artifact(pipe, *common))
+    assert np.median(np.abs(on_twin - in_process)) <= 0.3, (on_twin, in_process)

@@ -8,6 +8,7 @@ import sys
 BENCHMARKS = {
     "chain": "bench.chain",
     "model_budget": "bench.model_budget",
+    "model_cv": "bench.model_cv",
     "ppo_throughput": "bench.ppo_throughput",
     "control_latency": "bench.control_latency",
 }

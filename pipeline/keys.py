@@ -14,7 +14,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from pipeline.config import PROJECT_ROOT, EnvName, RobotKind
+from pipeline.config import PROJECT_ROOT, EnvName, ModelProtocol, RobotKind
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
 from pipeline.rl.policy_io import init_policy_file
@@ -29,9 +29,9 @@ _ROS2_OPERATIONAL = ("node_name", "domain_id", "startup_timeout_s", "flush_every
 # Checks of the commands and data, not what is recorded: a run that passes them records the same
 # data whatever they are (the limits, which shape the commands, stay in the key).
 _SAFETY_ONLY = ("rating", "workspace", "command_timeout_s", "guard")
-# the dataset settings of the model (alignment has its own key)
-_MODEL_DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order", "train_fraction",
-                       "split_seed")
+# the dataset settings of the model (alignment has its own key); the split's only for it
+_MODEL_DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order")
+_SPLIT_KEYS = ("train_fraction", "split_seed")
 # agent fields that do not change the result (display only)
 _NON_DETERMINING_AGENT_KEYS = ("progress",)
 
@@ -71,10 +71,22 @@ def calibrate_spec(cfg: Any) -> Spec:
     return spec, {"align": artifact_key(*align_spec(cfg))}
 
 
+def model_protocol(cfg: Any) -> ModelProtocol:
+    """``cv`` or ``split``: ``dataset.protocol``, ``auto`` resolved by the robot (split for the
+    simulated arm, cv for recorded data)."""
+    value = ModelProtocol(cfg.dataset.protocol)
+    if value is ModelProtocol.auto:
+        simulated = RobotKind(cfg.robot.kind) is RobotKind.sim
+        value = ModelProtocol.split if simulated else ModelProtocol.cv
+    return value
+
+
 def fit_model_spec(cfg: Any) -> Spec:
     dataset = _container(cfg.dataset)
+    protocol = model_protocol(cfg)
+    chosen = _MODEL_DATASET_KEYS + (_SPLIT_KEYS if protocol is ModelProtocol.split else ())
     spec = {"model": _container(cfg.model),
-            "dataset": {k: dataset[k] for k in _MODEL_DATASET_KEYS}}
+            "dataset": {**{k: dataset[k] for k in chosen}, "protocol": protocol.value}}
     return spec, {"align": artifact_key(*align_spec(cfg))}
 
 

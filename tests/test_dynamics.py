@@ -36,6 +36,10 @@ CONFIGS = [
                    predict_displacement=True),
     DynamicsConfig(hidden=8, layers=2, head=(6,), condition_on_initial_pose=False,
                    predict_displacement=False),
+    # a GRU reading every input feature (their state rides in the carry)
+    DynamicsConfig(hidden=8, layers=1, cell="gru", condition_on_initial_pose=True,
+                   pressure_delta=True, step_size=True, step_decays=(1.0, 5.0),
+                   play_widths_kpa=(0.3, 1.0), step_threshold_kpa=0.5),
 ]
 
 

@@ -72,3 +72,12 @@ def test_sample_batch_wraps_when_fewer_windows_than_batch():
     np.testing.assert_array_equal(indices, [0, 1, 0, 1, 0])
     with pytest.raises(ValueError):
         sample_batch(jax.random.PRNGKey(0), 0, 2, 5, "shuffled")
+
+
+def test_padded_window_list_draws_the_batches_of_the_unpadded_one():
+    key = jax.random.PRNGKey(2)
+    for step in range(7):  # three epochs of 10 windows in batches of 4 (2 per epoch)
+        unpadded = sample_batch(key, step, 10, 4, "permuted")
+        padded = sample_batch(key, step, jnp.asarray(10), 4, "permuted", capacity=23)
+        np.testing.assert_array_equal(padded, unpadded)
+        assert np.asarray(padded).max() < 10  # never a padding slot

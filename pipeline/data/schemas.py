@@ -116,7 +116,25 @@ RUNS = TableSchema(
      Column("n_frames", "int", "count", "mocap frames recorded")),
     time_column=None,
 )
-SCHEMAS = {s.name: s for s in (COMMANDS, MOCAP, ALIGNED, RUNS)}
+MODEL_METRICS = TableSchema(
+    "model_metrics",
+    (_RUN,
+     Column("split", "str", "", "cv: a fold model on its held-out run | cv_train: a fold model "
+            "on one of its training runs | train / test: the model later stages use, on its "
+            "training runs / held-out runs (protocol split)"),
+     Column("fold", "int", "", "index of the fold (-1: the model later stages use)"),
+     Column("held_out", "str", "", "the fold's held-out run (empty: no fold)"),
+     Column("seed", "int", "", "model seed"),
+     Column("model", "str", "", "lstm (the learned model) | mean_position | linear_lagged "
+            "(baselines fitted on the same training runs)"),
+     Column("steps", "int", "model steps", "length of the run at the model rate"),
+     Column("mean_mm", "float", "mm", "mean open-loop Euclidean error over the entire run"),
+     Column("p95_mm", "float", "mm", "95th percentile of that error"),
+     Column("loses_to_linear", "bool", "", "the learned model's mean error on this held-out "
+            "run is not below the linear lagged baseline's (a warning)")),
+    time_column=None,
+)
+SCHEMAS = {s.name: s for s in (COMMANDS, MOCAP, ALIGNED, RUNS, MODEL_METRICS)}
 
 
 # --------------------------------------------------------------------------------------------

@@ -84,22 +84,38 @@ def batches_per_epoch(num_windows: int, batch_size: int) -> int:
 
 
 def sample_batch(
-    key: jax.Array, step: jax.Array, num_windows: int, batch_size: int, order: str
+    key: jax.Array,
+    step: jax.Array,
+    num_windows: int | jax.Array,
+    batch_size: int,
+    order: str,
+    capacity: int | None = None,
 ) -> jax.Array:
     """int32 [batch_size] window indices of training step ``step`` (jit-friendly).
 
     ``permuted``: epoch ``e = step // batches_per_epoch`` walks through the permutation drawn
     from ``fold_in(key, e)``, a fresh key per epoch. ``sequential``: every epoch walks through the
     windows in time order (``key`` unused). With fewer windows than ``batch_size``, indices wrap.
+
+    ``capacity``: the length of a padded window list of which the first ``num_windows`` entries
+    are real (``num_windows`` may then be a traced scalar, e.g. one per vmapped fold; default
+    ``num_windows``). The permutation sorts 31 random bits per slot with the padding last, and
+    the bits of slot ``i`` do not depend on ``capacity``, so a padded list draws exactly the
+    batches of the unpadded one.
     """
     if order not in ORDERS:
         raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
-    per_epoch = batches_per_epoch(num_windows, batch_size)
-    epoch, position = jnp.divmod(step, per_epoch)
+    if capacity is None:
+        capacity = int(num_windows)
+    num_windows = jnp.asarray(num_windows, jnp.int32)
+    per_epoch = jnp.maximum(1, num_windows // batch_size)
+    epoch, position = jnp.divmod(jnp.asarray(step, jnp.int32), per_epoch)
     positions = (position * batch_size + jnp.arange(batch_size)) % num_windows
     if order == "sequential":
         return positions.astype(jnp.int32)
-    permutation = jax.random.permutation(jax.random.fold_in(key, epoch), num_windows)
+    bits = jax.random.bits(jax.random.fold_in(key, epoch), (capacity,), jnp.uint32) >> 1
+    sort_keys = jnp.where(jnp.arange(capacity) < num_windows, bits, jnp.uint32(1 << 31))
+    permutation = jnp.argsort(sort_keys, stable=True)
     return permutation[positions].astype(jnp.int32)
 
 

@@ -55,7 +55,9 @@ def plot_reconstruction(path: Path, params, runs: list[dict], labels: list[str],
                         zoom_s: float = 30.0) -> Path:
     """Measured vs open-loop predicted x, y, z over time (paper Fig. 7), the error
     ``|predicted - measured|`` under them, and beside each run a zoom into ``zoom_s`` seconds
-    (shaded in the full view), where a millimetre-sized error is visible."""
+    (shaded in the full view), where a millimetre-sized error is visible. ``params``: one
+    model for every run, or a list with one model per run."""
+    models = list(params) if isinstance(params, (list, tuple)) else [params] * len(runs)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -64,8 +66,8 @@ def plot_reconstruction(path: Path, params, runs: list[dict], labels: list[str],
     fig, axes = plt.subplots(4, 2 * len(runs), figsize=(8.5 * len(runs), 8), squeeze=False,
                              gridspec_kw={"width_ratios": [2.2, 1] * len(runs),
                                           "height_ratios": [1, 1, 1, 0.9]})
-    for col, (run, label) in enumerate(zip(runs, labels)):
-        predicted = predict_run(params, run)
+    for col, (model, run, label) in enumerate(zip(models, runs, labels)):
+        predicted = predict_run(model, run)
         t = run["t"] - run["t"][0]
         error = 1e3 * np.linalg.norm(predicted - run["pos"], axis=1)
         low, high = zoom_window(t, zoom_s)

@@ -1,4 +1,4 @@
-"""Learned forward dynamics of the arm: an LSTM from chamber pressures to marker position.
+"""Learned forward dynamics of the arm: an LSTM (or GRU) from chamber pressures to marker position.
 
 Units outside this module are physical: pressures in kPa, positions in metres. Standardization
 happens inside, with the statistics of the training runs stored in :class:`Normalizer` next to the
@@ -20,6 +20,11 @@ observed at reset (both are measured in ``experiments/MODEL_RESULTS.md``):
   added back, so a run-to-run offset of the rest pose passes straight through.
 * ``condition_on_initial_pose``: the initial LSTM carry is a dense map of the standardized
   observed pose (otherwise it is zero).
+
+Input features. Besides the standardized pressure the network may read causal features of the
+pressure history (``pipeline/dynamics/features.py``: pressure differences, the last command step
+and the time since it, play operators), computed by a recurrence whose state rides in the carry,
+so stepping the model and rolling it out over a sequence agree.
 """
 
 from __future__ import annotations
@@ -36,9 +41,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from pipeline.dynamics import features as model_features
+
 NUM_CHAMBERS = 3
 POSITION_DIM = 3
 _MIN_STD = 1.0e-6  # floor of every standard deviation, so a constant channel cannot divide by 0
+CELLS = ("lstm", "gru")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -53,9 +61,37 @@ class DynamicsConfig:
     head: tuple[int, ...] = ()
     condition_on_initial_pose: bool = False
     predict_displacement: bool = False
+    cell: str = "lstm"  # lstm | gru
+    # input features (pipeline/model_features.py); all off by default
+    pressure_delta: bool = False
+    step_size: bool = False
+    step_decays: tuple[float, ...] = ()  # time constants in model steps
+    play_widths_kpa: tuple[float, ...] = ()
+    step_threshold_kpa: float = 0.05
 
     def __post_init__(self):
         object.__setattr__(self, "head", tuple(int(width) for width in self.head))
+        object.__setattr__(self, "step_decays", tuple(float(v) for v in self.step_decays))
+        object.__setattr__(self, "play_widths_kpa",
+                           tuple(float(v) for v in self.play_widths_kpa))
+        if self.cell not in CELLS:
+            raise ValueError(f"cell must be one of {CELLS}, got {self.cell!r}")
+        if any(v <= 0 for v in self.step_decays):
+            raise ValueError(f"step_decays must be positive, got {self.step_decays}")
+        if any(v < 0 for v in self.play_widths_kpa):
+            raise ValueError(f"play_widths_kpa must be >= 0, got {self.play_widths_kpa}")
+
+    @property
+    def feature_spec(self) -> model_features.FeatureSpec:
+        return model_features.FeatureSpec(
+            pressure_delta=self.pressure_delta, step_size=self.step_size,
+            decays=self.step_decays, play_widths=self.play_widths_kpa,
+            step_threshold=self.step_threshold_kpa)
+
+    @property
+    def input_dim(self) -> int:
+        """Width of the network's input per step: 3 pressures + the features."""
+        return NUM_CHAMBERS + self.feature_spec.dim
 
 
 @struct.dataclass
@@ -86,29 +122,36 @@ class DynamicsParams:
 class DynamicsCarry(NamedTuple):
     """Recurrent state between model steps.
 
-    lstm: one ``(c, h)`` pair of [hidden] arrays per layer.
+    lstm: per layer, the cell's carry: a ``(c, h)`` pair of [hidden] arrays (LSTM) or ``h``
+        (GRU).
     initial_pose: [3] metres, the observed pose at reset (added back to predicted displacements).
+    features: the input features' state (``pipeline/dynamics/features.py``).
     """
 
-    lstm: tuple[tuple[jax.Array, jax.Array], ...]
+    lstm: tuple[Any, ...]
     initial_pose: jax.Array
+    features: model_features.FeatureState
 
 
 # ---------------------------------------------------------------------------------------------
 # network
 # ---------------------------------------------------------------------------------------------
 class LSTMDynamicsNet(nn.Module):
-    """Stacked LSTM + MLP head, one unbatched time step per call (vmap for batches)."""
+    """Stacked LSTM (or GRU) + MLP head, one unbatched time step per call (vmap for batches)."""
 
     hidden: int
     layers: int
     head: tuple[int, ...]
     condition_on_initial_pose: bool
+    cell: str = "lstm"
 
     def setup(self):
-        self.cells = [
-            nn.OptimizedLSTMCell(self.hidden, name=f"lstm_{i}") for i in range(self.layers)
-        ]
+        if self.cell == "gru":
+            self.cells = [nn.GRUCell(self.hidden, name=f"gru_{i}") for i in range(self.layers)]
+        else:
+            self.cells = [
+                nn.OptimizedLSTMCell(self.hidden, name=f"lstm_{i}") for i in range(self.layers)
+            ]
         if self.condition_on_initial_pose:
             # Small init: the conditioned carry starts near the zero carry of the plain model.
             self.carry_encoder = nn.Dense(
@@ -120,16 +163,21 @@ class LSTMDynamicsNet(nn.Module):
         self.readout = nn.Dense(POSITION_DIM, name="readout")
 
     def initial_carry(self, pose_normalized: jax.Array):
-        """[3] standardized observed pose -> tuple of ``(c, h)`` per layer."""
+        """[3] standardized observed pose -> per layer ``(c, h)`` (LSTM) or ``h`` (GRU)."""
         if not self.condition_on_initial_pose:
             zeros = jnp.zeros((self.hidden,), pose_normalized.dtype)
+            if self.cell == "gru":
+                return tuple(zeros for _ in range(self.layers))
             return tuple((zeros, zeros) for _ in range(self.layers))
         encoded = self.carry_encoder(pose_normalized).reshape(self.layers, 2, self.hidden)
+        if self.cell == "gru":
+            return tuple(jnp.tanh(encoded[i, 1]) for i in range(self.layers))
         return tuple((encoded[i, 0], jnp.tanh(encoded[i, 1])) for i in range(self.layers))
 
-    def __call__(self, carry, pressure_normalized: jax.Array):
-        """One step: ``(carry_t, [3] standardized p_t) -> (carry_{t+1}, [3] standardized y_t)``."""
-        features = pressure_normalized
+    def __call__(self, carry, inputs: jax.Array):
+        """One step: ``(carry_t, [D] standardized inputs_t) -> (carry_{t+1}, [3] standardized
+        y_t)``; the inputs are ``p_t`` and its features (:func:`network_inputs`)."""
+        features = inputs
         next_carry = []
         for cell, layer_carry in zip(self.cells, carry):
             layer_carry, features = cell(layer_carry, features)
@@ -138,9 +186,9 @@ class LSTMDynamicsNet(nn.Module):
             features = nn.relu(dense(features))
         return tuple(next_carry), self.readout(features)
 
-    def initialize(self, pose_normalized: jax.Array, pressure_normalized: jax.Array):
+    def initialize(self, pose_normalized: jax.Array, inputs: jax.Array):
         """Touches every submodule once; only used by ``init``."""
-        return self(self.initial_carry(pose_normalized), pressure_normalized)
+        return self(self.initial_carry(pose_normalized), inputs)
 
 
 def make_network(config: DynamicsConfig) -> LSTMDynamicsNet:
@@ -149,14 +197,27 @@ def make_network(config: DynamicsConfig) -> LSTMDynamicsNet:
         layers=config.layers,
         head=config.head,
         condition_on_initial_pose=config.condition_on_initial_pose,
+        cell=config.cell,
     )
 
 
 @functools.partial(jax.jit, static_argnames="config")
 def init_network(key: jax.Array, config: DynamicsConfig) -> Any:
     """Fresh flax variables for ``config`` (jitted: one compilation per architecture)."""
-    zeros = jnp.zeros((NUM_CHAMBERS,), jnp.float32)
-    return make_network(config).init(key, zeros, zeros, method=LSTMDynamicsNet.initialize)
+    pose = jnp.zeros((POSITION_DIM,), jnp.float32)
+    inputs = jnp.zeros((config.input_dim,), jnp.float32)
+    return make_network(config).init(key, pose, inputs, method=LSTMDynamicsNet.initialize)
+
+
+def mask_hidden(carry: tuple[Any, ...], mask: jax.Array) -> tuple[Any, ...]:
+    """The carry with each layer's ``h`` multiplied by ``mask[layer]`` ([layers, hidden]).
+
+    Recurrent (variational) dropout during training: one mask per window, every step.
+    """
+    return tuple(
+        (layer[0], layer[1] * mask[i]) if isinstance(layer, tuple) else layer * mask[i]
+        for i, layer in enumerate(carry)
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -198,6 +259,24 @@ def normalize_pose(normalizer: Normalizer, pose: jax.Array) -> jax.Array:
     return (pose - normalizer.pose_mean) / normalizer.pose_std
 
 
+def normalize_inputs(params: DynamicsParams, pressure: jax.Array, raw_features: jax.Array
+                     ) -> jax.Array:
+    """[..., 3] kPa and [..., F] raw features -> [..., 3 + F] standardized network inputs."""
+    normalizer = params.normalizer
+    offset, scale = model_features.affine(params.config.feature_spec, normalizer.pressure_mean,
+                                          normalizer.pressure_std)
+    return jnp.concatenate(
+        [normalize_pressure(normalizer, pressure), (raw_features - offset) / scale], axis=-1)
+
+
+def network_inputs(params: DynamicsParams, pressures: jax.Array) -> jax.Array:
+    """[T, 3] kPa -> [T, 3 + F] standardized inputs of a sequence that starts at ``t = 0``."""
+    chex.assert_shape(pressures, (None, NUM_CHAMBERS))
+    pressures = jnp.asarray(pressures, jnp.float32)
+    raw = model_features.sequence(params.config.feature_spec, pressures)
+    return normalize_inputs(params, pressures, raw)
+
+
 def normalize_target(
     params: DynamicsParams, position: jax.Array, initial_pose: jax.Array
 ) -> jax.Array:
@@ -228,7 +307,8 @@ def init_carry(params: DynamicsParams, initial_pose: jax.Array) -> DynamicsCarry
     network = make_network(params.config)
     pose_normalized = normalize_pose(params.normalizer, initial_pose)
     lstm = network.apply(params.network, pose_normalized, method=LSTMDynamicsNet.initial_carry)
-    return DynamicsCarry(lstm=lstm, initial_pose=jnp.asarray(initial_pose, jnp.float32))
+    return DynamicsCarry(lstm=lstm, initial_pose=jnp.asarray(initial_pose, jnp.float32),
+                         features=model_features.init_state(params.config.feature_spec))
 
 
 def step(
@@ -237,10 +317,11 @@ def step(
     """One model step: ``(carry_t, p_t [3] kPa) -> (carry_{t+1}, x_t [3] m)``."""
     chex.assert_shape(pressure, (NUM_CHAMBERS,))
     network = make_network(params.config)
-    pressure_normalized = normalize_pressure(params.normalizer, pressure)
-    lstm, output = network.apply(params.network, carry.lstm, pressure_normalized)
+    features, raw = model_features.step(params.config.feature_spec, carry.features, pressure)
+    inputs = normalize_inputs(params, jnp.asarray(pressure, jnp.float32), raw)
+    lstm, output = network.apply(params.network, carry.lstm, inputs)
     position = denormalize_target(params, output, carry.initial_pose)
-    return DynamicsCarry(lstm=lstm, initial_pose=carry.initial_pose), position
+    return DynamicsCarry(lstm=lstm, initial_pose=carry.initial_pose, features=features), position
 
 
 def step_held(
@@ -257,18 +338,29 @@ def step_held(
 
 
 def predict_normalized(
-    params: DynamicsParams, pressure_normalized: jax.Array, pose_normalized: jax.Array
+    params: DynamicsParams,
+    inputs: jax.Array,
+    pose_normalized: jax.Array,
+    hidden_mask: jax.Array | None = None,
 ) -> jax.Array:
-    """Open-loop rollout in standardized units: [T, 3], [3] -> [T, 3] (the training path)."""
-    chex.assert_shape(pressure_normalized, (None, NUM_CHAMBERS))
+    """Open-loop rollout in standardized units: [T, D], [3] -> [T, 3] (the training path).
+
+    ``inputs``: :func:`network_inputs` rows (``D = config.input_dim``). ``hidden_mask``
+    ([layers, hidden], optional): multiplies each layer's ``h`` after every step (recurrent
+    dropout in training).
+    """
+    chex.assert_shape(inputs, (None, params.config.input_dim))
     chex.assert_shape(pose_normalized, (POSITION_DIM,))
     network = make_network(params.config)
     carry = network.apply(params.network, pose_normalized, method=LSTMDynamicsNet.initial_carry)
 
-    def one_step(carry, pressure_t):
-        return network.apply(params.network, carry, pressure_t)
+    def one_step(carry, inputs_t):
+        carry, output = network.apply(params.network, carry, inputs_t)
+        if hidden_mask is not None:
+            carry = mask_hidden(carry, hidden_mask)
+        return carry, output
 
-    _, outputs = jax.lax.scan(one_step, carry, pressure_normalized)
+    _, outputs = jax.lax.scan(one_step, carry, inputs)
     return outputs
 
 
@@ -282,8 +374,7 @@ def predict_sequence(
     """
     chex.assert_shape(pressures, (None, NUM_CHAMBERS))
     chex.assert_shape(initial_pose, (POSITION_DIM,))
-    normalizer = params.normalizer
     outputs = predict_normalized(
-        params, normalize_pressure(normalizer, pressures), normalize_pose(normalizer, initial_pose)
+        params, network_inputs(params, pressures), normalize_pose(params.normalizer, initial_pose)
     )
     return denormalize_target(params, outputs, initial_pose)

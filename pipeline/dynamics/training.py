@@ -20,7 +20,6 @@ checkpoint reproduces the uninterrupted training.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import logging
 import math
@@ -85,9 +84,29 @@ class ModelTrainConfig:
     # Initial pose given to a training window: "run_start" (the pose its run started from, as an
     # environment observes at reset) or "window_start" (the window's own first pose).
     reference_pose: str = "run_start"
+    # recurrent cell and input features (pipeline/model_features.py), see DynamicsConfig
+    cell: str = "lstm"
+    # default: the last command step and the time since it (experiments/MODEL_RESULTS.md)
+    pressure_delta: bool = False
+    step_size: bool = True
+    step_decays: tuple[float, ...] = (1.0, 3.0, 10.0)
+    play_widths_kpa: tuple[float, ...] = ()
+    step_threshold_kpa: float = 0.05
+    # regularization (training only)
+    input_noise_std: float = 0.0  # Gaussian noise on the standardized inputs, every step
+    recurrent_dropout: float = 0.0  # drop rate of each h unit, one mask per window
+    weight_decay: float = 0.0  # decoupled (AdamW)
 
     def __post_init__(self):
         object.__setattr__(self, "head", tuple(int(width) for width in self.head))
+        object.__setattr__(self, "step_decays", tuple(float(v) for v in self.step_decays))
+        object.__setattr__(self, "play_widths_kpa",
+                           tuple(float(v) for v in self.play_widths_kpa))
+        if not 0.0 <= self.recurrent_dropout < 1.0:
+            raise ValueError(f"recurrent_dropout must lie in [0, 1), got {self.recurrent_dropout}")
+        if self.input_noise_std < 0 or self.weight_decay < 0:
+            raise ValueError("input_noise_std and weight_decay must be >= 0, got "
+                             f"{self.input_noise_std}, {self.weight_decay}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be constant or cosine, got {self.lr_schedule!r}")
         if self.reference_pose not in ("run_start", "window_start"):
@@ -101,8 +120,9 @@ class ModelTrainConfig:
         if isinstance(config, cls):
             return config
         values = dataclass_values(cls, config, "model")
-        if "head" in values:
-            values["head"] = tuple(values["head"])
+        for name in ("head", "step_decays", "play_widths_kpa"):
+            if name in values:
+                values[name] = tuple(values[name])
         return cls(**values)
 
     def architecture(self) -> DynamicsConfig:
@@ -112,6 +132,12 @@ class ModelTrainConfig:
             head=self.head,
             condition_on_initial_pose=self.condition_on_initial_pose,
             predict_displacement=self.predict_displacement,
+            cell=self.cell,
+            pressure_delta=self.pressure_delta,
+            step_size=self.step_size,
+            step_decays=self.step_decays,
+            play_widths_kpa=self.play_widths_kpa,
+            step_threshold_kpa=self.step_threshold_kpa,
         )
 
 
@@ -126,7 +152,10 @@ def make_optimizer(config: ModelTrainConfig) -> optax.GradientTransformation:
         )
     else:
         learning_rate = config.learning_rate
-    adam = optax.adam(learning_rate)
+    if config.weight_decay > 0:
+        adam = optax.adamw(learning_rate, weight_decay=config.weight_decay)
+    else:
+        adam = optax.adam(learning_rate)
     if config.max_grad_norm > 0:
         return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), adam)
     return adam
@@ -144,37 +173,43 @@ class TrainState(NamedTuple):
 class TrainData(NamedTuple):
     """Concatenated training runs and their windows (device arrays).
 
-    pressure_normalized: [N, 3] standardized pressures of all runs, back to back.
+    inputs: [N, D] standardized network inputs (pressures and features, computed over each
+        whole run from its start: ``dynamics.network_inputs``) of all runs, back to back.
     position: [N, 3] positions (m), same rows.
     reference_pose: [N, 3] the pose (m) the model is given as initial pose for a window starting
         at this row: the first pose of the row's run (``reference_pose="run_start"``) or the
         row's own pose (``"window_start"``).
-    window_starts: [M] first row of each window in the concatenation.
+    window_starts: [M] first row of each window in the concatenation; only the first
+        ``num_windows`` are real (the rest pad the list to a common length across folds).
+    num_windows: [] int32, the number of real windows.
     """
 
-    pressure_normalized: jax.Array
+    inputs: jax.Array
     position: jax.Array
     reference_pose: jax.Array
     window_starts: jax.Array
+    num_windows: jax.Array
 
 
 def window_loss(
     params: DynamicsParams,
-    pressure_normalized: jax.Array,
+    inputs: jax.Array,
     position: jax.Array,
     initial_pose: jax.Array,
+    hidden_mask: jax.Array | None = None,
 ) -> jax.Array:
     """Mean squared standardized error of the open-loop rollout over a batch of windows.
 
-    pressure_normalized: [B, W, 3]; position: [B, W, 3] m; initial_pose: [B, 3] m, the pose each
-    rollout is conditioned on (and displacements are measured from).
+    inputs: [B, W, D] standardized network inputs; position: [B, W, 3] m; initial_pose: [B, 3]
+    m, the pose each rollout is conditioned on (and displacements are measured from);
+    hidden_mask: optional [B, layers, hidden] recurrent-dropout masks.
     """
     targets = jax.vmap(dynamics.normalize_target, in_axes=(None, 0, 0))(
         params, position, initial_pose
     )
     pose_normalized = dynamics.normalize_pose(params.normalizer, initial_pose)
-    outputs = jax.vmap(dynamics.predict_normalized, in_axes=(None, 0, 0))(
-        params, pressure_normalized, pose_normalized
+    outputs = jax.vmap(dynamics.predict_normalized, in_axes=(None, 0, 0, 0))(
+        params, inputs, pose_normalized, hidden_mask
     )
     return jnp.mean(jnp.square(outputs - targets))
 
@@ -185,26 +220,41 @@ def make_train_step(
     window: int,
     batch_size: int,
     order: str,
+    input_noise_std: float = 0.0,
+    recurrent_dropout: float = 0.0,
 ) -> Callable[[TrainState, TrainData, jax.Array], tuple[TrainState, jax.Array]]:
     """``train_step(state, data, sample_key) -> (state, loss)``: one Adam step on one batch.
 
     ``model_template`` supplies the normalizer and architecture; its network is replaced by the
-    trained one. The batch of step ``k`` depends only on ``(sample_key, k)``. The data is an
-    argument (not a closure) so a jitted program does not embed the dataset as constants.
+    trained one. The batch of step ``k`` depends only on ``(sample_key, k)``, and so do the
+    input noise and dropout masks (drawn from a key split off ``sample_key`` and folded with
+    ``k``). The data is an argument (not a closure) so a jitted program does not embed the
+    dataset as constants.
     """
+    config = model_template.config
 
-    def loss_fn(network, pressure_normalized, position, initial_pose):
+    def loss_fn(network, inputs, position, initial_pose, hidden_mask):
         params = model_template.replace(network=network)
-        return window_loss(params, pressure_normalized, position, initial_pose)
+        return window_loss(params, inputs, position, initial_pose, hidden_mask)
 
     def train_step(state: TrainState, data: TrainData, sample_key: jax.Array):
-        num_windows = data.window_starts.shape[0]
-        window_index = sample_batch(sample_key, state.step, num_windows, batch_size, order)
+        batch_key, regularizer_key = jax.random.split(sample_key)
+        window_index = sample_batch(batch_key, state.step, data.num_windows, batch_size, order,
+                                    capacity=data.window_starts.shape[0])
         starts = data.window_starts[window_index]
-        pressure = gather_windows(data.pressure_normalized, starts, window)
+        inputs = gather_windows(data.inputs, starts, window)
         position = gather_windows(data.position, starts, window)
         initial_pose = data.reference_pose[starts]
-        loss, grads = jax.value_and_grad(loss_fn)(state.network, pressure, position, initial_pose)
+        noise_key, dropout_key = jax.random.split(jax.random.fold_in(regularizer_key, state.step))
+        if input_noise_std > 0:
+            inputs = inputs + input_noise_std * jax.random.normal(noise_key, inputs.shape)
+        hidden_mask = None
+        if recurrent_dropout > 0:
+            keep = jax.random.bernoulli(dropout_key, 1.0 - recurrent_dropout,
+                                        (batch_size, config.layers, config.hidden))
+            hidden_mask = keep.astype(inputs.dtype) / (1.0 - recurrent_dropout)
+        loss, grads = jax.value_and_grad(loss_fn)(state.network, inputs, position, initial_pose,
+                                                  hidden_mask)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.network)
         network = optax.apply_updates(state.network, updates)
         return TrainState(network, opt_state, state.step + 1), loss
@@ -212,8 +262,7 @@ def make_train_step(
     return train_step
 
 
-@functools.partial(jax.jit, static_argnames=("config", "window", "order", "num_steps"))
-def train_chunk(
+def train_chunk_unjitted(
     state: TrainState,
     data: TrainData,
     normalizer: Normalizer,
@@ -225,17 +274,23 @@ def train_chunk(
 ) -> tuple[TrainState, jax.Array]:
     """``num_steps`` training steps in one ``lax.scan``: ``-> (state, losses [num_steps])``.
 
-    Jitted once per (config, window, order, num_steps) and data shapes, so fits that share
-    them (folds, resumed runs) reuse the compiled program.
+    :func:`train_chunk` is this jitted, once per (config, window, order, num_steps) and data
+    shapes, so fits that share them (resumed runs) reuse the compiled program;
+    ``pipeline.dynamics.cv`` vmaps it over folds and seeds.
     """
     template = DynamicsParams(network=state.network, normalizer=normalizer,
                               config=config.architecture())
     train_step = make_train_step(
-        template, make_optimizer(config), window, config.batch_size, order
+        template, make_optimizer(config), window, config.batch_size, order,
+        input_noise_std=config.input_noise_std, recurrent_dropout=config.recurrent_dropout,
     )
     return jax.lax.scan(
         lambda s, _: train_step(s, data, sample_key), state, None, length=num_steps
     )
+
+
+train_chunk = jax.jit(train_chunk_unjitted,
+                      static_argnames=("config", "window", "order", "num_steps"))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -457,6 +512,25 @@ def _loss_table(history: dict) -> pd.DataFrame:
     return table.merge(val, on="step", how="left")[LOSS_TABLE_COLUMNS]
 
 
+_batched_network_inputs = jax.jit(jax.vmap(dynamics.network_inputs, in_axes=(None, 0)))
+
+
+def run_inputs(params: DynamicsParams, runs: Sequence[dict]) -> list[np.ndarray]:
+    """Per run, the [T_i, D] float32 standardized network inputs over the whole run.
+
+    The runs are padded (with their last pressure) to a common length and computed in one
+    vmapped call; the features are causal, so the padding does not change the real rows.
+    """
+    lengths = [len(run["p"]) for run in runs]
+    longest = max(lengths)
+    padded = np.stack([
+        np.concatenate([run["p"], np.repeat(run["p"][-1:], longest - len(run["p"]), axis=0)])
+        for run in runs
+    ]).astype(np.float32)
+    inputs = np.asarray(_batched_network_inputs(params, jnp.asarray(padded)))
+    return [inputs[i, :length] for i, length in enumerate(lengths)]
+
+
 def _reference_poses(runs: Sequence[dict], source: str) -> np.ndarray:
     """[N, 3] float32: per row of the concatenated runs, the initial pose of a window there."""
     if source == "window_start":
@@ -538,12 +612,11 @@ def fit(
             state, history = _resume(checkpoint_dir, state, history, spec)
 
     data = TrainData(
-        pressure_normalized=dynamics.normalize_pressure(
-            normalizer, jnp.asarray(np.concatenate([r["p"] for r in train_runs]), jnp.float32)
-        ),
+        inputs=jnp.asarray(np.concatenate(run_inputs(template, train_runs))),
         position=jnp.asarray(np.concatenate([r["pos"] for r in train_runs]), jnp.float32),
         reference_pose=jnp.asarray(_reference_poses(train_runs, config.reference_pose)),
         window_starts=jnp.asarray(windows.starts, jnp.int32),
+        num_windows=jnp.asarray(len(windows.starts), jnp.int32),
     )
     chunk = math.gcd(config.eval_every, config.checkpoint_every)
     last_step = config.num_steps
@@ -582,15 +655,21 @@ def fit(
 
 
 def evaluation_table(params, train_runs: list[dict], test_runs: list[dict]) -> pd.DataFrame:
-    """Open-loop errors over entire runs for the model and the baselines, per run and split."""
+    """Open-loop errors over entire runs for the model and the baselines, per run and split
+    (the ``model_metrics`` table of the split protocol: ``fold`` -1, no ``held_out``)."""
     rows = []
     for split, runs in (("train", train_runs), ("test", test_runs)):
         for run in runs:
-            for model, errors in (
-                ("lstm", evaluate_open_loop(params, run)),
-                ("mean_position", baseline_mean_position(train_runs, run)),
-                ("linear_lagged", baseline_linear_lagged(train_runs, run)),
-            ):
-                rows.append({"run_id": run["run_id"], "split": split, "model": model,
-                             "steps": len(run["p"]), **errors})
+            errors = {
+                "lstm": evaluate_open_loop(params, run),
+                "mean_position": baseline_mean_position(train_runs, run),
+                "linear_lagged": baseline_linear_lagged(train_runs, run),
+            }
+            loses = split == "test" and errors["lstm"]["mean_mm"] >= errors["linear_lagged"][
+                "mean_mm"]
+            for model, values in errors.items():
+                rows.append({"run_id": run["run_id"], "split": split, "fold": -1,
+                             "held_out": "", "seed": 0, "model": model,
+                             "steps": len(run["p"]), **values,
+                             "loses_to_linear": bool(loses and model == "lstm")})
     return pd.DataFrame(rows)

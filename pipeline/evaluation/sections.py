@@ -10,6 +10,7 @@ from __future__ import annotations
 import pandas as pd
 from omegaconf import OmegaConf
 
+from pipeline.dynamics.cv import cv_summary
 from pipeline.evaluation.metrics import seed_spread
 from pipeline.evaluation.report import Figure, Section, Table, format_number
 from pipeline.infra.artifacts import Artifact
@@ -48,8 +49,15 @@ def _summary_table(summary: pd.DataFrame) -> pd.DataFrame:
 def _model_sentence(model: Artifact) -> str:
     held = model.manifest["summary"]
     tested = list(held.get("test_runs", []))
-    runs = (f"the {len(tested)} held-out run{'s' if len(tested) != 1 else ''} "
-            f"({', '.join(tested)})" if tested else "the training runs (no run was held out)")
+    if held.get("protocol") == "cv":
+        folds = list(held.get("folds", []))
+        runs = (f"each of the {len(folds)} runs held out once (leave-one-run-out, each predicted "
+                "by the model fitted to the other runs)")
+    elif tested:
+        runs = (f"the {len(tested)} held-out run{'s' if len(tested) != 1 else ''} "
+                f"({', '.join(tested)})")
+    else:
+        runs = "the training runs (no run was held out)"
     return (f"Dynamics model: **{format_number(held['lstm_mean_mm'])} mm** mean and "
             f"{format_number(held['lstm_p95_mm'])} mm 95th-percentile open-loop error over "
             f"{runs}, each predicted over its entire length from its commands alone "
@@ -62,6 +70,8 @@ def _summary_section(cfg, model, summary: pd.DataFrame, order: list[str]) -> Sec
     section = Section("Summary")
     if model is not None:
         section.add(_model_sentence(model))
+        for warning in model.manifest["summary"].get("warnings", []):
+            section.add(f"**Warning:** {warning}.")
     if "plant" in set(summary["plant"]):
         section.add("Every controller is run on the **learned model** (the fitted LSTM the "
                     "policies were trained in) and on the **simulated arm** (the plant: "
@@ -84,6 +94,20 @@ def _model_section(model: Artifact | None) -> Section:
         return accuracy
     metrics = pd.read_parquet(model.file("metrics.parquet"))
     held = model.manifest["summary"]
+    if "cv" in set(metrics["split"]):
+        accuracy.add("Leave-one-run-out cross-validation: each run predicted over its entire "
+                     "length by the model fitted to the other runs, next to the baselines fitted "
+                     "to the same runs and that fold model's error on its own training runs; the "
+                     "model the policies use is fitted to all runs.")
+        accuracy.add(Table(cv_summary(metrics), "held-out open-loop error per run [mm]"))
+        for warning in held.get("warnings", []):
+            accuracy.add(f"**Warning:** {warning}.")
+        for name, caption in (("loss.png", "training loss of the model fitted to all runs"),
+                              ("reconstruction.png", "open-loop reconstruction of a training "
+                               "run (model on all runs) and a held-out run (its fold model)")):
+            if model.file(f"figures/{name}").is_file():
+                accuracy.add(Figure(model.file(f"figures/{name}"), caption))
+        return accuracy
     trained, tested = list(held.get("train_runs", [])), list(held.get("test_runs", []))
     accuracy.add(f"{len(trained)} training run{'s' if len(trained) != 1 else ''} and "
                  f"{len(tested)} held-out run{'s' if len(tested) != 1 else ''}. Open-loop error "

@@ -1,15 +1,27 @@
 """Stage ``fit_model``: the LSTM forward-dynamics model on the aligned runs.
 
 The aligned rows (~100 Hz) are resampled to ``dataset.model_hz`` (positions interpolated,
-pressures held), split by run into train and test (``dataset.train_fraction``, seeded, recorded in
-the artifact) and cut into sliding windows (``dataset.window``, ``dataset.stride``, ``dataset.order``).
-Training (:func:`pipeline.dynamics.training.fit`) checkpoints into a work folder beside the artifact,
-so an interrupted ``fit_model`` resumes where it stopped when run again with the same config.
+pressures held) and cut into sliding windows (``dataset.window``, ``dataset.stride``,
+``dataset.order``). ``dataset.protocol`` decides how the model is scored:
 
-Artifact: ``model.msgpack`` (weights, normalization and architecture), ``split.json``,
-``losses.parquet`` (per step), ``metrics.parquet`` (per held-out run: mean and p95 open-loop error
-in mm over the entire run, next to the mean-position and linear lagged-pressure baselines), and
-figures: the EMA-smoothed loss curve and reconstructions of a training and an unseen run.
+* ``cv`` (the default for recorded data, ``protocol=auto`` with any robot but ``sim``):
+  leave-one-run-out cross-validation, every run held out once, all fold models and the model
+  trained on all runs (the one later stages use) in one vmapped program
+  (:func:`pipeline.dynamics.cv.fit_members`);
+* ``split`` (the default for the simulated arm, whose default chain it keeps cheap): one seeded
+  split of the runs into train and test (``dataset.train_fraction``, ``dataset.split_seed``).
+
+Training checkpoints into a work folder beside the artifact, so an interrupted ``fit_model``
+resumes where it stopped when run again with the same config. Whenever the model does not beat
+the linear lagged-pressure baseline on a held-out run, a warning is logged and recorded
+(``loses_to_linear`` in the metrics, ``warnings`` in the manifest summary).
+
+Artifact: ``model.msgpack`` (weights, normalization and architecture), ``split.json`` (the runs
+the model trained on, the held-out runs or, for cv, the folds), ``losses.parquet`` (per step of
+the model later stages use), ``metrics.parquet`` (schema ``model_metrics``: per run, fold and
+model the mean and p95 open-loop error in mm over the entire run, the learned model next to the
+mean-position and linear lagged-pressure baselines fitted on the same runs) and figures: the
+EMA-smoothed loss curve and reconstructions of a training and an unseen run.
 """
 
 from __future__ import annotations
@@ -17,12 +29,17 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from pathlib import Path
 from typing import Any
+
+import numpy as np
+import pandas as pd
 
 from pipeline import keys
 from pipeline.data.alignment import runs_at_model_rate
-from pipeline.data.schemas import ALIGNED, read_table
+from pipeline.data.schemas import ALIGNED, MODEL_METRICS, read_table, write_table
 from pipeline.data.windows import split_runs
+from pipeline.dynamics import cv as model_cv
 from pipeline.dynamics.figures import plot_losses, plot_reconstruction
 from pipeline.dynamics.training import evaluation_table, fit, save_dynamics
 from pipeline.infra.artifacts import Artifact, ArtifactStore, artifact_key, produce
@@ -48,6 +65,8 @@ def fit_model(cfg: Any) -> Artifact:
             shutil.rmtree(work_dir)
         aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
         runs = runs_at_model_rate(aligned, float(data.model_hz), str(data.model_grid))
+        if spec["dataset"]["protocol"] == "cv":
+            return build_cv(cfg, writer, runs, work_dir, spec, inputs)
         by_id = {run["run_id"]: run for run in runs}
         train_ids, test_ids = split_runs(list(by_id), float(data.train_fraction),
                                          int(data.split_seed))
@@ -76,8 +95,9 @@ def fit_model(cfg: Any) -> Artifact:
             tracker.log_table(losses)
 
         metrics = evaluation_table(params, train_runs, test_runs)
-        write_parquet(metrics, writer.file("metrics.parquet"), table_metadata(
-            metrics, "model_metrics", config, provenance, {"steps": "model steps"}))
+        metrics["seed"] = int(cfg.model.seed)
+        warnings = model_cv.warn_if_losing(metrics)
+        write_metrics(writer.file("metrics.parquet"), metrics, config, provenance)
         plot_losses(writer.file("figures/loss.png"), losses)
         shown = [train_runs[0]] + ([test_runs[0]] if test_runs else [])
         plot_reconstruction(writer.file("figures/reconstruction.png"), params, shown,
@@ -85,10 +105,11 @@ def fit_model(cfg: Any) -> Artifact:
         held_out = metrics[metrics["split"] == "test"]
         summary_of = held_out if len(held_out) else metrics
         writer.summary = {
-            "train_runs": train_ids, "test_runs": test_ids,
+            "protocol": "split", "train_runs": train_ids, "test_runs": test_ids,
             "steps": int(losses["step"].max()) if len(losses) else 0,
             **{f"{m}_{k}": float(summary_of.loc[summary_of["model"] == m, k].mean())
                for m in ("lstm", "mean_position", "linear_lagged") for k in ("mean_mm", "p95_mm")},
+            "warnings": warnings,
         }
         which = ("held-out" if len(held_out) else
                  "training-run (no test run: dataset.train_fraction keeps every run)")
@@ -101,3 +122,68 @@ def fit_model(cfg: Any) -> Artifact:
     artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)
     shutil.rmtree(work_dir, ignore_errors=True)
     return artifact
+
+
+def build_cv(cfg: Any, writer, runs: list[dict], work_dir: Path, spec: dict,
+             inputs: dict) -> None:
+    """The ``cv`` protocol: leave-one-run-out folds and the all-runs model, one program."""
+    data = cfg.dataset
+    ids = sorted(run["run_id"] for run in runs)
+    members = model_cv.cv_members(ids, (int(cfg.model.seed),), final=True)
+    log.info("fit_model: leave-one-run-out over %d runs %s at %.3g Hz (%d fold models and the "
+             "model on all runs, one program)", len(ids), ids, float(data.model_hz),
+             len(members) - 1)
+    writer.file("split.json").write_text(json.dumps(
+        {"protocol": "cv", "train": ids, "test": [],
+         "folds": [{"held_out": m.held_out, "train": list(m.train_ids)}
+                   for m in members if m.held_out],
+         "model_hz": data.model_hz}, indent=2))
+    params, losses = model_cv.fit_members(
+        runs, members, cfg.model, window=int(data.window), stride=int(data.stride),
+        order=str(data.order), checkpoint_dir=work_dir, resume=not cfg.force)
+    final = params[-1]
+    save_dynamics(writer.file("model.msgpack"), final)
+    loss_table = pd.DataFrame({"step": np.arange(1, losses.shape[1] + 1),
+                               "train_loss": losses[-1].astype(np.float64)})
+    for column in ("val_loss", "val_mean_mm", "val_p95_mm"):
+        loss_table[column] = np.nan
+    config = {"model": spec["model"], "dataset": spec["dataset"]}
+    provenance = {"stage": STAGE, "inputs": inputs}
+    write_parquet(loss_table, writer.file("losses.parquet"), table_metadata(
+        loss_table, "losses", config, provenance,
+        {"train_loss": "normalized MSE", "val_loss": "normalized MSE", "step": "step"}))
+    with tracking(cfg, STAGE) as tracker:
+        tracker.log_table(loss_table)
+
+    metrics = model_cv.cv_metrics(runs, members, params)
+    warnings = model_cv.warn_if_losing(metrics)
+    write_metrics(writer.file("metrics.parquet"), metrics, config, provenance)
+    table = model_cv.cv_summary(metrics)
+    log.info("fit_model: leave-one-run-out open-loop error [mm] (mean / p95; baselines fitted "
+             "on the same folds)\n%s", table.to_string(index=False, float_format="%.2f"))
+    plot_losses(writer.file("figures/loss.png"), loss_table)
+    by_id = {run["run_id"]: run for run in runs}
+    first_fold = members[0]
+    plot_reconstruction(writer.file("figures/reconstruction.png"), [final, params[0]],
+                        [by_id[ids[-1]], by_id[first_fold.held_out]],
+                        ["training run (model on all runs)", "held-out run (its fold model)"])
+    average = table[table["run_id"] == "average"].iloc[0]
+    writer.summary = {
+        "protocol": "cv", "train_runs": ids, "test_runs": [],
+        "folds": [m.held_out for m in members if m.held_out],
+        "steps": int(losses.shape[1]),
+        **{f"{m}_{k}": float(average[f"{m}_{k}"])
+           for m in model_cv.MODELS for k in ("mean_mm", "p95_mm")},
+        "train_runs_mean_mm": float(average["train_runs_mean_mm"]),
+        "warnings": warnings,
+    }
+    log.info("fit_model: leave-one-run-out open-loop error %.2f mm mean, %.2f mm p95 "
+             "(baselines: mean position %.2f mm, linear lagged %.2f mm; fold models on their "
+             "training runs %.2f mm)", writer.summary["lstm_mean_mm"],
+             writer.summary["lstm_p95_mm"], writer.summary["mean_position_mean_mm"],
+             writer.summary["linear_lagged_mean_mm"], writer.summary["train_runs_mean_mm"])
+
+
+def write_metrics(path: Path, metrics: pd.DataFrame, config: dict, provenance: dict) -> Path:
+    """``metrics.parquet`` through the schema writer (units and config in its metadata)."""
+    return write_table(metrics, path, MODEL_METRICS, config=config, provenance=provenance)

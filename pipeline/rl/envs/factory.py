@@ -278,11 +278,24 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
         ignore_index=True)
     first_poses = pd.DataFrame([{"run_id": run["run_id"], "x": run["pos"][0, 0],
                                  "y": run["pos"][0, 1], "z": run["pos"][0, 2]} for run in runs])
-    test_ids = list(split["test"]) or list(split["train"])  # one run only: evaluate on it
-    data = data_goals_and_rest_pose(at_model_rate, test_ids, every=int(cfg.env.goal_every))
+    every = int(cfg.env.goal_every)
     rest = data_goals_and_rest_pose(first_poses, [])  # rest pose from the measured first poses
+    if split.get("protocol") == "cv":
+        # training goals along every run (the model trained on all of them); evaluation goals
+        # the measured positions of each run as recorded when its fold held it out
+        held_out_ids = [fold["held_out"] for fold in split["folds"]]
+        measured = pd.concat(
+            [pd.DataFrame({"run_id": run["run_id"], "x": run["pos"][:, 0],
+                           "y": run["pos"][:, 1], "z": run["pos"][:, 2]})
+             for run in runs if run["run_id"] in held_out_ids], ignore_index=True)
+        data = {"train_goals": data_goals_and_rest_pose(at_model_rate, [], every)["train_goals"],
+                "held_out_goals": data_goals_and_rest_pose(measured, held_out_ids,
+                                                           every)["held_out_goals"]}
+    else:
+        test_ids = list(split["test"]) or list(split["train"])  # one run only: evaluate on it
+        data = data_goals_and_rest_pose(at_model_rate, test_ids, every=every)
+        if not split["test"]:
+            data["train_goals"] = data["held_out_goals"]
     data["rest_pose"], data["rest_pose_std"] = rest["rest_pose"], rest["rest_pose_std"]
-    if not split["test"]:
-        data["train_goals"] = data["held_out_goals"]
     return make_learned_env(cfg, dynamics_params, data["train_goals"], data["held_out_goals"],
                             data["rest_pose"], data["rest_pose_std"])

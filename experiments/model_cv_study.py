@@ -1,0 +1,157 @@
+"""One row of the generalization study: leave-one-run-out on the real runs, one vmapped program.
+
+The runs come through the pipeline itself (``robot=sorolex_csv``: import, align, resample to
+``dataset.model_hz``), the folds are ``pipeline.dynamics.cv.loro_folds`` (every run held out once)
+and all fold models of all seeds train in one ``pipeline.dynamics.cv.fit_members`` program. With
+several seeds the row scores their average (an ensemble) and reports the coverage of its ±2σ
+band on the held-out runs; the single members' average error is reported beside it.
+
+Appends one JSON line to ``--out`` (the command, per held-out run the model's mean / p95 mm, the
+baselines on the same folds, the fold models' error on their training runs, and the averages)::
+
+    python experiments/model_cv_study.py --tag default
+    python experiments/model_cv_study.py --tag play model.play_widths_kpa=[0.25,0.5,1.0]
+    python experiments/model_cv_study.py --tag ensemble5 --seeds 0,1,2,3,4
+    python experiments/model_cv_study.py --report      # the table of every row so far
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+DEFAULT_OUT = "outputs/model_cv_study/study.jsonl"
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides (model.*, dataset.*)")
+    parser.add_argument("--tag", default="")
+    parser.add_argument("--seeds", default="0", help="comma-separated model seeds")
+    parser.add_argument("--out", default=DEFAULT_OUT)
+    parser.add_argument("--report", action="store_true", help="print the table of --out")
+    return parser.parse_args(argv)
+
+
+def load_runs(overrides: list[str]):
+    """(config, runs at the model rate) of robot=sorolex_csv through collect and align."""
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.__main__ import run
+    from pipeline.config import PROJECT_ROOT, register_configs
+    from pipeline.data.alignment import runs_at_model_rate
+    from pipeline.data.schemas import ALIGNED, read_table
+    from pipeline.infra.artifacts import ArtifactStore
+    from pipeline.keys import key
+
+    register_configs()
+    with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["robot=sorolex_csv", "stage=align", *overrides])
+    run(cfg)
+    aligned_artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", key("align", cfg))
+    aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
+    return cfg, runs_at_model_rate(aligned, float(cfg.dataset.model_hz),
+                                   str(cfg.dataset.model_grid))
+
+
+def study_row(args: argparse.Namespace) -> dict:
+    from pipeline.dynamics import cv as model_cv
+    from pipeline.dynamics.training import position_errors_mm
+
+    cfg, runs = load_runs(args.overrides)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    ids = [run["run_id"] for run in runs]
+    members = model_cv.cv_members(ids, seeds, final=False)
+    data = cfg.dataset
+    started, started_cpu = time.perf_counter(), time.process_time()
+    params, _ = model_cv.fit_members(runs, members, cfg.model, window=int(data.window),
+                                     stride=int(data.stride), order=str(data.order))
+    train_s, train_cpu_s = time.perf_counter() - started, time.process_time() - started_cpu
+    metrics = model_cv.cv_metrics(runs, members, params)
+    by_id = {run["run_id"]: run for run in runs}
+    per_run = {}
+    for run_id in sorted(by_id):
+        run = by_id[run_id]
+        fold = [p for m, p in zip(members, params) if m.held_out == run_id]
+        mean, std = model_cv.ensemble_predictions(fold, run)
+        held = metrics[(metrics["split"] == "cv") & (metrics["run_id"] == run_id)]
+        train = metrics[(metrics["split"] == "cv_train") & (metrics["held_out"] == run_id)
+                        & (metrics["model"] == "lstm")]
+
+        def of(model, stat, held=held):
+            return float(held.loc[held["model"] == model, stat].mean())
+
+        per_run[run_id] = {
+            **{f"model_{k}": v for k, v in position_errors_mm(mean, run["pos"]).items()},
+            "member_mean_mm": of("lstm", "mean_mm"), "member_p95_mm": of("lstm", "p95_mm"),
+            "linear_mean_mm": of("linear_lagged", "mean_mm"),
+            "linear_p95_mm": of("linear_lagged", "p95_mm"),
+            "mean_position_mean_mm": of("mean_position", "mean_mm"),
+            "mean_position_p95_mm": of("mean_position", "p95_mm"),
+            "train_runs_mean_mm": float(train["mean_mm"].mean()),
+            "train_runs_p95_mm": float(train["p95_mm"].mean()),
+            "coverage_2sigma": (model_cv.band_coverage(mean, std, run["pos"])
+                                if len(seeds) > 1 else float("nan")),
+        }
+    average = pd.DataFrame(per_run).T.mean().to_dict()
+    return {"tag": args.tag, "command": "python experiments/model_cv_study.py " + shlex.join(
+        sys.argv[1:]), "seeds": seeds, "train_s": train_s, "train_cpu_s": train_cpu_s,
+        "per_run": per_run, "average": average}
+
+
+def report(path: str) -> str:
+    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    lines = ["| row | LORO mean / p95 mm | single member | training runs | linear lagged | "
+             "±2σ coverage | CPU s | command |", "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        a = row["average"]
+        coverage = a.get("coverage_2sigma", float("nan"))
+        lines.append(
+            f"| {row['tag']} | {a['model_mean_mm']:.2f} / {a['model_p95_mm']:.2f} | "
+            f"{a['member_mean_mm']:.2f} / {a['member_p95_mm']:.2f} | "
+            f"{a['train_runs_mean_mm']:.2f} / {a['train_runs_p95_mm']:.2f} | "
+            f"{a['linear_mean_mm']:.2f} / {a['linear_p95_mm']:.2f} | "
+            f"{'' if np.isnan(coverage) else f'{coverage:.2f}'} | {row['train_cpu_s']:.0f} | "
+            f"`{row['command'].removeprefix('python experiments/model_cv_study.py ')}` |")
+    runs = sorted(rows[0]["per_run"]) if rows else []
+    lines += ["", "| row | " + " | ".join(r.removeprefix("Step_control_") for r in runs) + " |",
+              "|---|" + "---|" * len(runs)]
+    for row in rows:
+        cells = [f"{row['per_run'][r]['model_mean_mm']:.2f} / "
+                 f"{row['per_run'][r]['model_p95_mm']:.2f}" for r in runs]
+        lines.append(f"| {row['tag']} | " + " | ".join(cells) + " |")
+    if rows:
+        for name in ("linear", "mean_position", "train_runs"):
+            cells = [f"{rows[0]['per_run'][r][f'{name}_mean_mm']:.2f} / "
+                     f"{rows[0]['per_run'][r][f'{name}_p95_mm']:.2f}" for r in runs]
+            lines.append(f"| {name} ({rows[0]['tag']}) | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    if args.report:
+        print(report(args.out))
+        return
+    row = study_row(args)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "a") as file:
+        file.write(json.dumps(row) + "\n")
+    a = row["average"]
+    print(f"{row['tag']}: LORO {a['model_mean_mm']:.2f} / {a['model_p95_mm']:.2f} mm "
+          f"(linear {a['linear_mean_mm']:.2f} / {a['linear_p95_mm']:.2f}, training runs "
+          f"{a['train_runs_mean_mm']:.2f}); {row['train_cpu_s']:.0f} CPU s", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,348 @@
+"""Run-wise cross-validation of the learned dynamics, all fold models in one jitted program.
+
+A *member* is one model to train: the runs it trains on, the run it is scored on (``None`` for
+the model trained on all runs) and its seed. :func:`fit_members` trains every member at once:
+``train_model.train_chunk_unjitted`` is ``jax.vmap``-ed over members, each with its own
+normalizer (statistics of its training runs), initial network and batch key, over one shared
+concatenation of all runs in which each member samples only the windows of its training runs
+(its window list is padded to the longest one; ``windows.sample_batch`` draws from the first
+``num_windows`` entries exactly the batches of the unpadded list). A member therefore trains
+exactly as ``train_model.fit`` would on its runs, and K fold models cost one program.
+
+Leave-one-run-out (:func:`loro_folds`): every run is held out once. :func:`cv_metrics` scores
+each fold model open loop over its held-out run and its training runs, next to the mean-position
+and linear lagged-pressure baselines fitted on the same training runs, and flags every fold on
+which the model does not beat the linear baseline.
+
+Checkpoints (stacked states of all members, msgpack, atomic) go to ``checkpoint_dir`` every
+``checkpoint_every`` steps; batches are a pure function of ``(seed, step)``, so a resumed run
+reproduces the uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+from flax import serialization
+from tqdm.auto import tqdm
+
+from pipeline.data.windows import make_windows
+from pipeline.dynamics import model as dynamics
+from pipeline.dynamics.model import DynamicsParams
+from pipeline.dynamics.training import (
+    ModelTrainConfig,
+    TrainData,
+    TrainState,
+    _reference_poses,
+    _write_atomically,
+    baseline_mean_position,
+    checkpoint_path,
+    fit_linear_lagged,
+    lagged_features,
+    latest_checkpoint,
+    make_optimizer,
+    position_errors_mm,
+    predict_run,
+    run_inputs,
+    train_chunk_unjitted,
+)
+
+log = logging.getLogger(__name__)
+LINEAR_LAGS = 30  # lags of the linear baseline (model steps), as train_model's default
+MODELS = ("lstm", "mean_position", "linear_lagged")
+
+
+@dataclass(frozen=True)
+class Member:
+    """One model of a vmapped training: its training runs, held-out run and seed."""
+
+    train_ids: tuple[str, ...]
+    held_out: str | None = None  # None: trained on all runs, scored on its training runs
+    seed: int = 0
+
+
+def loro_folds(run_ids: Sequence[str]) -> list[tuple[list[str], str]]:
+    """Leave-one-run-out: ``[(train ids, held-out id)]``, one per run, in sorted id order.
+
+    Every run is held out exactly once and trains in every other fold. Needs two runs or more.
+    """
+    ids = sorted(str(i) for i in run_ids)
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"duplicate run ids: {ids}")
+    if len(ids) < 2:
+        raise ValueError(f"cross-validation over runs needs at least 2 runs, got {ids}")
+    return [([i for i in ids if i != held_out], held_out) for held_out in ids]
+
+
+def cv_members(run_ids: Sequence[str], seeds: Sequence[int] = (0,), final: bool = True
+               ) -> list[Member]:
+    """The LORO fold members for each seed, then (``final``) the all-runs model of seeds[0]."""
+    members = [Member(tuple(train), held_out, int(seed))
+               for seed in seeds for train, held_out in loro_folds(run_ids)]
+    if final:
+        members.append(Member(tuple(sorted(str(i) for i in run_ids)), None, int(seeds[0])))
+    return members
+
+
+# ---------------------------------------------------------------------------------------------
+# vmapped training
+# ---------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=8)
+def _members_chunk(config: ModelTrainConfig, window: int, order: str, num_steps: int):
+    """Jitted ``(states, data, normalizers, sample_keys) -> (states, losses [M, num_steps])``."""
+    chunk = functools.partial(train_chunk_unjitted, config=config, window=window, order=order,
+                              num_steps=num_steps)
+    data_axes = TrainData(inputs=0, position=None, reference_pose=None, window_starts=0,
+                          num_windows=0)
+    return jax.jit(jax.vmap(chunk, in_axes=(0, data_axes, 0, 0)))
+
+
+def _stack(trees: Sequence[Any]) -> Any:
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)
+
+
+def _unstack(tree: Any, index: int) -> Any:
+    return jax.tree.map(lambda leaf: leaf[index], tree)
+
+
+def _member_spec(config: ModelTrainConfig, members: Sequence[Member], window: int, stride: int,
+                 order: str) -> dict:
+    spec = {"model": dataclasses.asdict(config), "window": window, "stride": stride,
+            "order": order, "members": [dataclasses.asdict(m) for m in members]}
+    return json.loads(json.dumps(spec))  # tuples -> lists, as they come back from the file
+
+
+def fit_members(
+    runs: Sequence[dict],
+    members: Sequence[Member],
+    model_cfg: Any,
+    *,
+    window: int,
+    stride: int = 1,
+    order: str = "permuted",
+    checkpoint_dir: str | Path | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    stop_after_steps: int | None = None,
+) -> tuple[list[DynamicsParams], np.ndarray]:
+    """Trains every member in one vmapped program; ``(params per member, losses [M, steps])``.
+
+    Args:
+        runs: runs at the model rate (``train_model`` docstring); every member's ids among them.
+        members: what to train; each member's seed replaces ``model_cfg.seed``.
+        model_cfg: anything ``ModelTrainConfig.from_any`` reads (the same for all members).
+        window, stride, order: sliding windows, as for ``train_model.fit``.
+        checkpoint_dir, resume: stacked checkpoints every ``checkpoint_every`` steps and at the
+            end; resume from the last one (same setup, else ``ValueError``).
+        stop_after_steps: stop (after checkpointing) once this many steps are done.
+    """
+    config = ModelTrainConfig.from_any(model_cfg)
+    if not members:
+        raise ValueError("fit_members needs at least one member")
+    runs = sorted(runs, key=lambda run: str(run["run_id"]))
+    index_of = {str(run["run_id"]): i for i, run in enumerate(runs)}
+    for member in members:
+        unknown = [i for i in (*member.train_ids, *([member.held_out] if member.held_out else []))
+                   if i not in index_of]
+        if unknown or not member.train_ids:
+            raise ValueError(f"member {member}: unknown run ids {unknown} (runs: "
+                             f"{sorted(index_of)}) or no training run")
+    windows = make_windows([len(run["p"]) for run in runs], window, stride)
+    member_starts = []
+    for member in members:
+        chosen = np.isin(windows.run_index, [index_of[i] for i in member.train_ids])
+        if not chosen.any():
+            raise ValueError(f"no training window of length {window} fits in the training runs "
+                             f"of {member}")
+        member_starts.append(windows.starts[chosen])
+    capacity = max(len(starts) for starts in member_starts)
+
+    optimizer = make_optimizer(config)
+    architecture = config.architecture()
+    templates, states, inputs, sample_keys = [], [], [], []
+    for member in members:
+        train_runs = [runs[index_of[i]] for i in member.train_ids]
+        normalizer = dynamics.fit_normalizer(train_runs, config.predict_displacement)
+        init_key, sample_key = jax.random.split(jax.random.PRNGKey(member.seed))
+        template = DynamicsParams(network=dynamics.init_network(init_key, architecture),
+                                  normalizer=normalizer, config=architecture)
+        templates.append(template)
+        states.append(TrainState(network=template.network,
+                                 opt_state=optimizer.init(template.network),
+                                 step=jnp.asarray(0, jnp.int32)))
+        inputs.append(np.concatenate(run_inputs(template, runs)))
+        sample_keys.append(sample_key)
+    state = _stack(states)
+    normalizers = _stack([t.normalizer for t in templates])
+    data = TrainData(
+        inputs=jnp.asarray(np.stack(inputs)),
+        position=jnp.asarray(np.concatenate([r["pos"] for r in runs]), jnp.float32),
+        reference_pose=jnp.asarray(_reference_poses(runs, config.reference_pose)),
+        window_starts=jnp.asarray(np.stack(
+            [np.pad(s, (0, capacity - len(s))) for s in member_starts]), jnp.int32),
+        num_windows=jnp.asarray([len(s) for s in member_starts], jnp.int32),
+    )
+    sample_keys = jnp.stack(sample_keys)
+
+    spec = _member_spec(config, members, window, stride, order)
+    losses: list[np.ndarray] = []
+    if checkpoint_dir is not None:
+        checkpoint_dir = Path(checkpoint_dir)
+        checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        last = latest_checkpoint(checkpoint_dir) if resume else None
+        if last is not None:
+            state, losses = _restore(last, state, spec)
+
+    last_step = config.num_steps if stop_after_steps is None else min(config.num_steps,
+                                                                      stop_after_steps)
+    chunk = max(1, math.gcd(config.checkpoint_every, config.num_steps))
+    step = int(state.step[0])
+    bar = tqdm(total=config.num_steps, initial=step, disable=not progress,
+               desc=f"fit {len(members)} models", dynamic_ncols=True)
+    while step < last_step:
+        num = min(chunk - step % chunk, last_step - step)
+        state, chunk_losses = _members_chunk(config, window, order, num)(
+            state, data, normalizers, sample_keys)
+        losses.append(np.asarray(chunk_losses))
+        step = int(state.step[0])
+        bar.set_postfix({"loss": f"{float(np.mean(losses[-1][:, -1])):.4f}"})
+        bar.update(num)
+        if checkpoint_dir is not None and (step % config.checkpoint_every == 0
+                                           or step == last_step):
+            _save(checkpoint_dir, state, losses, spec)
+    bar.close()
+    params = [t.replace(network=_unstack(state.network, m)) for m, t in enumerate(templates)]
+    history = (np.concatenate(losses, axis=1) if losses
+               else np.zeros((len(members), 0), np.float32))
+    return params, history
+
+
+def _save(checkpoint_dir: Path, state: TrainState, losses: list[np.ndarray], spec: dict,
+          keep: int = 2) -> None:
+    step = int(state.step[0])
+    payload = {
+        "network": serialization.to_state_dict(jax.device_get(state.network)),
+        "opt_state": serialization.to_state_dict(jax.device_get(state.opt_state)),
+        "step": np.asarray(state.step),
+        "train_loss": np.concatenate(losses, axis=1).astype(np.float32),
+        "spec": json.dumps(spec, sort_keys=True),
+    }
+    _write_atomically(checkpoint_path(checkpoint_dir, step),
+                      serialization.msgpack_serialize(payload))
+    for old in sorted(checkpoint_dir.glob("step_*.msgpack"))[:-keep]:
+        old.unlink()
+
+
+def _restore(path: Path, template: TrainState, spec: dict) -> tuple[TrainState, list]:
+    raw = serialization.msgpack_restore(path.read_bytes())
+    stored = json.loads(raw["spec"])
+    if stored != spec:
+        differing = sorted(k for k in set(spec) | set(stored) if spec.get(k) != stored.get(k))
+        raise ValueError(f"checkpoint {path} was written by a different training setup "
+                         f"(differs in {differing}); use another checkpoint_dir or resume=False")
+    state = TrainState(
+        network=jax.tree.map(jnp.asarray,
+                             serialization.from_state_dict(template.network, raw["network"])),
+        opt_state=jax.tree.map(jnp.asarray, serialization.from_state_dict(
+            template.opt_state, raw["opt_state"])),
+        step=jnp.asarray(raw["step"], jnp.int32),
+    )
+    return state, [np.asarray(raw["train_loss"], np.float32)]
+
+
+# ---------------------------------------------------------------------------------------------
+# scoring
+# ---------------------------------------------------------------------------------------------
+def cv_metrics(runs: Sequence[dict], members: Sequence[Member],
+               params: Sequence[DynamicsParams], num_lags: int = LINEAR_LAGS) -> pd.DataFrame:
+    """Open-loop errors over entire runs, per member and run (the ``model_metrics`` table).
+
+    Fold members (a held-out run): ``split="cv"`` rows on the held-out run and ``"cv_train"``
+    rows on each training run. The all-runs member: ``"train"`` rows. Each row for the model
+    (``lstm``), the mean training position and the linear lagged-pressure model fitted on the
+    member's training runs. ``fold``: the member's index among the fold members (-1: all runs).
+    ``loses_to_linear``: on the model's ``cv`` rows, its mean error is not below the linear
+    baseline's on that fold.
+    """
+    by_id = {str(run["run_id"]): run for run in runs}
+    rows = []
+    fold = 0
+    for member, member_params in zip(members, params):
+        train_runs = [by_id[i] for i in member.train_ids]
+        coefficients = fit_linear_lagged(train_runs, num_lags)
+        scored = ([("cv", by_id[member.held_out])] if member.held_out else []) + [
+            ("cv_train" if member.held_out else "train", run) for run in train_runs]
+        for split, run in scored:
+            linear = lagged_features(run["p"], num_lags) @ coefficients
+            errors = {"lstm": position_errors_mm(predict_run(member_params, run), run["pos"]),
+                      "mean_position": baseline_mean_position(train_runs, run),
+                      "linear_lagged": position_errors_mm(linear, run["pos"])}
+            loses = bool(split == "cv" and errors["lstm"]["mean_mm"]
+                         >= errors["linear_lagged"]["mean_mm"])
+            for model in MODELS:
+                rows.append({"run_id": str(run["run_id"]), "split": split,
+                             "fold": fold if member.held_out else -1,
+                             "held_out": member.held_out or "", "seed": member.seed,
+                             "model": model, "steps": len(run["p"]), **errors[model],
+                             "loses_to_linear": loses and model == "lstm"})
+        fold += bool(member.held_out)
+    return pd.DataFrame(rows)
+
+
+def warn_if_losing(metrics: pd.DataFrame) -> list[str]:
+    """Logs (WARNING) and returns one message per held-out run where the model does not beat
+    the linear lagged baseline."""
+    messages = []
+    held_out = metrics[metrics["split"].isin(["cv", "test"])]
+    for run_id, group in held_out.groupby("run_id", sort=True):
+        model = group.loc[group["model"] == "lstm", "mean_mm"].mean()
+        linear = group.loc[group["model"] == "linear_lagged", "mean_mm"].mean()
+        if not model < linear:
+            messages.append(f"the model does not beat the linear lagged baseline on held-out "
+                            f"run {run_id}: {model:.2f} mm mean vs {linear:.2f} mm")
+    for message in messages:
+        log.warning("fit_model: %s", message)
+    return messages
+
+
+def cv_summary(metrics: pd.DataFrame) -> pd.DataFrame:
+    """Per held-out run: mean / p95 mm of the model and both baselines, the fold models' error
+    on their training runs, and the average over runs (last row, ``run_id="average"``)."""
+    held = metrics[metrics["split"] == "cv"]
+    table = held.pivot_table(index="run_id", columns="model", values=["mean_mm", "p95_mm"],
+                             aggfunc="mean")
+    table.columns = [f"{model}_{stat}" for stat, model in table.columns]
+    train = metrics[(metrics["split"] == "cv_train") & (metrics["model"] == "lstm")]
+    train = train.groupby("held_out")[["mean_mm", "p95_mm"]].mean()
+    table["train_runs_mean_mm"] = train["mean_mm"]
+    table["train_runs_p95_mm"] = train["p95_mm"]
+    columns = [f"{m}_{s}" for m in MODELS for s in ("mean_mm", "p95_mm")] + [
+        "train_runs_mean_mm", "train_runs_p95_mm"]
+    table = table[columns]
+    table.loc["average"] = table.mean()
+    return table.reset_index()
+
+
+def ensemble_predictions(members_params: Sequence[DynamicsParams], run: dict
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and per-axis std over members of the open-loop predictions, both [T, 3] m."""
+    predictions = np.stack([predict_run(p, run) for p in members_params])
+    return predictions.mean(0), predictions.std(0)
+
+
+def band_coverage(mean: np.ndarray, std: np.ndarray, observed: np.ndarray, width: float = 2.0
+                  ) -> float:
+    """Fraction of (step, axis) entries with ``|observed - mean| <= width * std``."""
+    return float(np.mean(np.abs(np.asarray(observed) - mean) <= width * std))

@@ -1,0 +1,215 @@
+import json
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.dynamics import cv as model_cv
+from pipeline.dynamics import features as model_features
+from pipeline.dynamics import model as dynamics
+from pipeline.dynamics import training as train_model
+from pipeline.dynamics.cv import Member
+from pipeline.dynamics.features import FeatureSpec
+
+TINY = {
+    "hidden": 8, "batch_size": 4, "learning_rate": 1e-2, "lr_schedule": "constant",
+    "num_steps": 20, "eval_every": 10, "checkpoint_every": 10,
+}
+
+
+def lag_runs(lengths=(40, 30, 50), seed=0):
+    """Position a first-order lag of a linear map of held pressures; runs of unequal length."""
+    rng = np.random.default_rng(seed)
+    gain = np.array([[2.0, -1.0, 0.0], [0.5, 0.5, 0.5], [0.0, 1.0, -2.0]]) * 1e-3
+    runs = []
+    for i, num_steps in enumerate(lengths):
+        pressure = np.repeat(rng.uniform(0.0, 5.0, (num_steps // 5 + 1, 3)), 5, axis=0)
+        pressure = pressure[:num_steps]
+        position, state = [], np.zeros(3)
+        for p in pressure:
+            state = 0.6 * state + 0.4 * gain @ p
+            position.append(np.array([0.03, 0.35, 0.2]) + state)
+        runs.append({"run_id": f"run{i}", "t": np.arange(num_steps) / 10.0,
+                     "p": pressure.astype(np.float32), "pos": np.array(position, np.float32)})
+    return runs
+
+
+def test_loro_folds_hold_out_each_run_exactly_once():
+    ids = ["c", "a", "d", "b"]
+    folds = model_cv.loro_folds(ids)
+    assert [held for _, held in folds] == ["a", "b", "c", "d"]
+    for train, held in folds:
+        assert sorted([*train, held]) == ["a", "b", "c", "d"]
+        assert held not in train
+    members = model_cv.cv_members(ids, seeds=(0, 1))
+    assert len(members) == 9 and members[-1] == Member(("a", "b", "c", "d"), None, 0)
+    with pytest.raises(ValueError, match="at least 2 runs"):
+        model_cv.loro_folds(["a"])
+    with pytest.raises(ValueError, match="duplicate"):
+        model_cv.loro_folds(["a", "a"])
+
+
+def test_vmapped_members_equal_single_fits():
+    """K=1 equals fit; K=2 folds with different window counts each equal their own fit."""
+    runs = lag_runs()
+    single, _, table = train_model.fit(runs[:2], TINY, window=8, progress=False)
+    (vmapped,), losses = model_cv.fit_members(
+        runs[:2], [Member(("run0", "run1"))], TINY, window=8, progress=False)
+    np.testing.assert_allclose(losses[0], table.train_loss, rtol=2e-4)
+    for a, b in zip(jax.tree.leaves(single.network), jax.tree.leaves(vmapped.network)):
+        np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-6)
+
+    members = [Member(("run0", "run1"), "run2", 3), Member(("run2",), "run0", 1)]
+    params, losses = model_cv.fit_members(runs, members, TINY, window=8, progress=False)
+    for member, member_params, member_losses in zip(members, params, losses):
+        train_runs = [r for r in runs if r["run_id"] in member.train_ids]
+        alone, normalizer, table = train_model.fit(train_runs, dict(TINY, seed=member.seed),
+                                                   window=8, progress=False)
+        np.testing.assert_allclose(member_losses, table.train_loss, rtol=2e-4)
+        np.testing.assert_allclose(member_params.normalizer.pressure_mean,
+                                   normalizer.pressure_mean, rtol=1e-6)
+        run = runs[0]
+        np.testing.assert_allclose(train_model.predict_run(member_params, run),
+                                   train_model.predict_run(alone, run), rtol=1e-3, atol=1e-6)
+
+
+def test_members_resume_equals_uninterrupted(tmp_path):
+    runs = lag_runs((30, 30))
+    members = model_cv.cv_members(["run0", "run1"], final=False)
+    full, full_losses = model_cv.fit_members(runs, members, TINY, window=8, progress=False)
+    checkpoints = tmp_path / "ckpt"
+    model_cv.fit_members(runs, members, TINY, window=8, progress=False,
+                         checkpoint_dir=checkpoints, stop_after_steps=10)
+    assert train_model.latest_checkpoint(checkpoints).name == "step_00000010.msgpack"
+    resumed, resumed_losses = model_cv.fit_members(runs, members, TINY, window=8,
+                                                   progress=False, checkpoint_dir=checkpoints)
+    np.testing.assert_allclose(resumed_losses, full_losses, rtol=1e-6)
+    for a, b in zip(jax.tree.leaves([p.network for p in full]),
+                    jax.tree.leaves([p.network for p in resumed])):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    with pytest.raises(ValueError, match="different training setup"):
+        model_cv.fit_members(runs, members[:1], TINY, window=8, progress=False,
+                             checkpoint_dir=checkpoints)
+
+
+def test_warning_fires_when_the_model_loses_to_the_linear_baseline(caplog):
+    # an untrained network against a linear model that the lagged features fit exactly
+    runs = lag_runs((60, 60))
+    config = train_model.ModelTrainConfig(hidden=4).architecture()
+    members = model_cv.cv_members(["run0", "run1"], final=False)
+    params = [dynamics.DynamicsParams(
+        dynamics.init_network(jax.random.PRNGKey(0), config),
+        dynamics.fit_normalizer([r for r in runs if r["run_id"] in m.train_ids], False),
+        config) for m in members]
+    metrics = model_cv.cv_metrics(runs, members, params, num_lags=5)
+    assert set(metrics["split"]) == {"cv", "cv_train"}
+    held = metrics[(metrics["split"] == "cv") & (metrics["model"] == "lstm")]
+    assert held["loses_to_linear"].all() and len(held) == 2
+    assert not metrics.loc[metrics["model"] != "lstm", "loses_to_linear"].any()
+    with caplog.at_level(logging.WARNING):
+        messages = model_cv.warn_if_losing(metrics)
+    assert len(messages) == 2 and "run0" in messages[0] and "linear lagged" in messages[0]
+    assert "does not beat the linear lagged baseline" in caplog.text
+
+    winning = pd.DataFrame({
+        "run_id": ["a"] * 3, "split": ["cv"] * 3, "model": list(model_cv.MODELS),
+        "mean_mm": [1.0, 5.0, 2.0], "p95_mm": [2.0, 9.0, 4.0]})
+    assert model_cv.warn_if_losing(winning) == []
+
+
+def test_feature_transforms_known_answer():
+    spec = FeatureSpec(pressure_delta=True, step_size=True, decays=(2.0,), play_widths=(0.5,),
+                       step_threshold=0.05)
+    assert spec.dim == 3 + 3 + 1 + 3
+    p0 = [1.0, 2.0, 0.0]
+    pressures = jnp.asarray([p0, p0, [1.2, 2.0, 0.0], [1.2, 2.0, 0.0], [1.0, 2.0, -1.0],
+                             [2.0, 2.0, -1.0]], jnp.float32)
+    features = np.asarray(model_features.sequence(spec, pressures))
+    delta, step_size, decay, play = (features[:, :3], features[:, 3:6], features[:, 6],
+                                     features[:, 7:])
+    np.testing.assert_allclose(delta[:, 0], [0, 0, 0.2, 0, -0.2, 1.0], atol=1e-6)
+    # the step at t=5 (chamber 0 by +1) replaces the one at t=4 in every chamber
+    np.testing.assert_allclose(step_size[:, 2], [0, 0, 0, 0, -1.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(step_size[:, 0], [0, 0, 0.2, 0.2, -0.2, 1.0], atol=1e-6)
+    # steps since the last command step: never, never, 0, 1, 0, 0
+    np.testing.assert_allclose(decay, [0, 0, 1, np.exp(-0.5), 1, 1], atol=1e-6)
+    # play operator of half-width 0.5 on chamber 0: 1, 1, 1, 1, 1, 1.5 (backlash)
+    np.testing.assert_allclose(play[:, 0], [1, 1, 1, 1, 1, 1.5], atol=1e-6)
+    # chamber 2: 0, 0, 0, 0, -0.5 (dragged down by 1 - 0.5), -0.5
+    np.testing.assert_allclose(play[:, 2], [0, 0, 0, 0, -0.5, -0.5], atol=1e-6)
+    np.testing.assert_allclose(model_features.play_operator(
+        jnp.asarray(0.0), jnp.asarray([0.2, 1.0, -3.0]), 0.5), [0.0, 0.5, -2.5])
+
+
+def test_band_coverage_and_ensemble_mean():
+    mean, std = np.zeros((4, 3)), np.full((4, 3), 0.5)
+    observed = np.array([[0.0, 0.9, 1.1]] * 4)
+    assert model_cv.band_coverage(mean, std, observed) == pytest.approx(2 / 3)
+
+
+def test_protocol_defaults_cv_for_recorded_data_and_split_for_the_simulated_arm(make_cfg):
+    from pipeline.keys import fit_model_spec
+    from pipeline.keys import model_protocol as protocol
+
+    assert protocol(make_cfg()) == "split"
+    assert protocol(make_cfg("robot=sorolex_csv")) == "cv"
+    assert protocol(make_cfg("robot=sorolex_csv", "dataset.protocol=split")) == "split"
+    assert protocol(make_cfg("dataset.protocol=cv")) == "cv"
+    cv_spec, _ = fit_model_spec(make_cfg("robot=sorolex_csv"))
+    assert cv_spec["dataset"]["protocol"] == "cv" and "train_fraction" not in cv_spec["dataset"]
+
+
+def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
+    from pipeline.__main__ import run
+    from pipeline.data.schemas import MODEL_METRICS, read_table
+
+    cfg = make_cfg("experiment=quick", "stage=fit_model", "dataset.protocol=cv",
+                   "model.hidden=8", "model.num_steps=20", "model.checkpoint_every=10",
+                   "dataset.window=16")
+    artifact = run(cfg)["fit_model"]
+    metrics, meta = read_table(artifact.file("metrics.parquet"), MODEL_METRICS)
+    assert meta["units"]["mean_mm"] == "mm" and meta["config"]["dataset"]["protocol"] == "cv"
+    ids = sorted(metrics["run_id"].unique())
+    assert len(ids) == 3
+    held = metrics[metrics["split"] == "cv"]
+    assert sorted(held["held_out"]) == sorted(ids * 3) and (held["run_id"] == held["held_out"]).all()
+    assert len(metrics[metrics["split"] == "cv_train"]) == 3 * 2 * 3
+    assert sorted(metrics.loc[metrics["split"] == "train", "run_id"].unique()) == ids
+    assert set(metrics["fold"]) == {-1, 0, 1, 2}
+    split = json.loads(artifact.file("split.json").read_text())
+    assert split["train"] == ids and sorted(f["held_out"] for f in split["folds"]) == ids
+    summary = artifact.manifest["summary"]
+    assert summary["protocol"] == "cv" and isinstance(summary["warnings"], list)
+    losing = held[(held["model"] == "lstm") & held["loses_to_linear"]]["run_id"].tolist()
+    assert len(summary["warnings"]) == len(losing)
+
+    from pipeline.data.alignment import runs_at_model_rate
+    from pipeline.data.schemas import ALIGNED
+    from pipeline.infra.artifacts import ArtifactStore
+    from pipeline.keys import key
+    from pipeline.rl.envs.factory import environment
+
+    store = ArtifactStore(cfg.paths.artifact_dir)
+    aligned_artifact = store.require("align", key("align", cfg))
+    _, train_params, eval_params = environment(cfg, artifact, aligned_artifact)
+    aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
+    measured = np.concatenate([r["pos"] for r in runs_at_model_rate(aligned, 10.0)])
+    np.testing.assert_allclose(np.asarray(eval_params.goal_set), measured, atol=1e-7)
+    assert train_params.goal_set.shape == eval_params.goal_set.shape
+    assert not np.allclose(np.asarray(train_params.goal_set), measured)  # model predictions
+
+
+def test_a_model_with_features_round_trips_through_its_file(tmp_path):
+    runs = lag_runs((30,))
+    config = train_model.ModelTrainConfig(hidden=4, cell="gru", play_widths_kpa=(0.5,),
+                                          step_decays=(2.0,), step_size=True).architecture()
+    params = dynamics.DynamicsParams(dynamics.init_network(jax.random.PRNGKey(1), config),
+                                     dynamics.fit_normalizer(runs, False), config)
+    train_model.save_dynamics(tmp_path / "model.msgpack", params)
+    loaded = train_model.load_dynamics(tmp_path / "model.msgpack")
+    assert loaded.config == config
+    np.testing.assert_allclose(train_model.predict_run(loaded, runs[0]),
+                               train_model.predict_run(params, runs[0]), rtol=1e-6)

@@ -54,9 +54,12 @@ STAGES: dict[Stage, str] = {
     Stage.twin: "pipeline.stages.twin:twin",
     Stage.guard: "pipeline.stages.guard:guard",
     Stage.control: "pipeline.stages.control:control",
+    Stage.calibrate: "pipeline.stages.calibrate:calibrate",
 }
 # what `stage=all` runs, in order (the digital twin and the guard are servers, started on their own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
+# stages outside the chain that read its data: the part of the chain they need first
+UPSTREAM: dict[Stage, tuple[Stage, ...]] = {Stage.calibrate: (Stage.collect, Stage.align)}
 # Stages that publish to a real arm's valves (robot=ros2): each runs only when asked for by name.
 DRIVES_ARM = frozenset({Stage.collect, Stage.guard, Stage.control})
 # Errors that are the user's to fix: one message, exit status 1, no traceback.
@@ -78,7 +81,7 @@ def stages_to_run(cfg: Any) -> list[Stage]:
     if stage is Stage.all:
         chain = list(CHAIN)
     elif stage not in CHAIN:
-        chain = [stage]
+        chain = [*UPSTREAM.get(stage, ()), stage]
     else:
         chain = list(CHAIN[: CHAIN.index(stage) + 1])
         env = getattr(cfg.env.name, "value", cfg.env.name)
@@ -103,12 +106,22 @@ def robot_choice() -> tuple[str | None, list]:
     return hydra_cfg.runtime.choices.get("robot"), folders
 
 
+def apply_physics_from(cfg: Any) -> Any:
+    """``robot.physics_from`` resolved into the robot's physics (see pipeline.stages.calibrate)."""
+    if not (hasattr(cfg.robot, "get") and cfg.robot.get("physics_from")):
+        return cfg
+    from pipeline.stages.calibrate import apply_physics_from as apply
+
+    return apply(cfg)
+
+
 def run(cfg: Any) -> dict[str, Any]:
     """Run ``cfg.stage`` after its upstream stages (or the whole chain); return each stage's
     result by name. ``force=true`` recomputes the requested stage only (every stage for ``all``)."""
     choice, folders = robot_choice()
     validate_config(cfg, choice, folders)
     stage = Stage(cfg.stage)
+    cfg = apply_physics_from(cfg)
     upstream_cfg = cfg
     if stage is not Stage.all:
         upstream_cfg = cfg.copy()

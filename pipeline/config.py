@@ -47,6 +47,7 @@ class Stage(Choice):
     twin = "twin"  # the simulated arm as a ROS 2 node (not part of `all`)
     guard = "guard"  # the arm-side deadman and rating filter as a ROS 2 node (not part of `all`)
     control = "control"  # a trained policy drives the arm (not part of `all`)
+    calibrate = "calibrate"  # fit the simulated arm to recorded runs (not part of `all`)
     all = "all"
 
 
@@ -182,6 +183,12 @@ class SimPhysics:
     pressure_tau_s: float = 0.10  # first-order lag of each chamber behind its valve command
     bend_gain: float = 0.065  # bending angle per kPa of chamber pressure [rad/kPa]
     elong_gain: float = 0.0005  # elongation per kPa of mean pressure [m/kPa]
+    chamber_gains: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # relative
+    # each chamber's strain saturates: f(p) = c + tanh(a (p - c)) / a (a in 1/kPa; 0: linear)
+    saturation_per_kpa: float = 0.0
+    saturation_center_kpa: float = 2.0  # c [kPa]; also the reference of mean_stiffening
+    # bending gain times exp(-s (mean pressure - c)): the arm stiffens as its mean pressure rises
+    mean_stiffening_per_kpa: float = 0.0
     natural_freq_hz: float = 1.5
     damping_ratio: float = 0.3
     gravity_stiffening: float = 0.15  # gravity's restoring torque relative to the elastic one
@@ -216,6 +223,8 @@ class SimRobotConfig(RobotConfig):
     num_runs: int = 4  # exploration runs recorded, each a new session (new rest pose)
     physics: SimPhysics = field(default_factory=SimPhysics)
     mocap: MocapConfig = field(default_factory=MocapConfig)
+    # a calibrate artifact (key or folder) whose fitted physics replace `physics`
+    physics_from: str | None = None
 
 
 @dataclass
@@ -320,6 +329,8 @@ class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     reuse_incomplete: bool = False  # reuse an interrupted artifact instead of recollecting
     twin: TwinConfig = field(default_factory=TwinConfig)
     guard: GuardConfig = field(default_factory=GuardConfig)
+    # a calibrate artifact (key or folder) whose fitted physics replace `twin.physics`
+    physics_from: str | None = None
 
 
 @dataclass
@@ -366,6 +377,27 @@ class DatasetConfig:
     protocol: ModelProtocol = ModelProtocol.auto
     train_fraction: float = 0.75  # protocol split only
     split_seed: int = 0  # protocol split only
+
+
+@dataclass
+class CalibrationConfig:
+    """``stage=calibrate``: the simulated arm's physics fitted to the aligned runs by gradient
+    descent through the simulator (see ``pipeline/calibration.py``)."""
+
+    rate_hz: float = 20.0  # frames simulated and compared per second (a multiple of model_hz)
+    substeps: int = 2  # integrator steps per frame
+    num_steps: int = 250  # Adam steps (the real runs: the loss stops falling after ~200)
+    learning_rate: float = 0.05  # in the unconstrained (logit) coordinates; offsets in mm
+    num_restarts: int = 2  # starts per fit (the first at `init`), vmapped
+    restart_std: float = 0.5  # logit-space spread of the other starts
+    seed: int = 0
+    leave_one_run_out: bool = True  # also fit every fold (score the held-out runs)
+    fitted: list[str] = field(default_factory=lambda: [
+        "chamber_angles_deg", "chamber_gains", "segment_length_m", "tip_offset_m",
+        "pressure_tau_s", "bend_gain", "elong_gain", "natural_freq_hz", "damping_ratio",
+        "gravity_stiffening", "hysteresis_kpa", "creep_gain", "creep_tau_s",
+        "saturation_per_kpa", "saturation_center_kpa", "mean_stiffening_per_kpa"])
+    init: SimPhysics = field(default_factory=SimPhysics)  # start; holds the unfitted values
 
 
 # --------------------------------------------------------------------------------------------
@@ -578,6 +610,7 @@ class Config:
     robot: Any = MISSING  # one of the RobotConfig subclasses, chosen by the robot group
     exploration: ExplorationConfig = MISSING
     dataset: DatasetConfig = MISSING
+    calibration: CalibrationConfig = MISSING
     model: ModelConfig = MISSING
     env: EnvConfig = MISSING
     agent: AgentConfig = MISSING
@@ -792,6 +825,7 @@ def register_configs() -> None:
     cs.store(group="robot", name="base_rosbag", node=RosbagRobotConfig)
     cs.store(group="exploration", name="base_exploration", node=ExplorationConfig)
     cs.store(group="dataset", name="base_dataset", node=DatasetConfig)
+    cs.store(group="calibration", name="base_calibration", node=CalibrationConfig)
     cs.store(group="model", name="base_model", node=ModelConfig)
     cs.store(group="env", name="base_env", node=EnvConfig)
     cs.store(group="agent", name="base_agent", node=AgentConfig)

@@ -63,6 +63,14 @@ def align_spec(cfg: Any) -> Spec:
             {"collect": artifact_key(*collect_spec(cfg))})
 
 
+def calibrate_spec(cfg: Any) -> Spec:
+    """The simulator fitted to the aligned runs: the calibration settings and the rate its
+    errors are scored at."""
+    spec = {"calibration": _container(cfg.calibration),
+            "dataset": {"model_hz": float(cfg.dataset.model_hz)}}
+    return spec, {"align": artifact_key(*align_spec(cfg))}
+
+
 def model_protocol(cfg: Any) -> ModelProtocol:
     """``cv`` or ``split``: ``dataset.protocol``, ``auto`` resolved by the robot (split for the
     simulated arm, cv for recorded data)."""
@@ -188,7 +196,8 @@ def control_spec(cfg: Any) -> Spec:
 
 
 SPECS = {"collect": collect_spec, "align": align_spec, "fit_model": fit_model_spec,
-         "train_ppo": train_ppo_spec, "evaluate": evaluate_spec, "control": control_spec}
+         "train_ppo": train_ppo_spec, "evaluate": evaluate_spec, "control": control_spec,
+         "calibrate": calibrate_spec}
 
 
 def key(stage: str, cfg: Any) -> str:

@@ -14,8 +14,14 @@ Model (all parameters in :class:`pipeline.config.SimPhysics`, units SI unless kP
    lag ``creep_tau_s``: ``pe = (1 - c) h + c s``, ``ds/dt = (h - s) / creep_tau_s``.
 4. **Configuration.** Bending vector ``b = theta (cos phi, sin phi)`` in the horizontal x-z plane
    (theta the bending angle of the constant-curvature segment, phi its direction) and elongation
-   ``e``. Pressurising chamber k (at angle ``a_k`` around the axis) bends the arm away from it:
-   ``b* = -bend_gain * sum_k pe_k (cos a_k, sin a_k)``, ``e* = elong_gain * mean_k pe_k``.
+   ``e``. Pressurising chamber k (at angle ``a_k`` around the axis, gain ``g_k``) bends the arm
+   away from it: ``b* = -bend_gain * exp(-s (mean_k pe_k - c)) * sum_k g_k f(pe_k) (cos a_k,
+   sin a_k)``, ``e* = elong_gain * mean_k pe_k``. Two measured nonlinearities of the real arm
+   (experiments/CALIBRATION_RESULTS.md): each chamber's strain saturates, ``f(p) = c +
+   tanh(a (p - c)) / a`` (``a = saturation_per_kpa``, ``c = saturation_center_kpa``; linear for
+   ``a = 0``), and the whole arm stiffens as its mean pressure rises (``s =
+   mean_stiffening_per_kpa``): the real arm bends 2-3 times more per kPa of pressure difference
+   at a mean pressure of 2.2 kPa than at 3.6 kPa.
 5. **Second-order dynamics with gravity.** ``b'' = w^2 (b* - b - g sin(theta) b / theta) -
    2 zeta w b'`` (gravity pulls the hanging arm back toward vertical with a torque ~ sin theta, a
    stiffening that weakens at large angles), ``e'' = w^2 (e* - e) - 2 zeta w e'``, integrated with
@@ -37,6 +43,7 @@ about 2 mm (the real arm: ``dy ≈ 0.006 mm⁻¹ r²``); the mean pressure lengt
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import chex
@@ -54,6 +61,7 @@ class SimParams:
 
     base: chex.Array  # [3] m, top of the bending segment at zero elongation
     chamber_dirs: chex.Array  # [3 chambers, 2] unit vectors (x, z) of the chamber angles
+    chamber_gains: chex.Array  # [3] relative bending gain of each chamber
     segment_length: chex.Array
     tip_offset: chex.Array
     pressure_tau: chex.Array
@@ -65,6 +73,9 @@ class SimParams:
     hysteresis: chex.Array
     creep_gain: chex.Array
     creep_tau: chex.Array
+    saturation: chex.Array  # 1/kPa
+    saturation_center: chex.Array  # kPa
+    mean_stiffening: chex.Array  # 1/kPa
     rest_pose_std: chex.Array  # [3] m
     noise_std: chex.Array
     jitter_std: chex.Array
@@ -76,32 +87,65 @@ class SimParams:
 
     @classmethod
     def from_config(cls, robot: Any) -> SimParams:
-        phys, mocap = robot.physics, robot.mocap
-        angles = np.deg2rad(np.asarray(phys.chamber_angles_deg, np.float64))
+        """The parameters of ``robot.physics`` (:class:`pipeline.config.SimPhysics`) and
+        ``robot.mocap`` (:class:`pipeline.config.MocapConfig`)."""
+        mocap = robot.mocap
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         return cls(
-            base=f32(phys.base_position_m),
-            chamber_dirs=f32(np.stack([np.cos(angles), np.sin(angles)], axis=1)),
-            segment_length=f32(phys.segment_length_m),
-            tip_offset=f32(phys.tip_offset_m),
-            pressure_tau=f32(phys.pressure_tau_s),
-            bend_gain=f32(phys.bend_gain),
-            elong_gain=f32(phys.elong_gain),
-            omega=f32(2 * np.pi * phys.natural_freq_hz),
-            damping_ratio=f32(phys.damping_ratio),
-            gravity_stiffening=f32(phys.gravity_stiffening),
-            hysteresis=f32(phys.hysteresis_kpa),
-            creep_gain=f32(phys.creep_gain),
-            creep_tau=f32(phys.creep_tau_s),
-            rest_pose_std=f32(phys.rest_pose_std_m),
+            **physics_fields({k: _plain(robot.physics[k]) for k in PHYSICS_VALUES}),
             noise_std=f32(mocap.noise_std_m),
             jitter_std=f32(mocap.jitter_std_s),
             drop_prob=f32(mocap.drop_prob),
             burst_prob=f32(mocap.burst_prob),
             mocap_hz=float(mocap.rate_hz),
-            substeps=int(phys.substeps),
+            substeps=int(robot.physics.substeps),
             burst_len=int(mocap.burst_len),
         )
+
+    def with_physics(self, values: Mapping[str, Any]) -> SimParams:
+        """These parameters with the physics ``values`` (SimPhysics field names, SI units and
+        kPa; arrays may be traced, so a fit can differentiate through them) replaced."""
+        return self.replace(**physics_fields(values))
+
+
+# SimPhysics fields that become array parameters (the rest are static: substeps).
+PHYSICS_VALUES = (
+    "base_position_m", "chamber_angles_deg", "chamber_gains", "segment_length_m", "tip_offset_m",
+    "pressure_tau_s", "bend_gain", "elong_gain", "natural_freq_hz", "damping_ratio",
+    "gravity_stiffening", "hysteresis_kpa", "creep_gain", "creep_tau_s", "saturation_per_kpa",
+    "saturation_center_kpa", "mean_stiffening_per_kpa", "rest_pose_std_m")
+_FIELD_OF = {
+    "base_position_m": "base", "chamber_gains": "chamber_gains",
+    "segment_length_m": "segment_length", "tip_offset_m": "tip_offset",
+    "pressure_tau_s": "pressure_tau", "bend_gain": "bend_gain", "elong_gain": "elong_gain",
+    "damping_ratio": "damping_ratio", "gravity_stiffening": "gravity_stiffening",
+    "hysteresis_kpa": "hysteresis", "creep_gain": "creep_gain", "creep_tau_s": "creep_tau",
+    "saturation_per_kpa": "saturation", "saturation_center_kpa": "saturation_center",
+    "mean_stiffening_per_kpa": "mean_stiffening", "rest_pose_std_m": "rest_pose_std"}
+
+
+def _plain(value: Any) -> Any:
+    """A config list (ListConfig, tuple) as a list; numbers and arrays unchanged."""
+    return value if np.ndim(value) == 0 or hasattr(value, "shape") else list(value)
+
+
+def physics_fields(values: Mapping[str, Any]) -> dict[str, chex.Array]:
+    """SimParams fields from SimPhysics values (any subset): angles in degrees become unit
+    direction vectors, the natural frequency in Hz an angular frequency."""
+    unknown = sorted(set(values) - set(PHYSICS_VALUES))
+    if unknown:
+        raise ValueError(f"unknown physics parameters {unknown}; known: {list(PHYSICS_VALUES)}")
+    fields = {}
+    for name, value in values.items():
+        value = jnp.asarray(value, jnp.float32)
+        if name == "chamber_angles_deg":
+            angles = jnp.deg2rad(value)
+            fields["chamber_dirs"] = jnp.stack([jnp.cos(angles), jnp.sin(angles)], axis=1)
+        elif name == "natural_freq_hz":
+            fields["omega"] = 2 * jnp.pi * value
+        else:
+            fields[_FIELD_OF[name]] = value
+    return fields
 
 
 @struct.dataclass
@@ -116,8 +160,22 @@ class SimState:
     rest_offset: chex.Array  # [3] m, this session's rest-pose offset
 
 
+def chamber_strain(params: SimParams, pressure: chex.Array) -> chex.Array:
+    """``f(p) = c + tanh(a (p - c)) / a`` per chamber (kPa): linear for ``a = 0``, saturating
+    away from ``c`` otherwise (slope 1 at ``c``)."""
+    a = params.saturation
+    small = a < 1e-6
+    safe_a = jnp.where(small, 1.0, a)
+    shifted = pressure - params.saturation_center
+    # tanh(a x) / a ~ x - a^2 x^3 / 3 for small a (keeps the gradient in a finite at 0)
+    return params.saturation_center + jnp.where(
+        small, shifted - a**2 * shifted**3 / 3.0, jnp.tanh(safe_a * shifted) / safe_a)
+
+
 def _targets(params: SimParams, effective: chex.Array) -> chex.Array:
-    bend = -params.bend_gain * effective @ params.chamber_dirs  # [2]
+    stiffening = jnp.exp(-params.mean_stiffening * (effective.mean() - params.saturation_center))
+    strain = params.chamber_gains * chamber_strain(params, effective)
+    bend = -params.bend_gain * stiffening * strain @ params.chamber_dirs  # [2]
     elong = params.elong_gain * effective.mean()
     return jnp.concatenate([bend, elong[None]])
 
@@ -183,6 +241,20 @@ def advance(params: SimParams, state: SimState, command: chex.Array, num_frames:
         0, num_frames * params.substeps, lambda _, s: integrate(params, s, command, dt), state)
 
 
+def predict_positions(params: SimParams, state: SimState, commands: chex.Array) -> chex.Array:
+    """Noise-free marker positions ``[K, 3]`` (m) holding ``commands[k]`` during frame k.
+
+    Frame k's position is the arm's at the start of the frame (so position 0 is ``state``'s).
+    """
+    chex.assert_rank(commands, 2)
+
+    def frame(state, command):
+        position = tip_position(params, state)
+        return advance(params, state, command, 1), position
+
+    return jax.lax.scan(frame, state, commands)[1]
+
+
 def simulate_run(
     params: SimParams,
     key: chex.PRNGKey,
@@ -207,13 +279,7 @@ def simulate_run(
     chex.assert_rank(frame_command, 1)
     session_key, noise_key, jitter_key, drop_key, burst_key = jax.random.split(key, 5)
     state = reset(params, session_key, preload)
-
-    def frame(state, command_index):
-        position = tip_position(params, state)
-        state = advance(params, state, commands[command_index], 1)
-        return state, position
-
-    _, true_position = jax.lax.scan(frame, state, frame_command)
+    true_position = predict_positions(params, state, commands[frame_command])
     num_frames = frame_command.shape[0]
     period = 1.0 / params.mocap_hz
     jitter = jnp.clip(params.jitter_std * jax.random.normal(jitter_key, (num_frames,)),

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
-import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -58,9 +57,7 @@ def _set_aside_interrupted(store: ArtifactStore, key: str) -> None:
         existing = store.find(STAGE, key)
         if existing is None or not existing.manifest.get("summary", {}).get("interrupted"):
             return
-        stamp = _dt.datetime.fromisoformat(existing.manifest["created"]).strftime("%Y%m%dT%H%M%S")
-        aside = existing.path.with_name(f"{key}.interrupted-{stamp}")
-        os.rename(existing.path, aside)
+        aside = store.set_aside(existing, "interrupted")
         log.warning("control: the artifact for this config was interrupted; moved it to %s and "
                     "running anew", aside)
 

@@ -76,6 +76,14 @@ class ArtifactStore:
             return Artifact(stage, key, path)
         return None
 
+    def set_aside(self, artifact: Artifact, label: str) -> Path:
+        """Rename ``artifact`` to ``<key>.<label>-<created>`` beside it, so that it no longer
+        answers to its key (nothing is deleted); call it holding :meth:`lock`."""
+        stamp = _dt.datetime.fromisoformat(artifact.manifest["created"]).strftime("%Y%m%dT%H%M%S")
+        aside = artifact.path.with_name(f"{artifact.key}.{label}-{stamp}")
+        os.rename(artifact.path, aside)
+        return aside
+
     def resolve(self, stage: str, entry: str) -> Artifact:
         """An artifact named by its folder (anywhere) or by its key in this store."""
         folder = Path(entry)

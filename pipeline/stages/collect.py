@@ -16,9 +16,7 @@ Artifact: ``commands.parquet``, ``mocap.parquet``, ``runs.parquet`` and figures 
 
 from __future__ import annotations
 
-import datetime as _dt
 import logging
-import os
 from typing import Any
 
 import jax
@@ -87,9 +85,7 @@ def _set_aside_incomplete(store: ArtifactStore, key: str, reuse: bool) -> None:
             log.warning("collect: reusing the INCOMPLETE artifact %s (robot.reuse_incomplete=true)",
                         existing.path)
             return
-        stamp = _dt.datetime.fromisoformat(existing.manifest["created"]).strftime("%Y%m%dT%H%M%S")
-        aside = existing.path.with_name(f"{key}.incomplete-{stamp}")
-        os.rename(existing.path, aside)
+        aside = store.set_aside(existing, "incomplete")
         log.warning("collect: the artifact for this config is incomplete (interrupted); moved it to "
                     "%s and recording anew (robot.reuse_incomplete=true would reuse it)", aside)
 

@@ -23,7 +23,6 @@ from tests.control_fixtures import SMALL, goals_mm, write_policy
 from tests.test_ros2_link import (
     Pipeline,
     received,
-    ros_domain,  # noqa: F401 (a fixture)
     stop,
 )
 
@@ -74,7 +73,7 @@ def control_artifact(pipe: Pipeline, *overrides: str):
 
 
 def test_twin_matches_the_simulated_arm_then_sigterm_stops_at_the_preload(tmp_path,
-                                                                          ros_domain):  # noqa: F811
+                                                                          ros_domain):
     sim_cfg, policy_file = sim_policy(tmp_path, "ppo_rnn", hold_s=3.0)
     in_process = final_distances(control(sim_cfg))
 
@@ -116,7 +115,7 @@ def test_twin_matches_the_simulated_arm_then_sigterm_stops_at_the_preload(tmp_pa
     assert_within_limits(wire)
 
 
-def test_the_watchdog_stops_at_the_preload_when_the_poses_stop(tmp_path, ros_domain):  # noqa: F811
+def test_the_watchdog_stops_at_the_preload_when_the_poses_stop(tmp_path, ros_domain):
     sim_cfg, policy_file = sim_policy(tmp_path, "ppo_ff", hold_s=60.0)
     pipe = Pipeline(tmp_path, ros_domain)
     pipe.overrides = [*ROS, "robot.stop_timeout_s=10"]
@@ -147,7 +146,7 @@ def test_the_watchdog_stops_at_the_preload_when_the_poses_stop(tmp_path, ros_dom
 @pytest.mark.slow
 @pytest.mark.parametrize("policy", ["ppo_ff", "ppo_rnn"])
 def test_trained_policies_end_at_the_same_distances_on_the_twin_and_in_process(
-        tmp_path, ros_domain, policy):  # noqa: F811
+        tmp_path, ros_domain, policy):
     """experiment=quick policies trained on the simulated arm's data (env=learned)."""
     from pipeline.__main__ import run
 

@@ -605,8 +605,9 @@ class Config:
     stage: Stage = Stage.all
     seed: int = 0
     force: bool = False  # recompute artifacts even when one with the same key exists
-    # policy types the chain trains at once (threads; each training is one compiled program)
-    train_workers: int = 2
+    # policy types the chain trains at once (threads; each training is one compiled program).
+    # 1: on 2 cores two trainings side by side took longer than one after the other
+    train_workers: int = 1
     robot: Any = MISSING  # one of the RobotConfig subclasses, chosen by the robot group
     exploration: ExplorationConfig = MISSING
     dataset: DatasetConfig = MISSING

@@ -86,13 +86,7 @@ def fit_model(cfg: Any) -> Artifact:
             order=str(data.order), val_runs=test_runs, checkpoint_dir=work_dir,
             resume=not cfg.force)
         save_dynamics(writer.file("model.msgpack"), params)
-        config = {"model": spec["model"], "dataset": spec["dataset"]}
-        provenance = {"stage": STAGE, "inputs": inputs}
-        write_parquet(losses, writer.file("losses.parquet"), table_metadata(
-            losses, "losses", config, provenance,
-            {"train_loss": "normalized MSE", "val_loss": "normalized MSE", "step": "step"}))
-        with tracking(cfg, STAGE) as tracker:
-            tracker.log_table(losses)
+        config, provenance = write_losses(cfg, writer, losses, spec, inputs)
 
         metrics = evaluation_table(params, train_runs, test_runs)
         metrics["seed"] = int(cfg.model.seed)
@@ -147,13 +141,7 @@ def build_cv(cfg: Any, writer, runs: list[dict], work_dir: Path, spec: dict,
                                "train_loss": losses[-1].astype(np.float64)})
     for column in ("val_loss", "val_mean_mm", "val_p95_mm"):
         loss_table[column] = np.nan
-    config = {"model": spec["model"], "dataset": spec["dataset"]}
-    provenance = {"stage": STAGE, "inputs": inputs}
-    write_parquet(loss_table, writer.file("losses.parquet"), table_metadata(
-        loss_table, "losses", config, provenance,
-        {"train_loss": "normalized MSE", "val_loss": "normalized MSE", "step": "step"}))
-    with tracking(cfg, STAGE) as tracker:
-        tracker.log_table(loss_table)
+    config, provenance = write_losses(cfg, writer, loss_table, spec, inputs)
 
     metrics = model_cv.cv_metrics(runs, members, params)
     warnings = model_cv.warn_if_losing(metrics)
@@ -182,6 +170,20 @@ def build_cv(cfg: Any, writer, runs: list[dict], work_dir: Path, spec: dict,
              "training runs %.2f mm)", writer.summary["lstm_mean_mm"],
              writer.summary["lstm_p95_mm"], writer.summary["mean_position_mean_mm"],
              writer.summary["linear_lagged_mean_mm"], writer.summary["train_runs_mean_mm"])
+
+
+def write_losses(cfg: Any, writer, losses: pd.DataFrame, spec: dict, inputs: dict
+                 ) -> tuple[dict, dict]:
+    """``losses.parquet`` (with units, config, provenance) and the tracker; returns the
+    ``(config, provenance)`` every table of this artifact carries."""
+    config = {"model": spec["model"], "dataset": spec["dataset"]}
+    provenance = {"stage": STAGE, "inputs": inputs}
+    write_parquet(losses, writer.file("losses.parquet"), table_metadata(
+        losses, "losses", config, provenance,
+        {"train_loss": "normalized MSE", "val_loss": "normalized MSE", "step": "step"}))
+    with tracking(cfg, STAGE) as tracker:
+        tracker.log_table(losses)
+    return config, provenance
 
 
 def write_metrics(path: Path, metrics: pd.DataFrame, config: dict, provenance: dict) -> Path:

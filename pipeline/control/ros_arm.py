@@ -10,7 +10,6 @@ pose times are their header stamps on the same clock. Live goals arrive as
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -58,14 +57,10 @@ class RosArm:
             raise Stop(f"{self.signals.received} received")
         remaining_wall = (until - self.now()) / self.scale
         self.link.spin_once(min(max(remaining_wall, 0.0), _SPIN_SLICE_S))
-        silent = time.monotonic() - self.link.last_pose_at
+        silent = self.link.silence_s(self.watchdog_wall_s)
         if silent > self.watchdog_wall_s:
-            self.link.spin_once(0.0)  # a pose may be queued behind a stall of this process
-            silent = time.monotonic() - self.link.last_pose_at
-            if silent > self.watchdog_wall_s:
-                raise Stop(f"mocap watchdog: no pose on {self.robot.pose_topic} for "
-                           f"{silent * self.scale:.2f} s (robot.watchdog_s="
-                           f"{self.robot.watchdog_s})")
+            raise Stop(f"mocap watchdog: no pose on {self.robot.pose_topic} for "
+                       f"{silent * self.scale:.2f} s (robot.watchdog_s={self.robot.watchdog_s})")
 
     def receive(self) -> None:
         """Run the callbacks of messages already queued (up to the pose queue's depth)."""

@@ -120,6 +120,15 @@ class ArmLink:
         poses, self.poses = self.poses, []
         return poses
 
+    def silence_s(self, watchdog_wall_s: float) -> float:
+        """Wall seconds since the last pose; past ``watchdog_wall_s`` the poses queued behind a
+        stall of this process are taken in first, so only a real silence counts."""
+        silent = time.monotonic() - self.last_pose_at
+        if silent > watchdog_wall_s:
+            self.spin_once(0.0)
+            silent = time.monotonic() - self.last_pose_at
+        return silent
+
     def spin_once(self, timeout_s: float) -> None:
         self._executor.spin_once(timeout_sec=timeout_s)
 
@@ -249,14 +258,11 @@ class Session:
     def _check(self) -> None:
         if self.signals.received:
             raise _Stop(f"{self.signals.received} received")
-        silent = time.monotonic() - self.link.last_pose_at
+        silent = self.link.silence_s(self.watchdog_wall_s)
         if silent > self.watchdog_wall_s:
-            self.link.spin_once(0.0)  # a pose may be queued behind a stall of this process
-            silent = time.monotonic() - self.link.last_pose_at
-            if silent > self.watchdog_wall_s:
-                raise _Stop(f"mocap watchdog: no pose on {self.robot.pose_topic} for "
-                            f"{silent * self.time_scale:.2f} s (robot.watchdog_s="
-                            f"{self.robot.watchdog_s})")
+            raise _Stop(f"mocap watchdog: no pose on {self.robot.pose_topic} for "
+                        f"{silent * self.time_scale:.2f} s (robot.watchdog_s="
+                        f"{self.robot.watchdog_s})")
 
     def _drain(self) -> None:
         """Move received poses into the current run (by stamp); count what does not fit."""

@@ -1,4 +1,5 @@
-"""``python -m bench [name ...]``: run the benchmarks (all by default) and print their tables."""
+"""``python -m bench [name ...] [options]``: run the benchmarks (all but the optional ones by
+default) and print their tables."""
 
 from __future__ import annotations
 
@@ -11,17 +12,25 @@ BENCHMARKS = {
     "model_cv": "bench.model_cv",
     "ppo_throughput": "bench.ppo_throughput",
     "control_latency": "bench.control_latency",
+    "peers": "bench.peers",
 }
+OPTIONAL = {"peers"}  # needs the "peers" extra (torch, stable-baselines3): run only when named
 
 
 def main(argv: list[str]) -> None:
-    names = [a for a in argv if not a.startswith("-")] or list(BENCHMARKS)
-    unknown = sorted(set(names) - set(BENCHMARKS))
-    if unknown:
-        raise SystemExit(f"unknown benchmark(s) {unknown}; known: {sorted(BENCHMARKS)}")
+    """``python -m bench [name ...] [-- | options of a single benchmark ...]``: the leading
+    arguments that name benchmarks select them; what follows goes to each one's own ``main``."""
+    count = next((i for i, a in enumerate(argv) if a not in BENCHMARKS), len(argv))
+    names, rest = argv[:count], argv[count:]
+    if rest and rest[0] == "--":
+        rest = rest[1:]
+    if not names:
+        if rest and not rest[0].startswith("-"):
+            raise SystemExit(f"unknown benchmark {rest[0]!r}; known: {sorted(BENCHMARKS)}")
+        names = sorted(set(BENCHMARKS) - OPTIONAL)
     for name in names:
         print(f"\n=== {name} ===", flush=True)
-        importlib.import_module(BENCHMARKS[name]).main([])
+        importlib.import_module(BENCHMARKS[name]).main(rest)
 
 
 if __name__ == "__main__":

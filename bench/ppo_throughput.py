@@ -4,9 +4,10 @@
 
 - ``default``: this project's defaults — LSTM of ``model.hidden`` units at ``dataset.model_hz``
   stepped model_hz / 2 times per 2 Hz action (zero-order hold), ``agent.num_envs`` environments.
+- ``default, GRU policy``: the same environment, the recurrent policy of ``agent=ppo_rnn``.
 - ``paper``: the paper's environment — a 1024-unit LSTM stepped once per action, 32 environments.
 
-Same PPO (feed-forward, ``agent.num_steps`` = 32, 4 epochs x 4 minibatches), same run, random
+Same PPO (feed-forward unless named, ``agent.num_steps`` = 32, 4 epochs x 4 minibatches), same run, random
 model weights (throughput does not depend on them). Compilation is timed apart; throughput is
 environment steps per second of the compiled training program (all seeds together), and the
 table gives the ratio of each row to the paper's.
@@ -31,9 +32,11 @@ LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload
 REST_POSE = jnp.array([0.032, 0.353, 0.202])
 CONTROL_HZ = 2.0
 SETTINGS = {
-    # name: (LSTM units, model Hz, environments)
-    "default": (ModelConfig().hidden, DatasetConfig().model_hz, AgentConfig().num_envs),
-    "paper": (1024, 2.0, 32),
+    # name: (LSTM units, model Hz, environments, recurrent policy)
+    "default": (ModelConfig().hidden, DatasetConfig().model_hz, AgentConfig().num_envs, False),
+    "default, GRU policy": (ModelConfig().hidden, DatasetConfig().model_hz,
+                            AgentConfig().num_envs, True),
+    "paper": (1024, 2.0, 32, False),
 }
 
 
@@ -47,15 +50,16 @@ def random_model(hidden: int) -> dynamics.DynamicsParams:
 
 
 def measure(name: str, updates: int, seeds: int) -> dict:
-    hidden, model_hz, num_envs = SETTINGS[name]
+    hidden, model_hz, num_envs, recurrent = SETTINGS[name]
     env = SoftArmReachEnv(learned_plant(model_hz), CONTROL_HZ, settle_seconds=5.0,
                           include_last_action=True)
     params = make_env_params(env, random_model(hidden), key=jax.random.PRNGKey(0),
                              safe_set=SafeSet.from_limits(LIMITS), preload=2.0,
                              rest_pose=REST_POSE, goal_mode="perturb", reset_bank_size=16)
-    agent = AgentConfig(num_seeds=seeds, num_envs=num_envs, num_steps=32,
-                      total_timesteps=updates * num_envs * 32, num_evals=1, eval_envs=8,
-                      progress=False)
+    agent = AgentConfig(num_seeds=seeds, num_envs=num_envs, num_steps=32, recurrent=recurrent,
+                        rnn_skip=recurrent,
+                        total_timesteps=updates * num_envs * 32, num_evals=1, eval_envs=8,
+                        progress=False)
     train = jax.jit(jax.vmap(make_train(agent, env, params, eval_steps=1),
                              in_axes=(0, None, None)))
     keys = seed_keys(0, seeds)
@@ -80,12 +84,12 @@ def main(argv: list[str] | None = None) -> None:
     paper = next(r for r in rows if r["name"] == "paper")
     print(f"PPO training throughput, {args.updates} updates x 32 steps, {args.seeds} seed(s), "
           f"{jax.devices()[0].platform}")
-    header = (f"{'setting':<9}{'LSTM':>6}{'steps/act':>10}{'envs':>6}{'compile s':>11}"
+    header = (f"{'setting':<21}{'LSTM':>6}{'steps/act':>10}{'envs':>6}{'compile s':>11}"
               f"{'run s':>8}{'env steps/s':>13}{'x paper':>9}{'model steps/s':>15}")
     print(header)
     print("-" * len(header))
     for r in rows:
-        print(f"{r['name']:<9}{r['lstm']:>6}{r['model_steps_per_action']:>10}{r['envs']:>6}"
+        print(f"{r['name']:<21}{r['lstm']:>6}{r['model_steps_per_action']:>10}{r['envs']:>6}"
               f"{r['compile_s']:>11.1f}{r['run_s']:>8.2f}{r['steps_per_s']:>13.0f}"
               f"{r['steps_per_s'] / paper['steps_per_s']:>9.2f}{r['model_steps_per_s']:>15.0f}")
 

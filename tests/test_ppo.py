@@ -141,6 +141,40 @@ def test_rnn_skip_feeds_the_embedding_beside_the_gru_to_the_heads():
     assert first_head_kernel(True) == (10, 8)
 
 
+def test_fused_gru_equals_flax_gru_cell_step_by_step_with_resets():
+    """The fused GRU has GRUCell's variables (same tree, same initial values) and outputs."""
+    import flax.linen as nn
+
+    from pipeline.rl.networks import ResettingGRU
+
+    steps, batch, dim, width = 5, 3, 4, 6
+    x = jax.random.normal(jax.random.PRNGKey(1), (steps, batch, dim))
+    resets = jnp.array([[True, False, False], [False, True, False], [False, False, False],
+                        [True, False, True], [False, False, False]])
+    carry = jax.random.normal(jax.random.PRNGKey(2), (batch, width))
+    fused = ResettingGRU(width)
+    variables = fused.init(jax.random.PRNGKey(0), carry, (x, resets))
+    cell = nn.GRUCell(width)
+    cell_variables = {"params": variables["params"]["GRUCell_0"]}
+    state, outputs = carry, []
+    for t in range(steps):
+        state = jnp.where(resets[t][:, None], 0.0, state)
+        state, y = cell.apply(cell_variables, state, x[t])
+        outputs.append(y)
+    final, ys = fused.apply(variables, carry, (x, resets))
+    np.testing.assert_allclose(np.asarray(ys), np.stack(outputs), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(final), np.asarray(state), rtol=1e-5, atol=1e-6)
+    # the same initial values as flax's cell scanned under the same module path and key
+    class Scanned(nn.Module):
+        @nn.compact
+        def __call__(self, carry, inputs):
+            scan = nn.scan(nn.GRUCell, variable_broadcast="params", split_rngs={"params": False})
+            return scan(width, name="GRUCell_0")(carry, inputs)
+
+    expected = Scanned().init(jax.random.PRNGKey(0), carry, x)["params"]
+    jax.tree.map(np.testing.assert_array_equal, variables["params"], expected)
+
+
 def toy_reaching():
     env = SoftArmReachEnv(linear_lag_plant(10.0), 2.0, settle_seconds=1.0,
                           include_last_action=True)

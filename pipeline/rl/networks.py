@@ -13,8 +13,9 @@ The feed-forward network ignores ``hidden`` and ``resets`` (its hidden state is 
 
 from __future__ import annotations
 
-import functools
+from typing import Any
 
+import chex
 import distrax
 import flax.linen as nn
 import jax
@@ -102,20 +103,72 @@ class ActorCriticFF(nn.Module):
         return jnp.zeros((batch_size, 1), jnp.float32)
 
 
-class ResettingGRU(nn.Module):
-    """A GRU scanned over time; the state is zeroed where ``resets[t]`` before step t."""
+class _Dense(nn.Module):
+    """The variables of one ``nn.Dense``: ``kernel [fan_in, features]`` and optional ``bias``."""
+
+    features: int
+    use_bias: bool
+    kernel_init: Any
+    bias_init: Any
+
+    @nn.compact
+    def __call__(self, fan_in: int):
+        kernel = self.param("kernel", self.kernel_init, (fan_in, self.features))
+        bias = self.param("bias", self.bias_init, (self.features,)) if self.use_bias else None
+        return kernel, bias
+
+
+class GRUWeights(nn.Module):
+    """The variables of ``flax.linen.GRUCell`` (same names, shapes and initializers), returned
+    fused, gates in the order (r, z, n): ``input_kernel [D, 3H]``, ``input_bias [3H]``,
+    ``hidden_kernel [H, 3H]`` and the candidate's own hidden bias ``hidden_bias [H]``."""
 
     features: int
 
-    @functools.partial(
-        nn.scan, variable_broadcast="params", in_axes=0, out_axes=0,
-        split_rngs={"params": False})
+    @nn.compact
+    def __call__(self, input_dim: int):
+        cell, h = nn.GRUCell(self.features), self.features  # the cell: for its initializers
+        inputs = [_Dense(h, True, cell.kernel_init, cell.bias_init, name=f"i{gate}")(input_dim)
+                  for gate in "rzn"]
+        hidden = [_Dense(h, gate == "n", cell.recurrent_kernel_init, cell.bias_init,
+                         name=f"h{gate}")(h) for gate in "rzn"]
+        return (jnp.concatenate([k for k, _ in inputs], axis=1),
+                jnp.concatenate([b for _, b in inputs]),
+                jnp.concatenate([k for k, _ in hidden], axis=1), hidden[2][1])
+
+
+class ResettingGRU(nn.Module):
+    """A GRU over time; the state is zeroed where ``resets[t]`` before step t.
+
+    ``carry [B, H]``, ``inputs = (x [T, B, D], resets [T, B])`` -> ``(carry_T, y [T, B, H])``.
+    The equations and parameters are ``flax.linen.GRUCell``'s (variables under ``GRUCell_0``),
+    computed fused: the input projections of all T steps in one ``[T*B, D] x [D, 3H]`` product
+    before the scan, and one ``[B, H] x [H, 3H]`` product per step inside it (the cell does six
+    products per step)."""
+
+    features: int
+
     @nn.compact
     def __call__(self, carry, inputs):
-        x, resets = inputs  # [B, D], [B]
-        carry = jnp.where(resets[:, None], jnp.zeros_like(carry), carry)
-        carry, y = nn.GRUCell(self.features)(carry, x)
-        return carry, y
+        x, resets = inputs
+        chex.assert_rank(x, 3)
+        chex.assert_shape(resets, x.shape[:2])
+        input_kernel, input_bias, hidden_kernel, hidden_bias = GRUWeights(
+            self.features, name="GRUCell_0")(x.shape[-1])
+        projected = x @ input_kernel + input_bias  # [T, B, 3H]
+        h = self.features
+
+        def step(state, inputs_t):
+            projected_t, reset_t = inputs_t
+            state = jnp.where(reset_t[:, None], jnp.zeros_like(state), state)
+            recurrent = state @ hidden_kernel  # [B, 3H]
+            r = nn.sigmoid(projected_t[:, :h] + recurrent[:, :h])
+            z = nn.sigmoid(projected_t[:, h:2 * h] + recurrent[:, h:2 * h])
+            n = jnp.tanh(projected_t[:, 2 * h:] + r * (recurrent[:, 2 * h:] + hidden_bias))
+            state = (1.0 - z) * n + z * state
+            return state, state
+
+        return jax.lax.scan(step, carry, (projected, resets))
 
 
 class ActorCriticRNN(nn.Module):

@@ -60,7 +60,8 @@ class Transition(NamedTuple):
     reward: jax.Array  # [B] scaled by agent.reward_scale
     terminated: jax.Array  # [B] bool
     truncated: jax.Array  # [B] bool
-    bootstrap_value: jax.Array  # [B] V(final obs of the episode); used where truncated
+    bootstrap_value: jax.Array  # [B] V(final obs of the episode); used where truncated (filled
+    # after the rollout, for all steps in one call: bootstrap_values in make_train)
 
 
 class RunnerState(NamedTuple):
@@ -184,6 +185,17 @@ def make_train(
         hidden, pi, value = network.apply(params, hidden, obs[None], reset[None])
         return hidden, pi, value[0]
 
+    def bootstrap_values(params, final_obs, hidden):
+        """V(final observation) of every rollout step in one batched call: ``final_obs [T, B,
+        obs_dim]`` (gymnax's ``info["final_observation"]``, the observation after step t before
+        any reset) seen with ``hidden [T, B, H]``, the policy state after step t's observation
+        -> ``[T, B]``. The parameters do not change during a rollout, so this is what calling
+        the critic at every step would give, with T times fewer (and larger) calls."""
+        flat = lambda x: x.reshape(1, num_steps * num_envs, *x.shape[2:])  # noqa: E731
+        _, _, values = network.apply(params, flat(hidden)[0], flat(final_obs),
+                                     jnp.zeros((1, num_steps * num_envs), bool))
+        return values.reshape(num_steps, num_envs)
+
     def env_step(keys, state, action, params):
         return jax.vmap(env.step, in_axes=(0, 0, 0, None))(
             keys, state, to_env_action(action, low, high), params)
@@ -220,14 +232,12 @@ def make_train(
                 log_prob = pi.log_prob(action[None])[0]
                 obs, env_state, reward, terminated, truncated, info = env_step(
                     jax.random.split(step_key, num_envs), runner.env_state, action, env_params)
-                _, _, bootstrap_value = apply_step(params, hidden, info["final_observation"],
-                                                   jnp.zeros(num_envs, bool))
                 done = jnp.logical_or(terminated, truncated)
                 episode_return = runner.episode_return + reward
                 episode_length = runner.episode_length + 1
                 transition = Transition(
                     runner.obs, runner.reset, action, log_prob, value,
-                    reward * config.reward_scale, terminated, truncated, bootstrap_value)
+                    reward * config.reward_scale, terminated, truncated, None)
                 episode = {
                     "done": done,
                     "terminated": terminated,
@@ -239,10 +249,13 @@ def make_train(
                     runner.train_state, env_state, obs, done, hidden,
                     jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length),
                     rng)
-                return runner, (transition, episode)
+                return runner, (transition, episode, (info["final_observation"], hidden))
 
             rollout_hidden = runner.hidden
-            runner, (trajectory, episodes) = jax.lax.scan(rollout_step, runner, None, num_steps)
+            runner, (trajectory, episodes, finals) = jax.lax.scan(
+                rollout_step, runner, None, num_steps)
+            trajectory = trajectory._replace(
+                bootstrap_value=bootstrap_values(runner.train_state.params, *finals))
 
             # ------------------------------------------------------------ advantages
             _, _, last_value = apply_step(runner.train_state.params, runner.hidden, runner.obs,

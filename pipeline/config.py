@@ -197,6 +197,11 @@ class SimPhysics:
     creep_tau_s: float = 5.0
     rest_pose_std_m: list[float] = field(default_factory=lambda: [0.002, 0.0003, 0.001])
     substeps: int = 10  # integrator steps per mocap frame
+    # session-to-session spread of the physics: each session (a simulated run) adds its own
+    # N(0, std^2) draw to every parameter named here, per element of a list, in that
+    # parameter's own unit (deg, kPa, s, Hz, rad/kPa, 1, ...). Empty: every session has the
+    # same physics. Read off per-run refits of the real runs (experiments/twin_variability.py).
+    session_std: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -217,6 +222,18 @@ class RobotConfig:
 
 
 @dataclass
+class ReplayConfig:
+    """Recordings of an import kind (as ``ImportRobotConfig`` reads them) whose commands a
+    simulated arm replays; their positions are not used."""
+
+    kind: RobotKind = RobotKind.sorolex_csv
+    data_dir: str = MISSING
+    pattern: str = "*.csv"
+    files: list[str] = field(default_factory=list)  # explicit names inside data_dir; empty = glob
+    num_runs: int | None = None  # only the first num_runs recordings (None: all)
+
+
+@dataclass
 class SimRobotConfig(RobotConfig):
     name: str = "sim"
     kind: RobotKind = RobotKind.sim
@@ -225,6 +242,9 @@ class SimRobotConfig(RobotConfig):
     mocap: MocapConfig = field(default_factory=MocapConfig)
     # a calibrate artifact (key or folder) whose fitted physics replace `physics`
     physics_from: str | None = None
+    # recorded runs whose valve commands the sessions replay at their recorded times, one
+    # session per recording, instead of the exploration walk (null: the walk, num_runs runs)
+    replay: ReplayConfig | None = None
 
 
 @dataclass

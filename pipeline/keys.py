@@ -36,8 +36,22 @@ _SPLIT_KEYS = ("train_fraction", "split_seed")
 _NON_DETERMINING_AGENT_KEYS = ("progress",)
 
 
+# settings added to the simulated arm later, left out of a spec while unset, so that configs
+# that do not use them keep the artifact keys they had
+_UNSET_LATER = {"session_std": {}, "replay": None}
+
+
 def _container(node: Any) -> Any:
-    return OmegaConf.to_container(node, resolve=True)
+    return _without_unset(OmegaConf.to_container(node, resolve=True))
+
+
+def _without_unset(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _without_unset(v) for k, v in value.items()
+                if not (k in _UNSET_LATER and v == _UNSET_LATER[k])}
+    if isinstance(value, list):
+        return [_without_unset(v) for v in value]
+    return value
 
 
 def collect_spec(cfg: Any) -> Spec:
@@ -55,6 +69,10 @@ def collect_spec(cfg: Any) -> Spec:
     if kind is RobotKind.ros2:
         for setting in _ROS2_OPERATIONAL:
             robot.pop(setting, None)
+    if robot.get("replay"):
+        # replayed commands are keyed by the recordings' content, not by where they lie
+        robot["replay"] = {"kind": robot["replay"]["kind"], "files": {
+            p.name: recording_digest(p) for p in list_recordings(cfg.robot.replay)}}
     return {"robot": robot, "exploration": _container(cfg.exploration)}, {}
 
 

@@ -134,7 +134,8 @@ def test_calibrate_stage_writes_its_artifact_and_reuses_it(make_cfg):
     assert (params["value"] >= params["lower"]).all() and (params["value"] <= params["upper"]).all()
     assert dict(zip(params["name"], params["unit"]))["pressure_tau_s"] == "s"
     physics = json.loads(artifact.file("physics.json").read_text())["physics"]
-    assert set(SimPhysics.__dataclass_fields__) == set(physics)
+    # every SimPhysics field but the spread between sessions, which is not fitted
+    assert set(SimPhysics.__dataclass_fields__) - {"session_std"} == set(physics)
     metrics = __import__("pandas").read_parquet(artifact.file("metrics.parquet"))
     assert set(metrics["model"]) == {"sim_calibrated", "sim_calibrated_first_pose",
                                      "sim_default", "sim_default_first_pose", "mean_position",
@@ -164,6 +165,9 @@ def test_physics_from_names_what_it_could_not_find(make_cfg):
 def test_sim_sorolex_composes_and_simulates(make_cfg):
     cfg = make_cfg("robot=sim_sorolex")
     assert cfg.robot.kind.value == "sim"
+    # its sessions replay the paper's runs, each with its own physics around the fitted ones
+    assert cfg.robot.replay.kind.value == "sorolex_csv" and cfg.robot.limits.p_min == -3.0
+    assert "chamber_gains" in cfg.robot.physics.session_std
     defaults = OmegaConf.structured(SimPhysics)
     assert cfg.robot.physics.bend_gain != defaults.bend_gain  # holds fitted values
     params = sim_arm.SimParams.from_config(cfg.robot)

@@ -75,3 +75,15 @@ def test_wrong_type_fails_at_composition(make_cfg):
 def test_experiment_quick_shrinks_the_run(make_cfg):
     default, quick = make_cfg(), make_cfg("experiment=quick")
     assert quick.exploration.num_steps < default.exploration.num_steps
+
+
+def test_settings_a_simulated_arm_does_not_use_stay_out_of_its_keys(make_cfg):
+    from pipeline import keys
+
+    cfg = make_cfg()
+    spec, _ = keys.collect_spec(cfg)
+    assert "session_std" not in spec["robot"]["physics"] and "replay" not in spec["robot"]
+    assert "session_std" not in keys.calibrate_spec(cfg)[0]["calibration"]["init"]
+    spread = make_cfg("+robot.physics.session_std={bend_gain:0.01}")
+    assert keys.collect_spec(spread)[0]["robot"]["physics"]["session_std"] == {"bend_gain": 0.01}
+    assert keys.key("collect", spread) != keys.key("collect", cfg)

@@ -265,3 +265,43 @@ def test_plotjuggler_errors_name_the_csv_line(tmp_path):
     assert row != 40 and err.value.row == row
     assert str(err.value).endswith(f"(line {row + 2})")
     assert "pose topic: timestamp goes backwards" in str(err.value)
+
+
+def test_frames_hold_the_command_sent_last_at_its_recorded_time():
+    from pipeline.stages.collect import frame_commands
+
+    index = frame_commands(np.array([0.0, 0.5, 1.2]), 200, 100.0)
+    expected = np.r_[np.zeros(50), np.ones(70), np.full(80, 2)]
+    np.testing.assert_array_equal(index, expected)
+
+
+def test_a_simulated_arm_replays_the_recorded_commands_at_their_times(tmp_path, make_cfg):
+    data = tmp_path / "data"
+    data.mkdir()
+    rows = "".join(f"{50 + 0.01 * i:.2f},0.03,0.353,0.2,{2.0 - 3.0 * (i >= 120):.1f},2.0,"
+                   f"{2.0 + (i >= 40)}\n" for i in range(300))
+    (data / "a.csv").write_text(HEADER + rows)
+    (data / "b.csv").write_text(HEADER + good_rows(150))
+    cfg = make_cfg("robot=sim_sorolex", f"robot.replay.data_dir={data}",
+                   "robot.replay.pattern=*.csv")
+    artifact = collect(cfg)
+    commands = pd.read_parquet(artifact.file("commands.parquet"))
+    mocap = pd.read_parquet(artifact.file("mocap.parquet"))
+    runs = pd.read_parquet(artifact.file("runs.parquet"))
+    assert runs["run_id"].tolist() == ["sim-a", "sim-b"]
+    assert runs["n_frames"].tolist() == [300, 150]  # as long as the recordings
+    a = commands[commands["run_id"] == "sim-a"]
+    np.testing.assert_allclose(a["t"], [0.0, 0.4, 1.2], atol=1e-9)  # the recorded times
+    np.testing.assert_array_equal(a[["p_cmd_0", "p_cmd_1", "p_cmd_2"]].to_numpy(),
+                                  [[2.0, 2.0, 2.0], [2.0, 2.0, 3.0], [-1.0, 2.0, 3.0]])
+    assert (mocap.groupby("run_id").size() == [300, 150]).all()
+    # keyed by the recordings' content: another folder with the same files, the same key
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    for path in data.iterdir():
+        (copy / path.name).write_bytes(path.read_bytes())
+    moved = make_cfg("robot=sim_sorolex", f"robot.replay.data_dir={copy}",
+                     "robot.replay.pattern=*.csv")
+    assert key("collect", moved) == key("collect", cfg)
+    (copy / "b.csv").write_text(HEADER + good_rows(160))
+    assert key("collect", moved) != key("collect", cfg)

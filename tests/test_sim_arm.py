@@ -107,3 +107,67 @@ def test_many_arms_with_different_parameters_under_vmap():
     rest = jax.vmap(sim_arm.tip_position)(stiff, states)
     shift = np.abs(np.asarray(tips - rest)[:, 2])
     assert shift[0] > 1.5 * shift[1]
+
+
+def _with_spread(spread):
+    robot = OmegaConf.merge(ROBOT, {"physics": {"session_std": spread}})
+    return sim_arm.SimParams.from_config(robot)
+
+
+def test_no_session_spread_gives_every_session_the_same_physics():
+    commands = jnp.tile(jnp.array([[2.0, 2.0, 2.0], [4.0, 1.0, 1.0]]), (4, 1))
+    frames = sim_arm.frame_command_index(len(commands), 2.0, 100.0)
+    simulate = jax.jit(jax.vmap(sim_arm.simulate_run, in_axes=(None, 0, None, None, None)))
+    keys = jax.random.split(jax.random.key(3), 3)
+    assert sim_arm.session_params(PARAMS, keys[0]) is PARAMS  # empty spread: nothing drawn
+    outputs = []
+    for spread in ({}, {"bend_gain": 0.0, "chamber_angles_deg": 0.0, "natural_freq_hz": 0.0}):
+        params = _with_spread(spread).replace(rest_pose_std=jnp.zeros(3))
+        true = np.asarray(simulate(params, keys, commands, frames, PRELOAD)["true_position"])
+        np.testing.assert_array_equal(true[1], true[0])
+        np.testing.assert_array_equal(true[2], true[0])
+        outputs.append(true)
+    np.testing.assert_array_equal(outputs[1], outputs[0])  # a zero spread is no spread
+
+
+def test_sessions_draw_their_physics_with_the_configured_spread():
+    spread = {"bend_gain": 0.01, "chamber_gains": [0.1, 0.0, 0.05], "chamber_angles_deg": 4.0,
+              "natural_freq_hz": 0.1}
+    params = _with_spread(spread)
+    n = 4000
+    drawn = jax.vmap(sim_arm.session_params, in_axes=(None, 0))(
+        params, jax.random.split(jax.random.key(0), n))
+    tolerance = 4 / np.sqrt(2 * n)  # relative error of a standard deviation, 4 sigma
+    bend = np.asarray(drawn.bend_gain)
+    assert bend.mean() == pytest.approx(0.065, abs=4 * 0.01 / np.sqrt(n))
+    assert bend.std() == pytest.approx(0.01, rel=tolerance)
+    gains = np.asarray(drawn.chamber_gains)
+    np.testing.assert_allclose(gains.std(0), [0.1, 0.0, 0.05], rtol=tolerance)
+    np.testing.assert_array_equal(gains[:, 1], 1.0)
+    angles = np.asarray(jax.vmap(sim_arm.physics_value, in_axes=(0, None))(
+        drawn, "chamber_angles_deg"))
+    turned = (angles - np.array([90.0, 210.0, 330.0]) + 180.0) % 360.0 - 180.0
+    np.testing.assert_allclose(turned.std(0), 4.0, rtol=tolerance)
+    np.testing.assert_allclose(turned.mean(0), 0.0, atol=4 * 4.0 / np.sqrt(n))
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(drawn.chamber_dirs), axis=-1), 1.0,
+                               atol=1e-6)
+    frequency = np.asarray(drawn.omega) / (2 * np.pi)
+    assert frequency.std() == pytest.approx(0.1, rel=tolerance)
+    assert abs(np.corrcoef(bend, frequency)[0, 1]) < 4 / np.sqrt(n)  # independent draws
+    np.testing.assert_array_equal(np.asarray(drawn.damping_ratio), np.float32(0.3))  # not spread
+    # a simulated run reports the physics its session drew, and sessions differ by them
+    frames = sim_arm.frame_command_index(4, 2.0, 100.0)
+    out = jax.vmap(sim_arm.simulate_run, in_axes=(None, 0, None, None, None))(
+        params, jax.random.split(jax.random.key(1), 2), jnp.full((4, 3), 2.0), frames, PRELOAD)
+    assert sorted(out["physics"]) == sorted(spread)
+    assert out["physics"]["bend_gain"].shape == (2,)
+    assert out["physics"]["bend_gain"][0] != out["physics"]["bend_gain"][1]
+
+
+def test_a_session_spread_of_an_unknown_or_misshaped_parameter_is_refused():
+    with pytest.raises(ValueError, match="base_position_m"):
+        _with_spread({"base_position_m": 0.001})
+    with pytest.raises(ValueError, match="chamber_gains"):
+        _with_spread({"chamber_gains": [0.1, 0.1]})
+    with pytest.raises(ValueError, match="bend_gain"):
+        _with_spread({"bend_gain": -0.01})

@@ -100,10 +100,16 @@ class ExplorationPlan(NamedTuple):
     figure_key: chex.PRNGKey  # the walks of the several-alpha figure
 
 
+def plan_keys(exploration: Any) -> tuple[chex.PRNGKey, chex.PRNGKey, chex.PRNGKey]:
+    """The walk, session and figure keys of ``exploration.seed``."""
+    walk_key, session_key, figure_key = jax.random.split(jax.random.key(int(exploration.seed)), 3)
+    return walk_key, session_key, figure_key
+
+
 def exploration_plan(exploration: Any, limits: Any, n_valves: int, num_runs: int
                      ) -> ExplorationPlan:
     """The walks of ``num_runs`` runs: the same for the simulated arm and a ROS 2 arm."""
-    walk_key, session_key, figure_key = jax.random.split(jax.random.key(int(exploration.seed)), 3)
+    walk_key, session_key, figure_key = plan_keys(exploration)
     commands = np.stack([exploration_run(k, exploration, limits, n_valves)
                          for k in jax.random.split(walk_key, int(num_runs))])
     return ExplorationPlan(commands, session_key, figure_key)

@@ -30,7 +30,8 @@ Model (all parameters in :class:`pipeline.config.SimPhysics`, units SI unless kP
    base; a rigid end piece of length ``tip_offset_m`` carries the markers. Lateral offset
    ``(L+e)(1 - cos theta)/theta + d sin theta``, drop ``(L+e) sin theta/theta + d cos theta``.
    Each session adds a rest-pose offset drawn with ``rest_pose_std_m`` (the real arm's rest pose
-   differs by a few mm between runs).
+   differs by a few mm between runs) and, for the parameters named in ``session_std``, its own
+   physics: the nominal value plus a normal draw of that spread (:func:`session_params`).
 7. **Motion capture.** Frames at ``mocap.rate_hz`` with Gaussian position noise, timestamp jitter
    (clipped to keep time increasing), single dropped frames and bursts of dropped frames
    (``valid = False``, position NaN).
@@ -84,6 +85,8 @@ class SimParams:
     mocap_hz: float = struct.field(pytree_node=False, default=100.0)
     substeps: int = struct.field(pytree_node=False, default=10)
     burst_len: int = struct.field(pytree_node=False, default=8)
+    # SimPhysics name -> spread between sessions, in that parameter's unit (empty: none)
+    session_std: dict[str, chex.Array] = struct.field(default_factory=dict)
 
     @classmethod
     def from_config(cls, robot: Any) -> SimParams:
@@ -91,8 +94,11 @@ class SimParams:
         ``robot.mocap`` (:class:`pipeline.config.MocapConfig`)."""
         mocap = robot.mocap
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        values = {k: _plain(robot.physics[k]) for k in PHYSICS_VALUES}
+        spread = robot.physics.get("session_std") or {}
         return cls(
-            **physics_fields({k: _plain(robot.physics[k]) for k in PHYSICS_VALUES}),
+            **physics_fields(values),
+            session_std=session_spread(values, {k: _plain(v) for k, v in spread.items()}),
             noise_std=f32(mocap.noise_std_m),
             jitter_std=f32(mocap.jitter_std_s),
             drop_prob=f32(mocap.drop_prob),
@@ -146,6 +152,67 @@ def physics_fields(values: Mapping[str, Any]) -> dict[str, chex.Array]:
         else:
             fields[_FIELD_OF[name]] = value
     return fields
+
+
+# Parameters a session may draw (session_std), with the least value a draw may take: a draw
+# below it is clipped there (the lags divide, the gains and widths are not negative).
+SESSION_FLOORS: dict[str, float | None] = {
+    "chamber_angles_deg": None, "chamber_gains": 0.0, "segment_length_m": 0.01,
+    "tip_offset_m": 0.0, "pressure_tau_s": 1e-3, "bend_gain": 0.0, "elong_gain": None,
+    "natural_freq_hz": 0.01, "damping_ratio": 0.0, "gravity_stiffening": 0.0,
+    "hysteresis_kpa": 0.0, "creep_gain": 0.0, "creep_tau_s": 1e-3, "saturation_per_kpa": 0.0,
+    "saturation_center_kpa": None, "mean_stiffening_per_kpa": 0.0}
+
+
+def session_spread(values: Mapping[str, Any], spread: Mapping[str, Any]
+                   ) -> dict[str, chex.Array]:
+    """``session_std`` as arrays shaped like the parameters they spread (checked)."""
+    unknown = sorted(set(spread) - set(SESSION_FLOORS))
+    if unknown:
+        raise ValueError(f"physics.session_std: {unknown} cannot vary between sessions; "
+                         f"known: {list(SESSION_FLOORS)}")
+    out = {}
+    for name, std in spread.items():
+        shape = np.shape(values[name])
+        std = np.asarray(std, np.float64)
+        if std.ndim == 0:
+            std = np.broadcast_to(std, shape)
+        if std.shape != shape or np.any(std < 0) or not np.all(np.isfinite(std)):
+            raise ValueError(f"physics.session_std.{name}={std.tolist()}: expected one "
+                             f"non-negative spread per element of {name} (shape {shape})")
+        out[name] = jnp.asarray(std, jnp.float32)
+    return out
+
+
+def session_params(params: SimParams, key: chex.PRNGKey) -> SimParams:
+    """One session's physics: every parameter of ``params.session_std`` plus its own
+    ``N(0, std^2)`` draw per element (clipped at :data:`SESSION_FLOORS`); ``params`` unchanged
+    when the spread is empty. A draw of the chamber angles turns the chamber directions."""
+    changes = {}
+    for index, name in enumerate(sorted(params.session_std)):
+        std = params.session_std[name]
+        draw = std * jax.random.normal(jax.random.fold_in(key, index), std.shape)
+        if name == "chamber_angles_deg":
+            turn = jnp.deg2rad(draw)
+            cos, sin = jnp.cos(turn), jnp.sin(turn)
+            x, z = params.chamber_dirs[:, 0], params.chamber_dirs[:, 1]
+            changes["chamber_dirs"] = jnp.stack([cos * x - sin * z, sin * x + cos * z], axis=1)
+            continue
+        field, scale = ("omega", 2 * jnp.pi) if name == "natural_freq_hz" else (_FIELD_OF[name], 1.0)
+        value = getattr(params, field) + scale * draw
+        floor = SESSION_FLOORS[name]
+        changes[field] = value if floor is None else jnp.maximum(value, scale * floor)
+    return params.replace(**changes) if changes else params
+
+
+def physics_value(params: SimParams, name: str) -> chex.Array:
+    """The value of SimPhysics parameter ``name`` in ``params``, in its SimPhysics unit."""
+    if name == "chamber_angles_deg":
+        return jnp.rad2deg(jnp.arctan2(params.chamber_dirs[:, 1], params.chamber_dirs[:, 0])
+                           ) % 360.0
+    if name == "natural_freq_hz":
+        return params.omega / (2 * jnp.pi)
+    return getattr(params, _FIELD_OF[name])
 
 
 @struct.dataclass
@@ -274,10 +341,12 @@ def simulate_run(
       ``t [K]`` mocap timestamps (s, with jitter), ``position [K, 3]`` (m, noisy, NaN where not
       valid), ``valid [K]`` bool, ``true_position [K, 3]`` (noise-free, for tests and plots).
       Frame k's position is the arm's at the frame's nominal time ``k / mocap_hz``.
+      ``physics``: {name: value} the session drew for each parameter of ``session_std``.
     """
     chex.assert_rank(commands, 2)
     chex.assert_rank(frame_command, 1)
     session_key, noise_key, jitter_key, drop_key, burst_key = jax.random.split(key, 5)
+    params = session_params(params, jax.random.fold_in(session_key, 1))
     state = reset(params, session_key, preload)
     true_position = predict_positions(params, state, commands[frame_command])
     num_frames = frame_command.shape[0]
@@ -292,7 +361,8 @@ def simulate_run(
                             mode="full")[:num_frames] > 0
     valid = ~(dropped | in_burst)
     position = jnp.where(valid[:, None], noisy, jnp.nan)
-    return {"t": t, "position": position, "valid": valid, "true_position": true_position}
+    return {"t": t, "position": position, "valid": valid, "true_position": true_position,
+            "physics": {name: physics_value(params, name) for name in params.session_std}}
 
 
 def frame_command_index(num_commands: int, control_hz: float, mocap_hz: float) -> np.ndarray:

@@ -63,7 +63,10 @@ class ArmSimulator:
     """
 
     def __init__(self, twin: Any, preload: float, n_valves: int):
-        self.params = params = sim_arm.SimParams.from_config(twin)
+        session_key = jax.random.key(int(twin.seed))
+        # this session's physics (the nominal ones unless physics.session_std spreads them)
+        self.params = params = sim_arm.session_params(
+            sim_arm.SimParams.from_config(twin), jax.random.fold_in(session_key, 1))
         # plain floats: reading a config node per frame would cost more than the frame itself
         mocap = twin.mocap
         self._period_s = 1.0 / float(mocap.rate_hz)
@@ -71,7 +74,7 @@ class ArmSimulator:
         self._drop_prob, self._burst_prob = float(mocap.drop_prob), float(mocap.burst_prob)
         self._burst_len = int(mocap.burst_len)
         self._command = jnp.full((n_valves,), float(preload), jnp.float32)
-        self._state = sim_arm.reset(params, jax.random.key(int(twin.seed)), self._command)
+        self._state = sim_arm.reset(params, session_key, self._command)
         self._rng = np.random.default_rng(int(twin.seed))
         self._burst_left = 0
 

@@ -14,7 +14,8 @@ recorded pose (the learned model's protocol); ``sim_default`` is the hand-set si
 own rest pose, ``sim_default_first_pose`` on the first pose.
 
 Artifact: ``physics.json`` (the SimPhysics values of the fit on all runs, the base position and
-rest-pose spread from its offsets: what ``robot.physics_from`` reads), ``parameters.parquet`` and
+rest-pose spread from its offsets: what ``robot.physics_from`` reads; one physics for every run,
+so ``session_std`` is neither fitted nor written and ``physics_from`` leaves it as configured), ``parameters.parquet`` and
 ``parameters.md`` (value, unit, bounds and start of every fitted parameter, per fold), per-run
 ``offsets.parquet``, ``robot_sim.yaml`` (a ``conf/robot`` file holding the fitted physics),
 ``metrics.parquet`` (per run and split: mean and p95 open-loop error in mm),
@@ -106,6 +107,7 @@ def calibrate(cfg: Any) -> Artifact:
         batch = calib.RunBatch.from_runs(runs)
         init = calib.sim_physics_values(settings.init)
         init.pop("substeps", None)
+        init.pop("session_std", None)  # one physics for every run: the spread is not fitted
         template = _template(init, rate_hz, int(settings.substeps))
         param = calib.Parameterization.create(list(settings.fitted), init)
         folds, weights = fold_weights(len(runs), bool(settings.leave_one_run_out))
@@ -123,6 +125,7 @@ def calibrate(cfg: Any) -> Artifact:
             "sim_calibrated_first_pose": calib.open_loop(template, param, result.z, batch)}
         hand_set = calib.sim_physics_values(SimPhysics())
         hand_set.pop("substeps")
+        hand_set.pop("session_std")
         hand_set_template = _template(hand_set, rate_hz, int(settings.substeps))
         for name, first_pose in (("sim_default", False), ("sim_default_first_pose", True)):
             predicted[name] = np.broadcast_to(

@@ -165,9 +165,12 @@ def test_physics_from_names_what_it_could_not_find(make_cfg):
 def test_sim_sorolex_composes_and_simulates(make_cfg):
     cfg = make_cfg("robot=sim_sorolex")
     assert cfg.robot.kind.value == "sim"
-    # its sessions replay the paper's runs, each with its own physics around the fitted ones
-    assert cfg.robot.replay.kind.value == "sorolex_csv" and cfg.robot.limits.p_min == -3.0
+    # each session draws its own physics around the fitted ones; it needs no recordings
+    assert cfg.robot.replay is None and cfg.robot.limits.p_min == 0.0
     assert "chamber_gains" in cfg.robot.physics.session_std
+    replay = make_cfg("robot=sim_sorolex_replay")  # the same arm replaying the paper's runs
+    assert replay.robot.replay.kind.value == "sorolex_csv" and replay.robot.limits.p_min == -3.0
+    assert replay.robot.physics == cfg.robot.physics
     defaults = OmegaConf.structured(SimPhysics)
     assert cfg.robot.physics.bend_gain != defaults.bend_gain  # holds fitted values
     params = sim_arm.SimParams.from_config(cfg.robot)

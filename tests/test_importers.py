@@ -282,7 +282,7 @@ def test_a_simulated_arm_replays_the_recorded_commands_at_their_times(tmp_path, 
                    f"{2.0 + (i >= 40)}\n" for i in range(300))
     (data / "a.csv").write_text(HEADER + rows)
     (data / "b.csv").write_text(HEADER + good_rows(150))
-    cfg = make_cfg("robot=sim_sorolex", f"robot.replay.data_dir={data}",
+    cfg = make_cfg("robot=sim_sorolex_replay", f"robot.replay.data_dir={data}",
                    "robot.replay.pattern=*.csv")
     artifact = collect(cfg)
     commands = pd.read_parquet(artifact.file("commands.parquet"))
@@ -300,7 +300,7 @@ def test_a_simulated_arm_replays_the_recorded_commands_at_their_times(tmp_path, 
     copy.mkdir()
     for path in data.iterdir():
         (copy / path.name).write_bytes(path.read_bytes())
-    moved = make_cfg("robot=sim_sorolex", f"robot.replay.data_dir={copy}",
+    moved = make_cfg("robot=sim_sorolex_replay", f"robot.replay.data_dir={copy}",
                      "robot.replay.pattern=*.csv")
     assert key("collect", moved) == key("collect", cfg)
     (copy / "b.csv").write_text(HEADER + good_rows(160))

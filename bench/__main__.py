@@ -11,6 +11,7 @@ BENCHMARKS = {
     "model_cv": "bench.model_cv",
     "ppo_throughput": "bench.ppo_throughput",
     "control_latency": "bench.control_latency",
+    "ensemble_selection": "bench.ensemble_selection",
 }
 
 

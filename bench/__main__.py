@@ -13,6 +13,7 @@ BENCHMARKS = {
     "ppo_throughput": "bench.ppo_throughput",
     "control_latency": "bench.control_latency",
     "peers": "bench.peers",
+    "ensemble_selection": "bench.ensemble_selection",
 }
 OPTIONAL = {"peers"}  # needs the "peers" extra (torch, stable-baselines3): run only when named
 

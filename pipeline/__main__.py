@@ -2,7 +2,8 @@
 
 ``stage=all`` (the default) runs the chain collect -> align -> fit_model -> train_ppo -> evaluate,
 each stage reusing the artifacts of identical upstream settings. A single stage first produces
-what it needs upstream the same way (reused when present), except data from a real arm: with
+what it needs upstream the same way (reused when present; fit_model upstream of train_ppo also
+fits the ensemble's further model seeds, ``env.ensemble_seeds``), except data from a real arm: with
 ``robot=ros2`` a stage of :data:`DRIVES_ARM` runs only when it is the stage asked for, never as
 another stage's upstream (nor in ``stage=all``).
 
@@ -133,10 +134,25 @@ def run(cfg: Any) -> dict[str, Any]:
         if name is Stage.train_ppo and stage is Stage.all:
             # the chain trains its own agent and every policy type evaluate compares
             results[name.value] = train_policies(stage_cfg, int(cfg.train_workers))
+        elif name is Stage.fit_model and stage is not Stage.fit_model:
+            results[name.value] = fit_models(stage_cfg)
         else:
             results[name.value] = stage_function(name)(stage_cfg)
         log.info("stage %s done in %.1f s", name.value, time.perf_counter() - started)
     return results
+
+
+def fit_models(cfg: Any) -> Any:
+    """fit_model for ``cfg`` and, for training in an ensemble (``env.ensemble_seeds``), for its
+    further model seeds (one after another); returns the artifact of ``cfg``'s own model."""
+    fit = stage_function(Stage.fit_model)
+    artifact = fit(cfg)
+    for member in keys.ensemble_configs(cfg):
+        started = time.perf_counter()
+        fit(member)
+        log.info("stage fit_model (model.seed=%d) done in %.1f s", int(member.model.seed),
+                 time.perf_counter() - started)
+    return artifact
 
 
 def train_policies(cfg: Any, workers: int) -> Any:

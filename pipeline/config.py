@@ -463,11 +463,33 @@ class ModelConfig:
 
 
 @dataclass
+class RandomizationConfig:
+    """Randomization around the plant, drawn per training episode (``env.randomization``).
+
+    Training only: the evaluation parameters (held-out goals, the evaluate stage) are nominal.
+    All zero (the default): none, the environment exactly as without randomization. Each draw is
+    per valve or per axis (``pipeline.rl.envs.learned.Randomization``).
+    """
+
+    gain_std: float = 0.0  # each valve receives (1 + N(0, gain_std)) x the command [unitless]
+    offset_std_kpa: float = 0.0  # ... plus N(0, offset_std_kpa), then projected on the safe set
+    # the previous command is held for U{0 .. round(max_delay_s * dataset.model_hz)} plant steps
+    # at the start of every control period; at most one period (1 / robot.control_hz) [s]
+    max_delay_s: float = 0.0
+    rest_offset_std_m: float = 0.0  # N(0, std) per axis added to the plant's position [m]
+    drift_std_m_per_s: float = 0.0  # that offset grows by N(0, std) per axis and second [m/s]
+
+
+@dataclass
 class EnvConfig:
     """The reaching environment (``pipeline/envs``). Reward: -distance in mm per control period.
 
     ``name``: learned (the fitted LSTM) | sim (the simulated arm itself) | gymnax (a standard
     gymnax environment, ``gymnax_name``, to check the PPO against published returns).
+
+    Robustness to model error (training only; evaluation stays in this config's own model):
+    ``ensemble_seeds`` and ``models`` train in an ensemble of fitted models, one drawn per episode
+    (env=learned); ``randomization`` perturbs the plant per episode (learned and sim).
     """
 
     name: EnvName = EnvName.learned
@@ -489,6 +511,13 @@ class EnvConfig:
     held_out_fraction: float = 0.25  # env=sim: share of the goals kept for evaluation
     goal_every: int = 1  # env=learned: use every n-th row (at model_hz) as a goal
     goal_source: GoalSource = GoalSource.predicted  # env=learned
+    # env=learned: train in an ensemble of the fit_model artifacts of model.seed, model.seed + 1,
+    # ..., model.seed + ensemble_seeds - 1 (same data and settings; produced upstream); 1: none
+    ensemble_seeds: int = 1
+    # env=learned: further ensemble members, fit_model artifact folders or keys of this store
+    # (same model architecture); goals, rest pose and evaluation stay those of this config's model
+    models: list[str] = field(default_factory=list)
+    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
 
 
 @dataclass
@@ -776,6 +805,7 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
     low, high = list(robot.workspace.low_m), list(robot.workspace.high_m)
     if len(low) != 3 or len(high) != 3 or not all(a < b for a, b in zip(low, high)):
         raise ConfigError(f"robot.workspace: low_m={low} must lie below high_m={high} (x, y, z)")
+    _check_env(cfg)
     exploration = cfg.get("exploration")
     if exploration is not None:
         alpha = float(exploration.alpha)
@@ -790,6 +820,31 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
         if float(exploration.p_max) > float(robot.rating.sum_max):
             raise ConfigError(f"exploration.p_max={exploration.p_max} kPa exceeds the arm's "
                               f"rating robot.rating.sum_max={robot.rating.sum_max} kPa")
+
+
+def _check_env(cfg: Any) -> None:
+    """The robustness settings of ``env``: counts, magnitudes and the environments they fit."""
+    env = cfg.get("env")
+    if env is None:
+        return
+    name = EnvName(env.name)
+    seeds, models = int(env.get("ensemble_seeds", 1)), list(env.get("models") or [])
+    if seeds < 1:
+        raise ConfigError(f"env.ensemble_seeds={seeds} must be >= 1 (1: no ensemble)")
+    if (seeds > 1 or models) and name is not EnvName.learned:
+        raise ConfigError(f"env.ensemble_seeds={seeds}, env.models={models}: an ensemble of "
+                          f"fitted models needs env=learned, not env={name}")
+    randomization = env.get("randomization") or {}
+    for field_name, value in randomization.items():
+        if not (math.isfinite(float(value)) and float(value) >= 0):
+            raise ConfigError(f"env.randomization.{field_name}={value} must be finite and >= 0")
+    if name is EnvName.gymnax and any(float(v) for v in randomization.values()):
+        raise ConfigError("env.randomization: env=gymnax has no plant to randomize")
+    period = 1.0 / float(cfg.robot.control_hz)
+    delay = float(randomization.get("max_delay_s", 0.0))
+    if delay > period + 1e-9:
+        raise ConfigError(f"env.randomization.max_delay_s={delay} s must be at most one control "
+                          f"period (1 / robot.control_hz = {period:g} s)")
 
 
 def dataclass_values(cls: type, config: Any, what: str,

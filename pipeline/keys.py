@@ -108,8 +108,47 @@ def fit_model_spec(cfg: Any) -> Spec:
     return spec, {"align": artifact_key(*align_spec(cfg))}
 
 
+def env_spec(cfg: Any) -> dict[str, Any]:
+    """``cfg.env`` as keys see it: the robustness settings only where they differ from their
+    defaults (so that the keys of configs without them are those they had before they existed),
+    and no ``env.models`` (where those lie does not matter, their keys are inputs)."""
+    env = _container(cfg.env)
+    if int(env.get("ensemble_seeds", 1)) == 1:
+        env.pop("ensemble_seeds", None)
+    env.pop("models", None)
+    randomization = {name: value for name, value in (env.pop("randomization", None) or {}).items()
+                     if float(value) != 0.0}
+    if randomization:
+        env["randomization"] = randomization
+    return env
+
+
+def ensemble_configs(cfg: Any) -> list[Any]:
+    """The configs of the ensemble's further fit_model artifacts (``env.ensemble_seeds``): ``cfg``
+    with ``model.seed + 1``, ..., ``model.seed + ensemble_seeds - 1``."""
+    if EnvName(cfg.env.name) is not EnvName.learned:
+        return []
+    seed = int(cfg.model.seed)
+    return [OmegaConf.merge(cfg, {"model": {"seed": seed + offset}})
+            for offset in range(1, int(cfg.env.get("ensemble_seeds", 1)))]
+
+
+def ensemble_entries(cfg: Any) -> dict[str, str]:
+    """The ensemble's further members by input name: the fit_model keys of
+    :func:`ensemble_configs`, then ``env.models`` (folders or keys; ``ArtifactStore.resolve``
+    reads both). Empty without an ensemble."""
+    if EnvName(cfg.env.name) is not EnvName.learned:
+        return {}
+    entries = {f"fit_model/seed+{offset}": artifact_key(*fit_model_spec(member))
+               for offset, member in enumerate(ensemble_configs(cfg), start=1)}
+    for entry in cfg.env.get("models") or []:
+        entries[f"fit_model/{Path(str(entry)).name}"] = str(entry)
+    return entries
+
+
 def train_ppo_spec(cfg: Any) -> Spec:
-    """The policies: env, agent, seed and, by env, the robot or the model."""
+    """The policies: env, agent, seed and, by env, the robot or the model (and the ensemble's
+    further models)."""
     env_name = EnvName(cfg.env.name)
     agent = _container(cfg.agent)
     for name in _NON_DETERMINING_AGENT_KEYS:
@@ -117,7 +156,7 @@ def train_ppo_spec(cfg: Any) -> Spec:
     for name in ("init_policy", "init_policy_seed", "init_policy_log_std"):
         if agent.get(name) is None:  # cold starts keep the keys they had before warm starts
             agent.pop(name, None)
-    spec: dict[str, Any] = {"env": _container(cfg.env), "agent": agent, "seed": int(cfg.seed)}
+    spec: dict[str, Any] = {"env": env_spec(cfg), "agent": agent, "seed": int(cfg.seed)}
     if agent.get("init_policy"):  # a warm start: the starting policy's content decides too
         path = init_policy_file(agent["init_policy"])
         spec["init_policy_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
@@ -129,6 +168,7 @@ def train_ppo_spec(cfg: Any) -> Spec:
         spec["limits"] = _container(cfg.robot.limits)
         spec["control_hz"] = float(cfg.robot.control_hz)
         inputs["fit_model"] = artifact_key(*fit_model_spec(cfg))
+        inputs.update({name: Path(entry).name for name, entry in ensemble_entries(cfg).items()})
     return spec, inputs
 
 
@@ -158,7 +198,7 @@ def policy_configs(cfg: Any) -> dict[str, Any]:
 
 
 def evaluate_spec(cfg: Any) -> Spec:
-    spec = {"evaluation": _container(cfg.evaluation), "env": _container(cfg.env)}
+    spec = {"evaluation": _container(cfg.evaluation), "env": env_spec(cfg)}
     inputs = {f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
               for name, variant in policy_configs(cfg).items()}
     spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do

@@ -32,11 +32,12 @@ def rollout(
     start_position: chex.Array,
     goals: chex.Array,
 ) -> tuple[chex.Array, chex.Array]:
-    """Run ``controller`` from a settled start for ``goals.shape[0]`` control periods."""
+    """Run ``controller`` from a settled start for ``goals.shape[0]`` control periods (the
+    episode's randomization, none with zero magnitudes, drawn as at a reset)."""
     chex.assert_shape(start_position, (3,))
     chex.assert_rank(goals, 2)
-    state = EnvState(start_carry, start_position, goals[0], params.preload,
-                     jnp.zeros((), jnp.int32))
+    state = env.start_state(jax.random.fold_in(key, 1), start_carry, start_position, goals[0],
+                            params)
 
     def period(carry, inputs):
         state, controller_carry = carry

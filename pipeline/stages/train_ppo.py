@@ -10,6 +10,11 @@
 - ``sim``: the simulated arm itself (no model needed; the upper bound for the learned env).
 - ``gymnax``: a standard gymnax environment (``env.gymnax_name``) to check the PPO.
 
+Robustness (``env.ensemble_seeds``, ``env.models``, ``env.randomization``): training episodes run
+in one of several fitted models (this config's and those of further model seeds, produced
+upstream, or other fit_model artifacts) and/or with the plant randomized per episode; the
+evaluations during training stay in this config's own model, nominal.
+
 ``agent.num_seeds`` seeds train in one jitted, vmapped program (``pipeline.rl.ppo.train_seeds``).
 
 Artifact: ``metrics.parquet`` (per seed and update: timesteps, mean episodic return, final
@@ -46,12 +51,15 @@ def train_ppo(cfg: Any) -> Artifact:
     spec, inputs = keys.train_ppo_spec(cfg)
     agent = AgentConfig.from_any(cfg.agent)
     model = aligned = None
+    members = []
     if EnvName(cfg.env.name) is EnvName.learned:
         model = store.require("fit_model", inputs["fit_model"])
         aligned = store.require("align", keys.key("align", cfg))
+        members = [store.resolve("fit_model", entry)
+                   for entry in keys.ensemble_entries(cfg).values()]
 
     def build(writer):
-        env, train_params, eval_params = environment(cfg, model, aligned)
+        env, train_params, eval_params = environment(cfg, model, aligned, members)
         low, high = action_bounds(env, train_params)
         obs_dim = int(np.prod(env.observation_space(train_params).shape))
         action_dim = int(np.prod(low.shape))

@@ -9,13 +9,17 @@
 - ``gymnax``: a standard gymnax environment (``env.gymnax_name``), to check the PPO against
   published results independently of our model.
 
-Every builder returns ``(env, train_params, eval_params)``: the evaluation parameters differ only
-in their goal set (held-out goals).
+Every builder returns ``(env, train_params, eval_params)``: the evaluation parameters differ
+in their goal set (held-out goals) and are nominal: the training parameters alone carry the
+robustness settings, the per-episode randomization (``env.randomization``) and, for
+``env=learned`` given further fitted models, the ensemble (member 0: this config's model; the
+evaluation parameters hold that member alone, so a policy is always evaluated in its own model).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from typing import Any
 
 import gymnax
@@ -28,19 +32,31 @@ from gymnax.wrappers.purerl import GymnaxWrapper
 
 from pipeline.arm import sim_arm
 from pipeline.arm.safety import SafeSet, project, validate_limits
-from pipeline.config import EnvName, GoalSource
+from pipeline.config import EnvName, GoalSource, RandomizationConfig, dataclass_values
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, read_table
 from pipeline.dynamics.training import load_dynamics, predict_run
 from pipeline.infra.artifacts import Artifact
-from pipeline.rl.envs.learned import SoftArmReachEnv, make_env_params, split_goals
+from pipeline.rl.envs.learned import (
+    Randomization,
+    SoftArmReachEnv,
+    make_env_params,
+    randomization,
+    split_goals,
+)
 from pipeline.rl.envs.plants import (
     NUM_VALVES,
     SimPlantParams,
+    ensemble_plant,
     hold,
     learned_plant,
     sim_plant,
+    stack_members,
 )
+
+# ensembles up to this size step every member and keep the episode's (shared weights); larger
+# ones gather the member's weights per environment (bench/ensemble_selection.py)
+ALL_MEMBERS_UP_TO = 4
 
 
 def common_params(cfg: Any) -> dict[str, Any]:
@@ -55,6 +71,25 @@ def common_params(cfg: Any) -> dict[str, Any]:
         "max_steps": int(env_cfg.max_steps),
         "reset_bank_size": int(env_cfg.reset_bank_size),
     }
+
+
+def randomization_config(env_cfg: Any) -> RandomizationConfig:
+    """``env.randomization`` (absent in a config rebuilt from an artifact's spec, which keeps
+    only settings that differ from the defaults: then none)."""
+    node = env_cfg.get("randomization") if hasattr(env_cfg, "get") else None
+    return RandomizationConfig(**dataclass_values(RandomizationConfig, node or {},
+                                                  "env.randomization"))
+
+
+def randomization_params(env_cfg: Any, env: SoftArmReachEnv) -> Randomization:
+    """The training episodes' randomization of ``env.randomization`` on ``env`` (its delay in
+    plant steps: ``round(max_delay_s * plant rate)``, at most one control period)."""
+    spread = randomization_config(env_cfg)
+    delay = min(round(float(spread.max_delay_s) * env.plant.model_hz), env.steps_per_action)
+    return randomization(gain_std=float(spread.gain_std),
+                         offset_std_kpa=float(spread.offset_std_kpa), max_delay_steps=delay,
+                         rest_offset_std_m=float(spread.rest_offset_std_m),
+                         drift_std_m_per_s=float(spread.drift_std_m_per_s))
 
 
 def observation_options(env_cfg: Any) -> dict[str, Any]:
@@ -128,7 +163,7 @@ def make_sim_env(cfg: Any) -> tuple[SoftArmReachEnv, Any, Any]:
     train_params = make_env_params(
         env, plant_params, key=train_bank_key, safe_set=safe_set,
         preload=plant_params.preload, rest_pose=rest_pose, rest_pose_std=rest_pose_std,
-        goal_set=train_goals, **common)
+        goal_set=train_goals, randomization_params=randomization_params(env_cfg, env), **common)
     eval_params = make_env_params(
         env, plant_params, key=eval_bank_key, safe_set=safe_set,
         preload=plant_params.preload, rest_pose=rest_pose, rest_pose_std=rest_pose_std,
@@ -163,7 +198,7 @@ def data_goals_and_rest_pose(aligned: pd.DataFrame, test_run_ids: list[str], eve
 
 def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
                      held_out_goals: np.ndarray, rest_pose: np.ndarray,
-                     rest_pose_std: np.ndarray | float = 0.0
+                     rest_pose_std: np.ndarray | float = 0.0, members: Sequence[Any] = ()
                      ) -> tuple[SoftArmReachEnv, Any, Any]:
     """The reaching environment on a fitted model (``env=learned``).
 
@@ -172,21 +207,34 @@ def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
       train_goals, held_out_goals: [G, 3] m goals for training and evaluation (``goal_mode=data``);
         e.g. positions of the training and test runs of the aligned data.
       rest_pose, rest_pose_std: [3] m, the observed pose at rest at the preload and its spread.
+      members: further ``DynamicsParams`` of the same architecture: training runs in the
+        ensemble ``[dynamics_params, *members]`` (:func:`ensemble_plant`, one member per episode,
+        the reset bank rounded up to a multiple of K so that members are drawn uniformly),
+        evaluation in ``dynamics_params`` alone. None given: the plain model, no ensemble.
     """
     env_cfg = cfg.env
-    env = SoftArmReachEnv(learned_plant(float(cfg.dataset.model_hz)),
-                          float(cfg.robot.control_hz), **observation_options(env_cfg))
+    plant = learned_plant(float(cfg.dataset.model_hz))
+    common = common_params(cfg)
+    train_plant, eval_plant = dynamics_params, dynamics_params
+    eval_common = dict(common)
+    if members:
+        count = 1 + len(members)
+        plant = ensemble_plant(plant, "all" if count <= ALL_MEMBERS_UP_TO else "gather")
+        train_plant = stack_members([dynamics_params, *members])
+        eval_plant = stack_members([dynamics_params])
+        common["reset_bank_size"] = -(-int(common["reset_bank_size"]) // count) * count
+    env = SoftArmReachEnv(plant, float(cfg.robot.control_hz), **observation_options(env_cfg))
     safe_set = _safe_set(cfg)
     preload = float(cfg.robot.limits.preload)
     train_bank_key, eval_bank_key = jax.random.split(jax.random.PRNGKey(int(env_cfg.env_seed)))
-    common = common_params(cfg)
     train_params = make_env_params(
-        env, dynamics_params, key=train_bank_key, safe_set=safe_set, preload=preload,
-        rest_pose=rest_pose, rest_pose_std=rest_pose_std, goal_set=train_goals, **common)
+        env, train_plant, key=train_bank_key, safe_set=safe_set, preload=preload,
+        rest_pose=rest_pose, rest_pose_std=rest_pose_std, goal_set=train_goals,
+        randomization_params=randomization_params(env_cfg, env), **common)
     eval_params = make_env_params(
-        env, dynamics_params, key=eval_bank_key, safe_set=safe_set, preload=preload,
+        env, eval_plant, key=eval_bank_key, safe_set=safe_set, preload=preload,
         rest_pose=rest_pose, rest_pose_std=rest_pose_std, goal_set=held_out_goals,
-        obs_mean=train_params.obs_mean, obs_scale=train_params.obs_scale, **common)
+        obs_mean=train_params.obs_mean, obs_scale=train_params.obs_scale, **eval_common)
     return env, train_params, eval_params
 
 
@@ -241,6 +289,8 @@ __all__ = [
     "make_gymnax_env",
     "make_learned_env",
     "make_sim_env",
+    "randomization_config",
+    "randomization_params",
     "sim_plant_params",
     "sim_reachable_positions",
     "sim_rest_pose",
@@ -248,12 +298,14 @@ __all__ = [
 ]
 
 
-def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | None = None
-                ) -> tuple[Any, Any, Any]:
+def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | None = None,
+                members: Sequence[Artifact] = ()) -> tuple[Any, Any, Any]:
     """``(env, train_params, eval_params)`` of this config's environment.
 
     ``env=learned`` reads the ``model`` (a fit_model artifact: the model and its run split) and
-    the ``aligned`` data it was fitted to; the other environments need neither.
+    the ``aligned`` data it was fitted to; the other environments need neither. ``members``:
+    further fit_model artifacts (``pipeline.keys.ensemble_entries``) to train in as an ensemble
+    with ``model`` (goals, rest pose and evaluation stay ``model``'s); none: ``model`` alone.
     """
     env_name = EnvName(cfg.env.name)
     if env_name is EnvName.gymnax:
@@ -297,5 +349,6 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
         if not split["test"]:
             data["train_goals"] = data["held_out_goals"]
     data["rest_pose"], data["rest_pose_std"] = rest["rest_pose"], rest["rest_pose_std"]
+    member_params = [load_dynamics(member.file("model.msgpack")) for member in members]
     return make_learned_env(cfg, dynamics_params, data["train_goals"], data["held_out_goals"],
-                            data["rest_pose"], data["rest_pose_std"])
+                            data["rest_pose"], data["rest_pose_std"], members=member_params)

@@ -22,6 +22,14 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
   of ``reset_bank_size`` states in ``EnvParams``; a reset draws one of them.
 - **Goal.** ``goal_mode=data``: uniform over ``goal_set`` (positions seen in the data or predicted
   by the model); ``goal_mode=perturb`` (the paper): ``initial_pose + N(0, 1) * perturbation``.
+- **Randomization around the plant** (:class:`Randomization`, magnitudes in
+  ``EnvParams.randomization``, all zero by default: the nominal plant), drawn once per episode at
+  reset into ``EnvState.perturbation`` (:class:`Perturbation`): each valve receives
+  ``gain * command + offset`` (gain ``1 + N(0, gain_std)``, offset ``N(0, offset_std)`` kPa), then
+  projected onto the safe set; the previous received command is held for the first
+  ``delay ~ U{0 .. max_delay_steps}`` plant steps of every control period; the plant's position is
+  shifted by ``rest_offset + drift * seconds since the reset`` (``N(0, std)`` m and m/s per axis).
+  The policy observes (and ``last_pressure`` holds) the command it sent, not what the plant got.
 
 Everything that varies between fitted models or settings is in :class:`EnvParams`; only the
 plant's static description and the step counts live on the environment object.
@@ -44,6 +52,65 @@ from pipeline.rl.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
 
 GOAL_MODES = ("data", "perturb")
 MM_PER_M = 1000.0
+# the reset's randomization draws come from fold_in(key, _PERTURBATION_STREAM), so that the
+# reset's other draws (split from the key as before randomization existed) stay as they were
+_PERTURBATION_STREAM = 1
+
+
+@struct.dataclass
+class Randomization:
+    """Magnitudes of the per-episode randomization around the plant (zero: none).
+
+    gain_std: [3], std of each valve's gain ``1 + N(0, gain_std)`` on the command (unitless).
+    offset_std: [3] kPa, std of each valve's offset added to the command.
+    max_delay_steps: int32 scalar, the previous command is held for ``U{0 .. max_delay_steps}``
+      plant steps at the start of each control period (at most ``steps_per_action``: one period).
+    rest_offset_std: [3] m, std of the offset added to the plant's position (rest pose error).
+    drift_std: [3] m/s, std of the rate at which that offset grows along the episode.
+    """
+
+    gain_std: jax.Array
+    offset_std: jax.Array
+    max_delay_steps: jax.Array
+    rest_offset_std: jax.Array
+    drift_std: jax.Array
+
+
+def randomization(gain_std: float | jax.Array = 0.0, offset_std_kpa: float | jax.Array = 0.0,
+                  max_delay_steps: int = 0, rest_offset_std_m: float | jax.Array = 0.0,
+                  drift_std_m_per_s: float | jax.Array = 0.0) -> Randomization:
+    """:class:`Randomization` from scalars or per-valve / per-axis ``[3]`` values (default: none)."""
+    if int(max_delay_steps) < 0:
+        raise ValueError(f"max_delay_steps must be >= 0, got {max_delay_steps}")
+    values = {"gain_std": gain_std, "offset_std": offset_std_kpa,
+              "rest_offset_std": rest_offset_std_m, "drift_std": drift_std_m_per_s}
+    for name, value in values.items():
+        if np.any(np.asarray(value) < 0):
+            raise ValueError(f"randomization {name} must be >= 0, got {value}")
+    vector = lambda value: jnp.broadcast_to(jnp.asarray(value, jnp.float32), (3,))  # noqa: E731
+    return Randomization(**{name: vector(value) for name, value in values.items()},
+                         max_delay_steps=jnp.asarray(int(max_delay_steps), jnp.int32))
+
+
+@struct.dataclass
+class Perturbation:
+    """One episode's draw of the randomization (a pytree; see :class:`Randomization`).
+
+    gain: [3], multiplies each valve's command (1: none).
+    offset: [3] kPa, added to it.
+    delay: int32 scalar, plant steps of each control period that the previous command is held.
+    rest_offset: [3] m, added to the plant's position.
+    drift: [3] m/s, the position offset grows by ``drift * seconds since the reset``.
+    received: [3] kPa, the pressure the plant received last (held during the delay; the preload
+      at reset, which the start states settled at).
+    """
+
+    gain: jax.Array
+    offset: jax.Array
+    delay: jax.Array
+    rest_offset: jax.Array
+    drift: jax.Array
+    received: jax.Array
 
 
 @struct.dataclass
@@ -55,6 +122,9 @@ class EnvState:
     goal: [3] m.
     last_pressure: [3] kPa, the last command applied (the preload after a reset).
     time: int32 scalar, control periods since the reset.
+    perturbation: this episode's randomization draw (:class:`Perturbation`, from
+      :meth:`SoftArmReachEnv.start_state`); ``position`` is the plant's position shifted by its
+      offset. None only in a state that is observed, never stepped.
     """
 
     plant_carry: Any
@@ -62,6 +132,7 @@ class EnvState:
     goal: jax.Array
     last_pressure: jax.Array
     time: jax.Array
+    perturbation: Perturbation | None = None
 
 
 @struct.dataclass
@@ -81,6 +152,7 @@ class EnvParams:
     obs_noise_std: m, Gaussian noise on the observed position.
     error_scale: m, divides ``goal - measured`` in the observation (``include_error``).
     action_noise_std: kPa, Gaussian noise on the commanded pressures (before projection).
+    randomization: magnitudes of the per-episode randomization around the plant.
     max_steps_in_episode: control periods before truncation.
     """
 
@@ -98,6 +170,7 @@ class EnvParams:
     obs_noise_std: jax.Array
     error_scale: jax.Array
     action_noise_std: jax.Array
+    randomization: Randomization
     max_steps_in_episode: int = struct.field(pytree_node=False)
 
 
@@ -168,8 +241,32 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
             perturb_key, (POSITION_DIM,))
         data_goal = params.goal_set[goal_index]
         goal = jnp.where(params.goal_from_data, data_goal, perturbed_goal)
-        state = EnvState(carry, position, goal, params.preload, jnp.zeros((), jnp.int32))
+        state = self.start_state(jax.random.fold_in(key, _PERTURBATION_STREAM), carry, position,
+                                 goal, params)
         return self.observe(obs_key, state, None, params), state
+
+    def start_state(self, key: jax.Array, plant_carry: Any, position: jax.Array, goal: jax.Array,
+                    params: EnvParams) -> EnvState:
+        """The state of an episode starting from a settled plant carry at ``position [3]`` m
+        (a reset-bank entry) with ``goal [3]`` m: this episode's randomization is drawn from
+        ``key`` and the position shifted by its rest offset."""
+        perturbation = self.draw_perturbation(key, params)
+        return EnvState(plant_carry, position + perturbation.rest_offset, goal, params.preload,
+                        jnp.zeros((), jnp.int32), perturbation)
+
+    def draw_perturbation(self, key: jax.Array, params: EnvParams) -> Perturbation:
+        """One episode's :class:`Perturbation` drawn with ``params.randomization`` (one key per
+        draw); with zero magnitudes exactly the nominal plant (gain 1, offsets 0, no delay)."""
+        spread = params.randomization
+        gain_key, offset_key, delay_key, rest_key, drift_key = jax.random.split(key, 5)
+        max_delay = jnp.minimum(spread.max_delay_steps, self.steps_per_action)
+        return Perturbation(
+            gain=1.0 + spread.gain_std * jax.random.normal(gain_key, (NUM_VALVES,)),
+            offset=spread.offset_std * jax.random.normal(offset_key, (NUM_VALVES,)),
+            delay=jax.random.randint(delay_key, (), 0, max_delay + 1),
+            rest_offset=spread.rest_offset_std * jax.random.normal(rest_key, (POSITION_DIM,)),
+            drift=spread.drift_std * jax.random.normal(drift_key, (POSITION_DIM,)),
+            received=params.preload)
 
     def step_env(self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
                  ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
@@ -177,19 +274,24 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
 
         Returns ``(obs, state, reward [mm, <= 0], terminated, info)``; ``info["distance_m"]`` is
         the distance to the goal at the end of the period and ``info["pressure"]`` the applied
-        (projected) command in kPa.
+        (projected) command in kPa (before the episode's gain, offset and delay).
         """
         chex.assert_shape(action, (NUM_VALVES,))
         action_noise_key, obs_key = jax.random.split(key)
         pressure = self.pressure_command(action, params)
         pressure = pressure + params.action_noise_std * jax.random.normal(
             action_noise_key, (NUM_VALVES,))
+        perturbation = state.perturbation
+        received = project(perturbation.gain * pressure + perturbation.offset, params.safe_set)
         pressure = project(pressure, params.safe_set)
-        carry, positions = hold(self.plant, params.plant, state.plant_carry, pressure,
-                                self.steps_per_action)
-        position = positions[-1]
+        carry, positions = self._hold_delayed(params.plant, state.plant_carry,
+                                              perturbation.received, received,
+                                              perturbation.delay)
+        seconds = (state.time + 1).astype(jnp.float32) / self.control_hz
+        position = positions[-1] + (perturbation.rest_offset + perturbation.drift * seconds)
         distance = jnp.linalg.norm(state.goal - position)
-        state = EnvState(carry, position, state.goal, pressure, state.time + 1)
+        state = EnvState(carry, position, state.goal, pressure, state.time + 1,
+                         perturbation.replace(received=received))
         terminated = distance <= params.goal_tolerance
         reward = -MM_PER_M * distance
         obs = self.observe(obs_key, state, None, params)
@@ -227,6 +329,17 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         """Inverse of :meth:`pressure_command`: kPa -> [-1, 1]."""
         return observation.pressure_to_action(pressure, params.safe_set)
 
+    def _hold_delayed(self, plant_params: Any, carry: Any, previous: jax.Array,
+                      pressure: jax.Array, delay: jax.Array) -> tuple[Any, jax.Array]:
+        """One control period: ``previous [3]`` kPa for the first ``delay`` plant steps, then
+        ``pressure [3]`` kPa; returns the carry and the ``[steps_per_action, 3]`` positions (m)."""
+
+        def one(carry, index):
+            return self.plant.step(plant_params, carry,
+                                   jnp.where(index < delay, previous, pressure))
+
+        return jax.lax.scan(one, carry, jnp.arange(self.steps_per_action))
+
     def settle(self, plant_params: Any, initial_pose: jax.Array, preload: jax.Array
                ) -> tuple[Any, jax.Array]:
         """Carry and pose ``[3]`` m after holding the preload for ``settle_steps`` from rest."""
@@ -255,6 +368,7 @@ def make_env_params(
     reset_bank_size: int = 64,
     obs_mean: jax.Array | None = None,
     obs_scale: jax.Array | None = None,
+    randomization_params: Randomization | None = None,
 ) -> EnvParams:
     """Build :class:`EnvParams`, settling ``reset_bank_size`` start states on the plant.
 
@@ -263,6 +377,8 @@ def make_env_params(
         recorded runs); each bank entry starts from ``rest_pose + rest_pose_std * N(0, 1)``.
       goal_set: [G, 3] m goals of ``goal_mode=data``; required there, optional for ``perturb``.
       obs_mean, obs_scale: [3] m; default: the goal set's mean and per-axis std (at least 1 mm).
+      randomization_params: per-episode randomization around the plant (:func:`randomization`);
+        default: none.
     """
     if goal_mode not in GOAL_MODES:
         raise ValueError(f"goal_mode must be one of {GOAL_MODES}, got {goal_mode!r}")
@@ -273,8 +389,11 @@ def make_env_params(
     preload = jnp.broadcast_to(jnp.asarray(preload, jnp.float32), (NUM_VALVES,))
     poses = rest_pose + jnp.asarray(rest_pose_std, jnp.float32) * jax.random.normal(
         key, (reset_bank_size, POSITION_DIM))
-    carries, positions = jax.jit(jax.vmap(env.settle, in_axes=(None, 0, None)))(
-        plant_params, poses, preload)
+    bank_params, bank_axes = plant_params, None
+    if env.plant.bank_params is not None:  # e.g. an ensemble: entry i settles in member i % K
+        bank_params, bank_axes = env.plant.bank_params(plant_params, reset_bank_size)
+    carries, positions = jax.jit(jax.vmap(env.settle, in_axes=(bank_axes, 0, None)))(
+        bank_params, poses, preload)
     if goal_set is None:
         goal_set = positions
     goal_set = jnp.asarray(goal_set, jnp.float32)
@@ -300,6 +419,7 @@ def make_env_params(
         obs_noise_std=f32(obs_noise_std_m),
         error_scale=f32(error_scale_m),
         action_noise_std=f32(action_noise_std_kpa),
+        randomization=randomization() if randomization_params is None else randomization_params,
         max_steps_in_episode=int(max_steps),
     )
 

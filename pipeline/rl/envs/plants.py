@@ -17,6 +17,12 @@ Three plants:
 - :func:`learned_plant` — the learned LSTM of :mod:`pipeline.dynamics.model` (``DynamicsParams``).
 - :func:`sim_plant` — the simulated arm of :mod:`pipeline.arm.sim_arm` (the ground-truth plant).
 - :func:`linear_lag_plant` — a tiny linear first-order lag from pressures to position (tests).
+
+and one wrapper, :func:`ensemble_plant`: K fitted models of one kind, one of them per episode.
+
+A plant may say how the entries of an environment's reset bank differ (``Plant.bank_params``):
+the ensemble settles bank entry ``i`` in member ``i % K``, so that drawing a start state uniformly
+draws a member uniformly.
 """
 
 from __future__ import annotations
@@ -43,12 +49,16 @@ class Plant(NamedTuple):
     step: ``(plant_params, carry_t, pressure_t [3] kPa) -> (carry_{t+1}, position_t [3] m)``.
     model_hz: steps per second of simulated time.
     name: for logs and tables.
+    bank_params: optional ``(plant_params, n) -> (params, in_axes)``: the parameters that settle
+      each of ``n`` reset-bank entries, ``vmap``-ped with ``in_axes`` (a prefix of their pytree);
+      None: every entry settles with ``plant_params`` itself.
     """
 
     init_carry: Callable[[Any, jax.Array], Any]
     step: Callable[[Any, Any, jax.Array], tuple[Any, jax.Array]]
     model_hz: float
     name: str
+    bank_params: Callable[[Any, int], tuple[Any, Any]] | None = None
 
 
 def hold(plant: Plant, plant_params: Any, carry: Any, pressure: jax.Array, num_steps: int
@@ -106,6 +116,88 @@ def sim_plant(mocap_hz: float, frames_per_step: int) -> Plant:
         return state, sim_arm.tip_position(params.sim, state)
 
     return Plant(_sim_init_carry, step, float(mocap_hz) / frames, "sim")
+
+
+# ---------------------------------------------------------------------------------------------
+# an ensemble: one of K members per episode
+# ---------------------------------------------------------------------------------------------
+ENSEMBLE_SELECTIONS = ("gather", "all")
+
+
+@struct.dataclass
+class EnsembleParams:
+    """K plants of one kind (same static description, e.g. LSTMs of one architecture).
+
+    members: the members' parameters, every leaf with a leading [K] axis (:func:`stack_members`).
+    member: int32 scalar, the member :func:`ensemble_plant`'s ``init_carry`` starts in (the reset
+      bank sets it per entry, see ``Plant.bank_params``); ``step`` follows the carry's member.
+    """
+
+    members: Any
+    member: jax.Array
+
+    @property
+    def num_members(self) -> int:
+        return int(jax.tree.leaves(self.members)[0].shape[0])
+
+
+class EnsembleCarry(NamedTuple):
+    member: jax.Array  # int32 scalar, the member this episode runs in
+    carry: Any  # that member's carry
+
+
+def stack_members(members: Any) -> EnsembleParams:
+    """:class:`EnsembleParams` of a sequence of plant parameters (member 0 first)."""
+    members = list(members)
+    if not members:
+        raise ValueError("an ensemble needs at least one member")
+    structures = {jax.tree.structure(m) for m in members}
+    if len(structures) > 1:
+        raise ValueError(f"ensemble members must share one structure (e.g. one model "
+                         f"architecture: model.* settings); got {len(structures)} different ones")
+    stacked = jax.tree.map(lambda *leaves: jnp.stack([jnp.asarray(x) for x in leaves]), *members)
+    return EnsembleParams(stacked, jnp.zeros((), jnp.int32))
+
+
+def _member(members: Any, index: jax.Array) -> Any:
+    return jax.tree.map(lambda leaf: leaf[index], members)
+
+
+def ensemble_plant(member: Plant, selection: str = "all") -> Plant:
+    """One of K ``member`` plants per episode; ``plant_params``: :class:`EnsembleParams`.
+
+    The carry is an :class:`EnsembleCarry` (member index, member carry); ``init_carry`` starts in
+    ``params.member``, ``step`` steps the carry's member. ``selection`` chooses how (same results):
+    ``gather`` takes the member's parameters per call (under ``vmap`` over environments: one copy
+    of the weights per environment), ``all`` steps every member with its own weights, shared by
+    all environments, and keeps the carry's member (K times the arithmetic, in larger matrix
+    products; the faster one on CPU for small K, see ``bench/ensemble_selection.py``).
+    """
+    if selection not in ENSEMBLE_SELECTIONS:
+        raise ValueError(f"selection must be one of {ENSEMBLE_SELECTIONS}, got {selection!r}")
+
+    def init_carry(params: EnsembleParams, initial_pose: jax.Array) -> EnsembleCarry:
+        chex.assert_shape(initial_pose, (POSITION_DIM,))
+        index = jnp.asarray(params.member, jnp.int32)
+        return EnsembleCarry(index, member.init_carry(_member(params.members, index),
+                                                      initial_pose))
+
+    def step(params: EnsembleParams, carry: EnsembleCarry, pressure: jax.Array):
+        chex.assert_shape(pressure, (NUM_VALVES,))
+        if selection == "gather":
+            inner, position = member.step(_member(params.members, carry.member), carry.carry,
+                                          pressure)
+        else:
+            every = jax.vmap(member.step, in_axes=(0, None, None))(params.members, carry.carry,
+                                                                  pressure)
+            inner, position = _member(every, carry.member)
+        return EnsembleCarry(carry.member, inner), position
+
+    def bank_params(params: EnsembleParams, n: int) -> tuple[EnsembleParams, EnsembleParams]:
+        members = jnp.arange(n, dtype=jnp.int32) % params.num_members
+        return params.replace(member=members), EnsembleParams(members=None, member=0)
+
+    return Plant(init_carry, step, member.model_hz, f"{member.name}_ensemble", bank_params)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,168 @@
+"""Cross-model protocol: policies trained in the model of one group of real runs, evaluated in
+the model of another, disjoint group (both directions), per robustness variant.
+
+    python -m experiments.cross_model [--variants plain ensemble randomized both]
+        [--seeds 4] [--ppo-steps 2000000] [--ensemble-seeds 3] [--quick]
+
+The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
+(sorted by name, alternating: ``A`` the even positions, ``B`` the odd ones; or ``--group-a``).
+Each group is its own dataset (``robot.files``), with its own fit_model artifact. For each
+direction (train in A, evaluate in B; and B in A) and each variant, ``ppo_ff`` is trained in the
+training group's model (``experiment=real_arm``'s env and agent settings) and the evaluate stage
+rolls it out on the training group's held-out goals in its own model (``own``) and in the other
+group's model (``cross``, through ``evaluation.models``). Variants:
+
+- ``plain``: as today;
+- ``ensemble``: in an ensemble of ``--ensemble-seeds`` model seeds (``env.ensemble_seeds``);
+- ``randomized``: with the plant randomized per episode (``RANDOMIZATION``);
+- ``both``: the ensemble, randomized.
+
+Printed per variant and direction: median final distance, its 90th percentile and the success
+rates within 1 and 3 mm (all seeds' episodes together), own and cross; the table is also written
+to ``<output-dir>/cross_model/results.csv``. Everything goes through the pipeline's router
+(artifacts reused when present). ``--quick`` shrinks every stage to check the script in minutes
+(the numbers then mean nothing).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+log = logging.getLogger("cross_model")
+
+# per-episode randomization of the `randomized` variants: a few per cent of valve gain, a tenth of
+# a kPa of offset, up to half a period of delay, a millimetre of rest-pose error, and up to about
+# half a millimetre of drift over a 20 s episode
+RANDOMIZATION = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
+                 "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5}
+VARIANTS = ("plain", "ensemble", "randomized", "both")
+QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
+         "dataset.window=32", "agent.num_envs=16", "agent.num_steps=8", "agent.num_evals=1",
+         "agent.eval_envs=4", "agent.progress=false", "env.goal_every=20",
+         "env.reset_bank_size=8", "evaluation.num_episodes=8",
+         "evaluation.consecutive_episodes=1", "evaluation.num_consecutive_goals=2"]
+METRICS = ("median_final_mm", "p90_final_mm", "success_1mm", "success_3mm")
+
+
+def compose(output_dir: Path, *overrides: str) -> Any:
+    """The pipeline's config with ``overrides``, writing under ``output_dir``."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from pipeline.config import PROJECT_ROOT, register_configs
+
+    register_configs()
+    with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
+        return hydra_compose("config", overrides=[f"paths.output_dir={output_dir}", *overrides])
+
+
+def run_stage(output_dir: Path, stage: str, *overrides: str) -> dict[str, Any]:
+    """Run ``stage`` (after what it needs upstream) through the pipeline's router."""
+    from pipeline.__main__ import run
+
+    started = time.perf_counter()
+    results = run(compose(output_dir, f"stage={stage}", *overrides))
+    log.info("%s %s: %.0f s", stage, " ".join(overrides), time.perf_counter() - started)
+    return results
+
+
+def groups(data_dir: Path, group_a: list[str] | None) -> tuple[list[str], list[str]]:
+    """Two disjoint groups of recording names (A: even positions of the sorted names, or
+    ``group_a``; B: the rest)."""
+    names = sorted(p.name for p in data_dir.glob("Step_control_*.csv"))
+    if len(names) < 2:
+        raise SystemExit(f"need at least two recordings in {data_dir}, found {names}")
+    first = [n for n in names if n in set(group_a)] if group_a else names[0::2]
+    second = [n for n in names if n not in set(first)]
+    if not first or not second:
+        raise SystemExit(f"both groups need a run: A={first}, B={second}")
+    return first, second
+
+
+def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
+    ensemble = [f"env.ensemble_seeds={ensemble_seeds}"]
+    randomized = [f"env.randomization.{name}={value}" for name, value in RANDOMIZATION.items()]
+    return {"plain": [], "ensemble": ensemble, "randomized": randomized,
+            "both": ensemble + randomized}[variant]
+
+
+def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],
+            variant: str, ensemble_seeds: int) -> dict[str, Any]:
+    """ppo_ff trained in ``train``'s model (``variant``), evaluated in its own and in ``test``'s
+    model: one row of the results table."""
+    files = lambda names: f"robot.files=[{','.join(names)}]"  # noqa: E731
+    other = run_stage(output_dir, "fit_model", *base, files(test))["fit_model"]
+    evaluated = run_stage(output_dir, "evaluate", *base, files(train),
+                          *variant_overrides(variant, ensemble_seeds),
+                          "evaluation.policies=[ppo_ff]", "evaluation.baselines=[preload]",
+                          "evaluation.plant=false", f"evaluation.models=[{other.path}]")
+    summary = pd.read_parquet(evaluated["evaluate"].file("summary.parquet"))
+    policy = summary[summary["controller"] == "ppo_ff"].set_index("plant")
+    row: dict[str, Any] = {"variant": variant, "train": "+".join(train), "test": "+".join(test)}
+    for where, plant in (("own", "learned"), ("cross", f"model {other.path.name}")):
+        for metric in METRICS:
+            row[f"{where}_{metric}"] = float(policy.loc[plant, metric])
+    return row
+
+
+def print_table(table: pd.DataFrame) -> None:
+    header = (f"{'variant':<11}{'dir':<7}{'own median':>11}{'p90':>7}{'<1mm':>7}{'<3mm':>7}"
+              f"{'cross median':>14}{'p90':>7}{'<1mm':>7}{'<3mm':>7}")
+    print(header)
+    print("-" * len(header))
+    for row in table.itertuples():
+        print(f"{row.variant:<11}{row.direction:<7}{row.own_median_final_mm:>11.2f}"
+              f"{row.own_p90_final_mm:>7.2f}{row.own_success_1mm:>7.2f}"
+              f"{row.own_success_3mm:>7.2f}{row.cross_median_final_mm:>14.2f}"
+              f"{row.cross_p90_final_mm:>7.2f}{row.cross_success_1mm:>7.2f}"
+              f"{row.cross_success_3mm:>7.2f}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    from pipeline.config import PROJECT_ROOT, sorolex_dir
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--output-dir", type=Path, default=PROJECT_ROOT / "outputs",
+                        help="the pipeline's paths.output_dir (its artifacts are reused)")
+    parser.add_argument("--data-dir", type=Path, default=sorolex_dir())
+    parser.add_argument("--group-a", nargs="*", default=None,
+                        help="recording names of group A (default: every other one)")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--seeds", type=int, default=4, help="PPO seeds per variant")
+    parser.add_argument("--ppo-steps", type=int, default=2_000_000,
+                        help="PPO environment steps per seed")
+    parser.add_argument("--ensemble-seeds", type=int, default=3,
+                        help="model seeds of the ensemble variants")
+    parser.add_argument("--quick", action="store_true",
+                        help="shrink every stage (checks the script; the numbers mean nothing)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
+    group_a, group_b = groups(args.data_dir, args.group_a)
+    print(f"group A: {group_a}\ngroup B: {group_b}", flush=True)
+    base = ["experiment=real_arm", "agent=ppo_ff", f"robot.data_dir={args.data_dir}",
+            f"agent.num_seeds={args.seeds}", f"agent.total_timesteps={args.ppo_steps}",
+            *(QUICK if args.quick else [])]
+    rows = []
+    for direction, (train, test) in {"A->B": (group_a, group_b),
+                                     "B->A": (group_b, group_a)}.items():
+        for variant in args.variants:
+            row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds)
+            rows.append({"direction": direction, **row})
+    table = pd.DataFrame(rows)
+    out = args.output_dir / "cross_model"
+    out.mkdir(parents=True, exist_ok=True)
+    table.to_csv(out / "results.csv", index=False)
+    print(f"\nppo_ff final distance [mm] and success rates, own model vs the other group's "
+          f"({args.seeds} seeds x evaluation.num_episodes episodes each)")
+    print_table(table)
+    print(f"\n{out / 'results.csv'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,375 @@
+"""Robustness to model error: ensemble environments and randomization around the plant.
+
+Known answers on the linear-lag toy (``position = offset + G @ lagged``, ``lagged`` a first-order
+lag of the received pressure with factor 1/2 per plant step, five plant steps per period), the
+defaults unchanged bit for bit, the config and keys, and a shrunk train_ppo in an ensemble.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from pipeline import keys
+from pipeline.__main__ import run
+from pipeline.arm.safety import SafeSet, project
+from pipeline.config import ConfigError, validate_config
+from pipeline.dynamics import model as dynamics
+from pipeline.rl.envs import (
+    SoftArmReachEnv,
+    default_linear_lag_params,
+    ensemble_plant,
+    hold,
+    learned_plant,
+    linear_lag_plant,
+    make_env_params,
+    randomization,
+    stack_members,
+)
+from pipeline.rl.envs import observation as observation_module
+
+LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
+REST_POSE = jnp.array([0.032, 0.353, 0.202])
+GOALS = REST_POSE + jnp.array([[0.005, 0.0, 0.0], [0.0, 0.0, -0.005], [-0.004, 0.0, 0.003]])
+PRELOAD = jnp.full(3, 2.0)
+
+
+def toy(plant=None, plant_params=None, **overrides):
+    """Linear lag at 10 Hz, 2 Hz control (5 plant steps per period)."""
+    env = SoftArmReachEnv(plant or linear_lag_plant(10.0), control_hz=2.0, settle_seconds=2.0,
+                          include_last_action=True, include_error=True)
+    settings = {"safe_set": SafeSet.from_limits(LIMITS), "preload": 2.0, "rest_pose": REST_POSE,
+                "goal_set": GOALS, "max_steps": 5, "reset_bank_size": 4}
+    settings.update(overrides)
+    params = make_env_params(env, plant_params or default_linear_lag_params(),
+                             key=jax.random.PRNGKey(0), **settings)
+    return env, params
+
+
+def hold_command(env, params, state, pressure, periods=1):
+    """Step ``periods`` control periods commanding ``pressure [3]`` kPa; the last state."""
+    action = env.pressure_to_action(jnp.asarray(pressure, jnp.float32), params)
+    for period in range(periods):
+        _, state, *_ = env.step_env(jax.random.PRNGKey(50 + period), state, action, params)
+    return state
+
+
+# ---- defaults ---------------------------------------------------------------------------------
+def nominal_reset(env, key, params):
+    """The reset as it was before randomization existed (a reference written out)."""
+    index_key, perturb_key, obs_key = jax.random.split(key, 3)
+    bank, goal_index = jax.random.randint(index_key, (2,), 0, jnp.array(
+        [params.reset_positions.shape[0], params.goal_set.shape[0]]))
+    position = params.reset_positions[bank]
+    perturbed = position + params.goal_perturbation * jax.random.normal(perturb_key, (3,))
+    goal = jnp.where(params.goal_from_data, params.goal_set[goal_index], perturbed)
+    carry = jax.tree.map(lambda leaf: leaf[bank], params.reset_carries)
+    return carry, position, goal, obs_key
+
+
+def nominal_step(env, key, carry, position, goal, last, action, params):
+    """The step as it was before randomization existed: noise, projection, zero-order hold."""
+    noise_key, obs_key = jax.random.split(key)
+    pressure = env.pressure_command(action, params) + params.action_noise_std * jax.random.normal(
+        noise_key, (3,))
+    pressure = project(pressure, params.safe_set)
+    carry, positions = hold(env.plant, params.plant, carry, pressure, env.steps_per_action)
+    return carry, positions[-1], pressure, obs_key
+
+
+def nominal_obs(key, position, goal, last, params):
+    measured = position + params.obs_noise_std * jax.random.normal(key, (3,))
+    return observation_module.observe(measured, goal, last, params, include_error=True,
+                                      include_last_action=True)
+
+
+def random_lstm(seed=0, hidden=8):
+    config = dynamics.DynamicsConfig(hidden=hidden, step_size=True, step_decays=(1.0, 3.0))
+    ones, zeros = jnp.ones(3), jnp.zeros(3)
+    normalizer = dynamics.Normalizer(2.0 * ones, ones, REST_POSE, 0.01 * ones, zeros,
+                                     0.01 * ones)
+    return dynamics.DynamicsParams(dynamics.init_network(jax.random.PRNGKey(seed), config),
+                                   normalizer, config)
+
+
+@pytest.mark.parametrize("kind", ["linear_lag", "lstm"])
+def test_default_env_is_bit_for_bit_the_nominal_plant(kind):
+    plant, plant_params = None, None
+    if kind == "lstm":
+        plant, plant_params = learned_plant(10.0), random_lstm()
+    env, params = toy(plant, plant_params, rest_pose_std=0.001, obs_noise_std_m=1e-4,
+                      action_noise_std_kpa=0.3, reset_bank_size=8)
+    reset, step = jax.jit(env.reset_env), jax.jit(env.step_env)
+    # the reference compiled too (XLA's fusions may differ from op-by-op rounding by an ulp)
+    reference_reset = jax.jit(functools.partial(nominal_reset, env))
+    reference_step = jax.jit(functools.partial(nominal_step, env))
+    reference_obs = jax.jit(nominal_obs)
+    for episode in range(3):
+        key = jax.random.PRNGKey(episode)
+        obs, state = reset(key, params)
+        carry, position, goal, obs_key = reference_reset(key, params)
+        np.testing.assert_array_equal(obs, reference_obs(obs_key, position, goal, PRELOAD,
+                                                         params))
+        np.testing.assert_array_equal(state.position, position)
+        last = PRELOAD
+        for t in range(6):
+            step_key = jax.random.PRNGKey(100 * episode + t)
+            action = jax.random.uniform(jax.random.PRNGKey(7 + t), (3,), minval=-1, maxval=1)
+            obs, state, reward, _, info = step(step_key, state, action, params)
+            carry, position, last, obs_key = reference_step(step_key, carry, position, goal,
+                                                            last, action, params)
+            np.testing.assert_array_equal(state.position, position)
+            np.testing.assert_array_equal(info["pressure"], last)
+            np.testing.assert_array_equal(reward, -1000.0 * jnp.linalg.norm(goal - position))
+            np.testing.assert_array_equal(obs, reference_obs(obs_key, position, goal, last,
+                                                             params))
+            for a, b in zip(jax.tree.leaves(state.plant_carry), jax.tree.leaves(carry)):
+                np.testing.assert_array_equal(a, b)
+
+
+def test_default_randomization_draws_the_nominal_plant():
+    env, params = toy()
+    _, state = jax.vmap(env.reset_env, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 64), params)
+    perturbation = state.perturbation
+    assert np.all(np.asarray(perturbation.gain) == 1.0)
+    assert np.all(np.asarray(perturbation.offset) == 0.0)
+    assert np.all(np.asarray(perturbation.delay) == 0)
+    assert np.all(np.asarray(perturbation.rest_offset) == 0.0)
+    assert np.all(np.asarray(perturbation.drift) == 0.0)
+
+
+# ---- randomization: known answers -------------------------------------------------------------
+def settled_state(env, params):
+    """An episode from bank entry 0 (the toy rests exactly at REST_POSE at the preload)."""
+    _, state = env.reset_env(jax.random.PRNGKey(0), params)
+    return state
+
+
+def test_gain_and_offset_shift_the_settled_position_by_the_plant_gain():
+    env, params = toy()
+    gain_matrix = default_linear_lag_params().gain
+    state = settled_state(env, params)
+    command = jnp.array([4.0, 2.5, 3.0])  # inside the safe set, also after gain and offset
+    gain, offset = jnp.array([1.1, 0.8, 1.0]), jnp.array([0.3, -0.2, 0.5])
+    nominal = hold_command(env, params, state, command, periods=12)
+    perturbed_state = state.replace(perturbation=state.perturbation.replace(gain=gain,
+                                                                              offset=offset))
+    perturbed = hold_command(env, params, perturbed_state, command, periods=12)
+    # 60 plant steps of a 1/2 lag: settled to float precision
+    np.testing.assert_allclose(nominal.position, state.position + gain_matrix @ (command - 2.0),
+                               atol=1e-7)
+    np.testing.assert_allclose(perturbed.position - nominal.position,
+                               gain_matrix @ ((gain - 1.0) * command + offset), atol=1e-7)
+    # the policy sees the command it sent, the plant got the perturbed one
+    np.testing.assert_allclose(perturbed.last_pressure, command, atol=1e-6)
+    np.testing.assert_allclose(perturbed.perturbation.received, gain * command + offset,
+                               atol=1e-6)
+
+
+def test_perturbed_commands_stay_inside_the_safe_set():
+    env, params = toy(randomization_params=randomization(gain_std=0.5, offset_std_kpa=3.0))
+    _, state = jax.vmap(env.reset_env, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 256), params)
+    step = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))
+    actions = jnp.ones((256, 3)).at[:128].set(-1.0)
+    _, state, *_ = step(jax.random.split(jax.random.PRNGKey(1), 256), state, actions, params)
+    received = np.asarray(state.perturbation.received)
+    assert received.min() >= 0.0 and received.max() <= 7.0
+    assert received.sum(axis=1).max() <= 13.0
+    assert received[128:].std(axis=0).min() > 0.1  # the randomization does act
+
+
+@pytest.mark.parametrize("delay", [0, 1, 2, 3, 4, 5])
+def test_a_delay_of_d_steps_holds_the_previous_command_for_d_steps(delay):
+    env, params = toy()
+    gain_matrix = default_linear_lag_params().gain
+    state = settled_state(env, params)
+    state = state.replace(perturbation=state.perturbation.replace(delay=jnp.int32(delay)))
+    command = jnp.array([5.0, 1.0, 3.0])
+    after = hold_command(env, params, state, command)
+    # the preload for d steps (the lag stays settled), the command for 5 - d: a lag of
+    # (command - preload) (1 - 2^-(5 - d))
+    expected = state.position + gain_matrix @ ((command - 2.0) * (1.0 - 0.5 ** (5 - delay)))
+    np.testing.assert_allclose(after.position, expected, atol=1e-7)
+    np.testing.assert_allclose(after.perturbation.received, command, atol=1e-6)
+
+
+def test_delays_are_drawn_uniformly_up_to_one_period():
+    env, params = toy(randomization_params=randomization(max_delay_steps=99))
+    _, state = jax.vmap(env.reset_env, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 3000), params)
+    counts = np.bincount(np.asarray(state.perturbation.delay), minlength=6)
+    assert len(counts) == 6  # capped at steps_per_action = 5
+    np.testing.assert_allclose(counts / 3000, 1 / 6, atol=0.03)
+
+
+def test_rest_offset_and_drift_shift_the_position():
+    env, params = toy()
+    state = settled_state(env, params)
+    rest, drift = jnp.array([0.002, -0.001, 0.0005]), jnp.array([1e-4, 0.0, -2e-4])
+    shifted = state.replace(perturbation=state.perturbation.replace(rest_offset=rest,
+                                                                      drift=drift))
+    nominal = hold_command(env, params, state, PRELOAD, periods=4)
+    after = hold_command(env, params, shifted, PRELOAD, periods=4)
+    np.testing.assert_allclose(after.position - nominal.position, rest + drift * 4 / 2.0,
+                               atol=1e-7)  # 4 periods at 2 Hz: 2 s; float32 at 0.35 m: 3e-8
+
+
+def test_randomization_draws_have_their_magnitudes():
+    spread = randomization(gain_std=0.1, offset_std_kpa=0.4, rest_offset_std_m=0.002,
+                           drift_std_m_per_s=1e-4)
+    env, params = toy(randomization_params=spread)
+    _, state = jax.vmap(env.reset_env, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 4000), params)
+    perturbation = jax.tree.map(np.asarray, state.perturbation)
+    np.testing.assert_allclose(perturbation.gain.mean(axis=0), 1.0, atol=0.01)
+    np.testing.assert_allclose(perturbation.gain.std(axis=0), 0.1, rtol=0.06)
+    np.testing.assert_allclose(perturbation.offset.std(axis=0), 0.4, rtol=0.06)
+    np.testing.assert_allclose(perturbation.drift.std(axis=0), 1e-4, rtol=0.06)
+    # the start is the bank's pose shifted by the rest offset (the toy's bank: all at REST_POSE)
+    np.testing.assert_allclose(np.asarray(state.position) - np.asarray(REST_POSE),
+                               perturbation.rest_offset, atol=1e-7)
+    np.testing.assert_allclose(perturbation.rest_offset.std(axis=0), 0.002, rtol=0.06)
+    # one key per draw: the draws are not the same numbers scaled
+    assert abs(np.corrcoef(perturbation.gain[:, 0], perturbation.offset[:, 0])[0, 1]) < 0.1
+
+
+# ---- ensembles --------------------------------------------------------------------------------
+def two_gains():
+    """Two linear plants, the second with twice the first's gain."""
+    plant = default_linear_lag_params()
+    return [plant, plant.replace(gain=2.0 * plant.gain)]
+
+
+@pytest.mark.parametrize("selection", ["gather", "all"])
+def test_even_and_odd_bank_entries_follow_members_zero_and_one(selection):
+    members = two_gains()
+    env, params = toy(ensemble_plant(linear_lag_plant(10.0), selection), stack_members(members))
+    np.testing.assert_array_equal(params.reset_carries.member, [0, 1, 0, 1])
+    gain_matrix = members[0].gain
+    command = jnp.array([5.0, 1.0, 3.0])
+    for entry in range(4):
+        carry = jax.tree.map(lambda leaf, i=entry: leaf[i], params.reset_carries)
+        state = env.start_state(jax.random.PRNGKey(entry), carry,
+                                params.reset_positions[entry], GOALS[0], params)
+        moved = hold_command(env, params, state, command, periods=12).position - state.position
+        np.testing.assert_allclose(moved, (1 + entry % 2) * gain_matrix @ (command - 2.0),
+                                   atol=1e-7)
+
+
+def test_members_are_drawn_about_uniformly():
+    env, params = toy(ensemble_plant(linear_lag_plant(10.0)), stack_members(two_gains()))
+    _, state = jax.vmap(env.reset_env, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 4000), params)
+    assert abs(float(np.mean(state.plant_carry.member)) - 0.5) < 0.03
+
+
+def test_an_ensemble_member_steps_exactly_as_the_model_alone():
+    """Both selections agree with the member run on its own (LSTMs with step features)."""
+    models = [random_lstm(0), random_lstm(1), random_lstm(2)]
+    pressures = jax.random.uniform(jax.random.PRNGKey(3), (7, 3), minval=0.0, maxval=4.0)
+    alone = learned_plant(10.0)
+    for selection in ("gather", "all"):
+        plant = ensemble_plant(alone, selection)
+        stacked = stack_members(models)
+        for index, model in enumerate(models):
+            carry = plant.init_carry(stacked.replace(member=jnp.int32(index)), REST_POSE)
+            reference = alone.init_carry(model, REST_POSE)
+            for pressure in pressures:
+                carry, position = plant.step(stacked, carry, pressure)
+                reference, expected = alone.step(model, reference, pressure)
+                np.testing.assert_allclose(position, expected, rtol=1e-6, atol=1e-7)
+            assert int(carry.member) == index
+
+
+def test_members_of_different_architectures_are_refused():
+    with pytest.raises(ValueError, match="one structure"):
+        stack_members([random_lstm(0, hidden=8), random_lstm(0, hidden=4)])
+
+
+# ---- config and keys --------------------------------------------------------------------------
+def test_default_keys_do_not_see_the_robustness_settings(make_cfg):
+    cfg = make_cfg("experiment=quick")
+    spec, inputs = keys.train_ppo_spec(cfg)
+    assert not {"ensemble_seeds", "models", "randomization"} & set(spec["env"])
+    assert set(inputs) == {"fit_model"}
+    assert not {"ensemble_seeds", "models", "randomization"} & set(
+        keys.evaluate_spec(cfg)[0]["env"])
+    assert keys.ensemble_configs(cfg) == [] and keys.ensemble_entries(cfg) == {}
+    # zero magnitudes spelled out are the default
+    zero = make_cfg("experiment=quick", "env.randomization.gain_std=0.0", "env.ensemble_seeds=1")
+    assert keys.key("train_ppo", zero) == keys.key("train_ppo", cfg)
+
+
+def test_ensemble_and_randomization_are_part_of_the_train_ppo_key(make_cfg):
+    base = make_cfg("experiment=quick")
+    ensemble = make_cfg("experiment=quick", "env.ensemble_seeds=3")
+    _, inputs = keys.train_ppo_spec(ensemble)
+    seeds = [member.model.seed for member in keys.ensemble_configs(ensemble)]
+    assert seeds == [1, 2] and base.model.seed == 0
+    assert inputs["fit_model/seed+1"] == keys.key("fit_model", make_cfg("experiment=quick",
+                                                                        "model.seed=1"))
+    assert inputs["fit_model/seed+2"] == keys.key("fit_model", make_cfg("experiment=quick",
+                                                                        "model.seed=2"))
+    assert keys.key("fit_model", ensemble) == keys.key("fit_model", base)
+    assert keys.key("train_ppo", ensemble) != keys.key("train_ppo", base)
+    randomized = make_cfg("experiment=quick", "env.randomization.max_delay_s=0.2")
+    spec, _ = keys.train_ppo_spec(randomized)
+    assert spec["env"]["randomization"] == {"max_delay_s": 0.2}
+    assert keys.key("train_ppo", randomized) != keys.key("train_ppo", base)
+    other = make_cfg("experiment=quick", "env.models=[/somewhere/fit_model/abc123def456]")
+    assert keys.ensemble_entries(other) == {
+        "fit_model/abc123def456": "/somewhere/fit_model/abc123def456"}
+    assert keys.train_ppo_spec(other)[1]["fit_model/abc123def456"] == "abc123def456"
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["env=sim", "env.ensemble_seeds=2"], "needs env=learned"),
+    (["env.ensemble_seeds=0"], "must be >= 1"),
+    (["env.randomization.max_delay_s=0.6"], "at most one control period"),
+    (["env.randomization.gain_std=-0.1"], "must be finite and >= 0"),
+    (["env=gymnax", "env.randomization.gain_std=0.1"], "no plant"),
+])
+def test_unusable_robustness_settings_are_refused(make_cfg, overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        validate_config(make_cfg(*overrides))
+
+
+def test_robustness_settings_compose_and_validate(make_cfg):
+    cfg = make_cfg("env.ensemble_seeds=3", "env.models=[a,b]", "env.randomization.gain_std=0.05",
+                   "env.randomization.offset_std_kpa=0.2", "env.randomization.max_delay_s=0.5",
+                   "env.randomization.rest_offset_std_m=0.001",
+                   "env.randomization.drift_std_m_per_s=1e-5")
+    validate_config(cfg)
+    validate_config(make_cfg("env=sim", "env.randomization.rest_offset_std_m=0.001"))
+    assert OmegaConf.to_container(cfg.env.randomization)["max_delay_s"] == 0.5
+
+
+# ---- the stage --------------------------------------------------------------------------------
+SHRUNK = ["experiment=quick", "robot.num_runs=2", "exploration.num_steps=30",
+          "model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
+          "dataset.window=16", "dataset.train_fraction=0.5", "agent.num_seeds=1",
+          "agent.num_envs=16", "agent.num_steps=8", "agent.total_timesteps=256",
+          "agent.num_evals=1", "agent.eval_envs=4", "env.reset_bank_size=3",
+          "env.goal_every=4", "stage=train_ppo"]
+
+
+def test_train_ppo_in_an_ensemble_of_two_model_seeds_with_randomization(make_cfg):
+    cfg = make_cfg(*SHRUNK, "env.ensemble_seeds=2", "env.randomization.gain_std=0.05",
+                   "env.randomization.max_delay_s=0.2")
+    results = run(cfg)  # collect, align, both fit_model seeds, train_ppo
+    assert list(results) == ["collect", "align", "fit_model", "train_ppo"]
+    artifact = results["train_ppo"]
+    inputs = artifact.manifest["inputs"]
+    assert set(inputs) == {"fit_model", "fit_model/seed+1"}
+    fitted = sorted(p.name for p in (artifact.path.parent.parent / "fit_model").glob("[!.]*"))
+    assert fitted == sorted([inputs["fit_model"], inputs["fit_model/seed+1"]])
+    assert inputs["fit_model"] != inputs["fit_model/seed+1"]
+    assert artifact.manifest["summary"]["env"] == "SoftArmReach-learned_ensemble"
+    assert artifact.file("policy.msgpack").is_file()

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.config import register_configs
+from pipeline.config import compose, register_configs
 from pipeline.control.results import latency_summary
 from pipeline.control.session import control
 
@@ -33,12 +33,7 @@ POLICIES = {"ppo_ff": "ff", "ppo_rnn": "rnn"}
 
 
 def _compose(output_dir: Path, *overrides: str):
-    from hydra import compose, initialize_config_dir
-
-    from pipeline.config import PROJECT_ROOT
-
-    with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=[f"paths.output_dir={output_dir}", *overrides])
+    return compose(f"paths.output_dir={output_dir}", *overrides)
 
 
 def measure(policy: str, periods: int, policy_file: str | None, ros: bool, out: Path

@@ -28,22 +28,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline.config import PROJECT_ROOT, AgentConfig, register_configs
+from pipeline.config import AgentConfig, compose
 from pipeline.rl.envs.factory import make_sim_env
 from pipeline.rl.evaluation import evaluate_policy
 from pipeline.rl.networks import make_network
 from pipeline.rl.ppo import make_train, seed_keys
 
 MM_PER_M = 1000.0
-
-
-def compose(overrides: list[str]):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    register_configs()
-    with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
-        return hydra_compose("config", overrides=["env=sim", *overrides])
 
 
 def ours(agent: AgentConfig, env: Any, train_params: Any, eval_params: Any, eval_envs: int
@@ -206,7 +197,7 @@ def main(argv: list[str]) -> None:
     except ImportError:
         raise SystemExit("bench peers needs torch and stable-baselines3: "
                          "pip install -e \".[peers]\"") from None
-    cfg = compose(args.overrides)
+    cfg = compose("env=sim", *args.overrides)
     agent = AgentConfig.from_any(cfg.agent, num_seeds=1, total_timesteps=args.timesteps,
                                  progress=False, num_evals=1, eval_envs=0)
     env, train_params, eval_params = make_sim_env(cfg)

@@ -28,13 +28,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import time
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
-log = logging.getLogger("cross_model")
+from experiments.paper_figures import run_stage
 
 # per-episode randomization of the `randomized` variants: a few per cent of valve gain, a tenth of
 # a kPa of offset, up to half a period of delay, a millimetre of rest-pose error, and up to about
@@ -48,28 +47,6 @@ QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10
          "env.reset_bank_size=8", "evaluation.num_episodes=8",
          "evaluation.consecutive_episodes=1", "evaluation.num_consecutive_goals=2"]
 METRICS = ("median_final_mm", "p90_final_mm", "success_1mm", "success_3mm")
-
-
-def compose(output_dir: Path, *overrides: str) -> Any:
-    """The pipeline's config with ``overrides``, writing under ``output_dir``."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    from pipeline.config import PROJECT_ROOT, register_configs
-
-    register_configs()
-    with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
-        return hydra_compose("config", overrides=[f"paths.output_dir={output_dir}", *overrides])
-
-
-def run_stage(output_dir: Path, stage: str, *overrides: str) -> dict[str, Any]:
-    """Run ``stage`` (after what it needs upstream) through the pipeline's router."""
-    from pipeline.__main__ import run
-
-    started = time.perf_counter()
-    results = run(compose(output_dir, f"stage={stage}", *overrides))
-    log.info("%s %s: %.0f s", stage, " ".join(overrides), time.perf_counter() - started)
-    return results
 
 
 def groups(data_dir: Path, group_a: list[str] | None) -> tuple[list[str], list[str]]:

@@ -40,14 +40,9 @@ CLAIM_FIG6 = "permuted windows generalise better than sequential ones (lower val
 
 def compose(output_dir: Path, *overrides: str) -> Any:
     """The pipeline's config with ``overrides``, writing under ``output_dir``."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
+    from pipeline.config import compose as compose_config
 
-    from pipeline.config import PROJECT_ROOT, register_configs
-
-    register_configs()
-    with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
-        return hydra_compose("config", overrides=[f"paths.output_dir={output_dir}", *overrides])
+    return compose_config(f"paths.output_dir={output_dir}", *overrides)
 
 
 def run_stage(output_dir: Path, stage: str, *overrides: str) -> dict[str, Any]:

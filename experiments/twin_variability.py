@@ -24,13 +24,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
-from pipeline.config import PROJECT_ROOT, register_configs
+from pipeline.config import compose
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, read_table
 from pipeline.infra.artifacts import ArtifactStore
@@ -41,20 +40,14 @@ FITTED = ("chamber_angles_deg", "chamber_gains", "mean_stiffening_per_kpa", "pre
           "natural_freq_hz", "damping_ratio", "hysteresis_kpa", "elong_gain")
 
 
-def compose_cfg(overrides: list[str]):
-    register_configs()
-    with initialize_config_dir(str(PROJECT_ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides)
-
-
 def calibrated_physics() -> dict:
-    cfg = compose_cfg(["robot=sim_sorolex"])
+    cfg = compose("robot=sim_sorolex")
     physics = calib.sim_physics_values(cfg.robot.physics)
     return {k: v for k, v in physics.items() if k in sim_arm.PHYSICS_VALUES}
 
 
 def load_runs(overrides: list[str]) -> list[dict]:
-    cfg = compose_cfg(overrides)
+    cfg = compose(*overrides)
     artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", keys.key("align", cfg))
     aligned, _ = read_table(artifact.file("aligned.parquet"), ALIGNED)
     return runs_at_model_rate(aligned, HZ, "clock")

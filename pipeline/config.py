@@ -889,6 +889,17 @@ def sorolex_dir() -> Path:
     return Path(os.environ.get("SOROLEX_DIR", PROJECT_ROOT.parent / "shared" / "data" / "sorolex"))
 
 
+def compose(*overrides: str) -> Any:
+    """The pipeline's composed config (``conf/config.yaml``) with Hydra ``overrides``, outside
+    a Hydra run (scripts, benchmarks, experiments); the schemas are registered first."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    register_configs()
+    with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
+        return hydra_compose("config", overrides=list(overrides))
+
+
 def register_configs() -> None:
     """Register the schemas (each YAML names its schema first in its defaults list) and the
     ``${project_root:}`` resolver."""

@@ -553,7 +553,7 @@ class AgentConfig:
     reward_scale: float = 0.1  # rewards are multiplied by this for the update only
     num_evals: int = 10  # deterministic evaluations on held-out goals during training
     eval_envs: int = 256  # episodes per evaluation (0: none)
-    progress: bool = True  # a progress bar on the host (jax.debug.callback, throttled)
+    progress: bool = True  # a progress bar on the host, advanced after each evaluation chunk
     # warm start: a train_ppo policy.msgpack of the same network; seed i starts from its seed i,
     # or every seed from init_policy_seed; its log std, or init_policy_log_std where given
     init_policy: str | None = None

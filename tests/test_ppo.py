@@ -21,6 +21,9 @@ from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import deterministic_action, load_policy, save_policy, warm_start_params
 from pipeline.rl.ppo import (
     compute_gae,
+    make_train,
+    make_train_program,
+    seed_keys,
     train_seeds,
 )
 from tests.conftest import compose_config
@@ -203,6 +206,44 @@ def test_tiny_ppo_run_improves_on_a_toy_arm():
     assert last > first + 0.3 * abs(first), (first, last)
     assert np.nanmean(distance[-5:]) < 0.7 * np.nanmean(distance[:5])
     assert np.asarray(output.evaluation["median_final_distance_m"]).shape == (1, 2)
+
+
+@pytest.mark.parametrize("recurrent", [False, True])
+def test_the_host_loop_over_chunks_is_the_one_program_training_run(recurrent, capsys):
+    # train_seeds runs init and num_evals chunks from the host (a progress bar between them);
+    # one jit of make_train scans the same chunks: the same run, to float rounding
+    env, params = toy_reaching()
+    agent = AgentConfig(recurrent=recurrent, num_seeds=2, num_envs=8, num_steps=5,
+                        total_timesteps=8 * 5 * 6, num_evals=3, eval_envs=4, hidden=8,
+                        rnn_hidden=8, lr=1e-3, progress=True)
+    looped = train_seeds(agent, env, params, seed=3, desc="toy")
+    fused = jax.jit(jax.vmap(make_train(agent, env, params)))(seed_keys(3, 2))
+    assert "toy" in capsys.readouterr().err  # the bar was drawn
+    for a, b in zip(jax.tree.leaves(looped.params), jax.tree.leaves(fused.params)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+    assert looped.metrics.keys() == fused.metrics.keys()
+    for name in fused.metrics:
+        assert looped.metrics[name].shape == (2, agent.num_updates), name
+        np.testing.assert_allclose(looped.metrics[name], fused.metrics[name], rtol=1e-4,
+                                   atol=1e-6, err_msg=name)
+    for name in fused.evaluation:
+        assert looped.evaluation[name].shape == fused.evaluation[name].shape, name
+        np.testing.assert_allclose(looped.evaluation[name], fused.evaluation[name], rtol=1e-4,
+                                   atol=1e-6, err_msg=name)
+
+
+def test_training_programs_have_no_host_callbacks_so_the_disk_cache_keeps_them():
+    # JAX's persistent compilation cache never stores a program with a host callback
+    env, params = toy_reaching()
+    agent = AgentConfig(num_seeds=1, num_envs=8, num_steps=5, total_timesteps=8 * 5 * 2,
+                        num_evals=2, eval_envs=4, hidden=8)
+    program = make_train_program(agent, env, params)
+    key = jax.random.PRNGKey(0)
+    init = jax.jit(program.init).lower(key, params)
+    runner = jax.eval_shape(program.init, key, params)
+    chunk = jax.jit(program.chunk).lower(runner, jnp.int32(0), params, params)
+    for lowered in (init, chunk):
+        assert "callback" not in lowered.as_text()
 
 
 def stacked_policy(path, config, num_seeds, obs_dim=6, action_dim=3, log_std=-0.3):

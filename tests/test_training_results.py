@@ -1,13 +1,9 @@
-"""Training results: the return curve leaves out the warm-up updates; the progress bar never
-counts past its total, even when the seeds' callbacks arrive at once."""
+"""Training results: the return curve leaves out the warm-up updates."""
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 
-from pipeline.rl.ppo import ThrottledProgress
 from pipeline.rl.results import metrics_table, return_curves, warmup_updates
 
 
@@ -30,21 +26,3 @@ def test_return_curves_leave_out_the_warmup_spike():
     assert curves["timesteps"].min() == 4096
     seed0 = curves[curves["seed"] == 0]["return"].tolist()
     assert seed0 == [-300.0, -300.0, -280.0]
-
-
-def test_progress_never_overruns_its_total_under_concurrent_callbacks():
-    bar = ThrottledProgress(total=50, min_interval_s=0.0)  # drawn on the captured stderr
-    start = threading.Barrier(4)
-
-    def seed_callbacks():
-        start.wait()
-        for update in range(60):  # more calls than updates, as a runaway index would give
-            bar(np.asarray(update), np.asarray(-1.0))
-
-    threads = [threading.Thread(target=seed_callbacks) for _ in range(4)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    assert bar.bar.n == 50 and bar.done == 50
-    bar.close()

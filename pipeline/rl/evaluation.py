@@ -11,14 +11,20 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from pipeline.rl.networks import initial_hidden
 from pipeline.rl.spaces import action_bounds, to_env_action
 
 
 def evaluate_policy(env: Any, env_params: Any, network: Any, params: Any, key: jax.Array,
-                    num_envs: int, num_steps: int, has_distance: bool) -> dict[str, jax.Array]:
+                    num_envs: int, num_steps: int, has_distance: bool,
+                    bounds: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, jax.Array]:
     """``num_envs`` episodes of the mean action, ``num_steps`` steps at most each.
+
+    ``bounds``: the action space's ``(low, high)``, read from concrete parameters beforehand
+    (:func:`action_bounds`); needed where ``env_params`` are traced and the space depends on them
+    (Pendulum's torque limit). Default: read from ``env_params``.
 
     Returns ``[E]`` per episode: ``episode_return``, ``episode_final_distance_m`` (NaN where the
     env reports no distance), ``episode_success`` (terminated), ``episode_finished``; and their
@@ -30,7 +36,7 @@ def evaluate_policy(env: Any, env_params: Any, network: Any, params: Any, key: j
                 "episode_success": empty.astype(bool),
                 "episode_finished": empty.astype(bool), "mean_return": jnp.nan,
                 "median_final_distance_m": jnp.nan, "success_rate": jnp.nan}
-    low, high = action_bounds(env, env_params)
+    low, high = action_bounds(env, env_params) if bounds is None else bounds
     reset_key, episode_key = jax.random.split(key)
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(
         jax.random.split(reset_key, num_envs), env_params)

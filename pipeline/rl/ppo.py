@@ -94,63 +94,62 @@ def _masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
                      jnp.nan)
 
 
-class ThrottledProgress:
-    """A tqdm bar on the host fed from ``jax.debug.callback``; redraws at most every
-    ``min_interval_s`` seconds. Under ``vmap`` over seeds it receives each seed's index and
-    shows the furthest one.
-
-    The callbacks of different seeds may run at the same time on different host threads: the
-    count is updated under a lock and set to the furthest update seen (never past ``total``), so
-    two calls cannot both add the same updates. ``train_return`` is the mean return of the
-    training episodes (stochastic policy, training goals) that ended in the latest update, not
-    the deterministic evaluation on held-out goals that ``final_eval_mean_return`` reports."""
-
-    def __init__(self, total: int, desc: str = "ppo", min_interval_s: float = 1.0,
-                 disable: bool = False):
-        import threading
-
-        from tqdm.auto import tqdm
-
-        self.bar = tqdm(total=total, desc=desc, disable=disable, mininterval=min_interval_s,
-                        unit="update")
-        self.total = int(total)
-        self.min_interval_s = min_interval_s
-        self.done = 0
-        self.last_draw = 0.0
-        self.lock = threading.Lock()
-
-    def __call__(self, update_index: Any, mean_return: Any) -> None:
-        done = min(int(np.max(np.asarray(update_index))) + 1, self.total)
-        returns = np.asarray(mean_return, np.float64)
-        with self.lock:
-            now = time.monotonic()
-            if done > self.done and (now - self.last_draw >= self.min_interval_s
-                                     or done >= self.total):
-                if np.isfinite(returns).any():
-                    self.bar.set_postfix(train_return=f"{np.nanmean(returns):.3g}",
-                                         refresh=False)
-                self.bar.update(done - self.done)
-                self.done = done
-                self.last_draw = now
-
-    def close(self) -> None:
-        self.bar.close()
-
-
 # ---------------------------------------------------------------------------------------------
 # training
 # ---------------------------------------------------------------------------------------------
+class TrainProgram(NamedTuple):
+    """A training run in its two pure parts, for a host loop between evaluation chunks
+    (progress, early inspection) without host callbacks in the compiled programs, which JAX's
+    persistent cache cannot keep:
+
+    - ``init(rng, env_params, init_params=None) -> RunnerState``
+    - ``chunk(runner, chunk_index, env_params, eval_env_params) -> (runner, (metrics,
+      evaluation))``: ``agent.updates_per_eval`` updates, then one deterministic evaluation;
+      ``metrics`` are [updates_per_eval] arrays, ``evaluation`` one summary.
+
+    ``init`` then ``chunk`` for indices ``0 .. num_chunks - 1`` is exactly ``train``."""
+
+    init: Callable[..., RunnerState]
+    chunk: Callable[..., tuple[RunnerState, tuple[dict, dict]]]
+    num_chunks: int
+
+
 def make_train(
     agent: Any,
     env: Any,
     env_params: Any,
     eval_env_params: Any = None,
     eval_steps: int | None = None,
-    progress: Callable[[Any, Any], None] | None = None,
 ) -> Callable[..., TrainOutput]:
     """Build ``train(rng, env_params=None, eval_env_params=None, init_params=None)
     -> TrainOutput``; ``init_params`` (network variables of this agent's network) replace the
-    random initialisation: a warm start.
+    random initialisation: a warm start. It is :func:`make_train_program`'s parts in one
+    ``lax.scan``; the arguments are the same.
+    """
+    program = make_train_program(agent, env, env_params, eval_env_params, eval_steps)
+    num_updates = AgentConfig.from_any(agent).num_updates
+    eval_env_params = env_params if eval_env_params is None else eval_env_params
+
+    def train(rng: jax.Array, env_params=env_params, eval_env_params=eval_env_params,
+              init_params=None) -> TrainOutput:
+        runner = program.init(rng, env_params, init_params)
+        runner, (metrics, evaluation) = jax.lax.scan(
+            lambda r, i: program.chunk(r, i, env_params, eval_env_params), runner,
+            jnp.arange(program.num_chunks))
+        metrics = jax.tree.map(lambda x: x.reshape(num_updates, *x.shape[2:]), metrics)
+        return TrainOutput(runner.train_state.params, metrics, evaluation)
+
+    return train
+
+
+def make_train_program(
+    agent: Any,
+    env: Any,
+    env_params: Any,
+    eval_env_params: Any = None,
+    eval_steps: int | None = None,
+) -> TrainProgram:
+    """Build the parts of a training run (:class:`TrainProgram`).
 
     Args:
       agent: the agent config (``AgentConfig`` or anything :meth:`AgentConfig.from_any` reads).
@@ -160,15 +159,14 @@ def make_train(
         parameters (model weights) are not baked into the compiled program as constants.
       eval_steps: steps per evaluation (one episode per environment); default
         ``env_params.max_steps_in_episode``.
-      progress: host function ``(update_index, mean_return)`` called every update through
-        ``jax.debug.callback`` (e.g. :class:`ThrottledProgress`).
     """
     config = AgentConfig.from_any(agent)
     config.check()
     eval_env_params = env_params if eval_env_params is None else eval_env_params
     if eval_steps is None:
         eval_steps = int(env_params.max_steps_in_episode)
-    low, high = action_bounds(env, env_params)
+    low, high = action_bounds(env, env_params)  # read here: the env params are traced below
+    eval_bounds = action_bounds(env, eval_env_params)
     action_dim = int(np.prod(low.shape))
     obs_shape = tuple(env.observation_space(env_params).shape)
     network = make_network(config, action_dim)
@@ -200,8 +198,7 @@ def make_train(
         return jax.vmap(env.step, in_axes=(0, 0, 0, None))(
             keys, state, to_env_action(action, low, high), params)
 
-    def train(rng: jax.Array, env_params=env_params, eval_env_params=eval_env_params,
-              init_params=None) -> TrainOutput:
+    def init(rng: jax.Array, env_params=env_params, init_params=None) -> RunnerState:
         # ---------------------------------------------------------------- init network, optimizer
         init_key, reset_key, runner_key = jax.random.split(rng, 3)
         hidden0 = initial_hidden(network, num_envs)
@@ -218,9 +215,11 @@ def make_train(
         # ---------------------------------------------------------------- init environments
         obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(
             jax.random.split(reset_key, num_envs), env_params)
-        runner = RunnerState(train_state, env_state, obs, jnp.ones(num_envs, bool), hidden0,
-                             jnp.zeros(num_envs), jnp.zeros(num_envs, jnp.int32), runner_key)
+        return RunnerState(train_state, env_state, obs, jnp.ones(num_envs, bool), hidden0,
+                           jnp.zeros(num_envs), jnp.zeros(num_envs, jnp.int32), runner_key)
 
+    def chunk(runner: RunnerState, chunk_index, env_params=env_params,
+              eval_env_params=eval_env_params):
         # ---------------------------------------------------------------- one update
         def update_step(runner: RunnerState, update_index):
             # ------------------------------------------------------------ collect a rollout
@@ -302,27 +301,20 @@ def make_train(
                 "final_distance_m": (_masked_mean(episodes["distance"], done)
                                      if has_distance else jnp.nan),
             })
-            if progress is not None:
-                jax.debug.callback(progress, update_index, metrics["mean_return"])
             return runner, metrics
 
-        # ---------------------------------------------------------------- chunks of updates
-        def chunk_step(runner: RunnerState, chunk_index):
-            update_indices = chunk_index * config.updates_per_eval + jnp.arange(
-                config.updates_per_eval)
-            runner, metrics = jax.lax.scan(update_step, runner, update_indices)
-            rng, eval_key = jax.random.split(runner.rng)
-            evaluation = evaluate_policy(env, eval_env_params, network, runner.train_state.params,
-                                         eval_key, config.eval_envs, eval_steps, has_distance)
-            evaluation["timesteps"] = metrics["timesteps"][-1]
-            return runner._replace(rng=rng), (metrics, evaluation)
+        # ---------------------------------------------------------------- the chunk's updates
+        update_indices = chunk_index * config.updates_per_eval + jnp.arange(
+            config.updates_per_eval)
+        runner, metrics = jax.lax.scan(update_step, runner, update_indices)
+        rng, eval_key = jax.random.split(runner.rng)
+        evaluation = evaluate_policy(env, eval_env_params, network, runner.train_state.params,
+                                     eval_key, config.eval_envs, eval_steps, has_distance,
+                                     eval_bounds)
+        evaluation["timesteps"] = metrics["timesteps"][-1]
+        return runner._replace(rng=rng), (metrics, evaluation)
 
-        runner, (metrics, evaluation) = jax.lax.scan(
-            chunk_step, runner, jnp.arange(config.num_evals))
-        metrics = jax.tree.map(lambda x: x.reshape(num_updates, *x.shape[2:]), metrics)
-        return TrainOutput(runner.train_state.params, metrics, evaluation)
-
-    return train
+    return TrainProgram(init, chunk, config.num_evals)
 
 
 def check_same_variables(expected: Any, given: Any, what: str) -> None:
@@ -363,32 +355,48 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
                 seed: int = 0, progress: bool | None = None, desc: str = "ppo",
                 timings: dict[str, float] | None = None, init_params: Any = None
                 ) -> TrainOutput:
-    """Train ``agent.num_seeds`` seeds at once (one jit, vmap over seeds); arrays come back with
-    a leading [num_seeds] axis. ``timings`` (if given) receives ``compile_s`` and ``run_s``.
+    """Train ``agent.num_seeds`` seeds at once (vmap over seeds); arrays come back with a leading
+    [num_seeds] axis. ``timings`` (if given) receives ``compile_s`` and ``run_s``.
     ``init_params`` (optional): starting network variables, stacked over seeds
-    (``[num_seeds, ...]`` leaves, as :func:`load_policy` returns them)."""
+    (``[num_seeds, ...]`` leaves, as :func:`load_policy` returns them).
+
+    Two compiled programs, the same for every run of this configuration and so kept by the
+    persistent compilation cache: ``init``, and one evaluation chunk, called ``agent.num_evals``
+    times from here with the chunk index as an argument; the progress bar advances after each.
+    The result is :func:`make_train`'s."""
+    from tqdm.auto import tqdm
+
     config = AgentConfig.from_any(agent)
     show = config.progress if progress is None else progress
-    bar = ThrottledProgress(config.num_updates, desc=desc, disable=not show) if show else None
     eval_env_params = env_params if eval_env_params is None else eval_env_params
-    train = make_train(config, env, env_params, eval_env_params, progress=bar)
-    try:
-        keys = seed_keys(seed, config.num_seeds)
-        if init_params is not None:
-            sizes = {int(np.shape(x)[0]) if np.ndim(x) else 0
-                     for x in jax.tree.leaves(init_params)}
-            if sizes != {config.num_seeds}:
-                raise ValueError(f"init_params must be stacked over agent.num_seeds="
-                                 f"{config.num_seeds} seeds; leading sizes {sorted(sizes)}")
-        started = time.perf_counter()
-        compiled = jax.jit(jax.vmap(train, in_axes=(0, None, None, 0))).lower(
-            keys, env_params, eval_env_params, init_params).compile()
-        compiled_at = time.perf_counter()
-        output = jax.block_until_ready(compiled(keys, env_params, eval_env_params, init_params))
-        if timings is not None:
-            timings.update(compile_s=compiled_at - started,
-                           run_s=time.perf_counter() - compiled_at)
-    finally:
-        if bar is not None:
-            bar.close()
-    return output
+    program = make_train_program(config, env, env_params, eval_env_params)
+    keys = seed_keys(seed, config.num_seeds)
+    if init_params is not None:
+        sizes = {int(np.shape(x)[0]) if np.ndim(x) else 0 for x in jax.tree.leaves(init_params)}
+        if sizes != {config.num_seeds}:
+            raise ValueError(f"init_params must be stacked over agent.num_seeds="
+                             f"{config.num_seeds} seeds; leading sizes {sorted(sizes)}")
+    started = time.perf_counter()
+    init = jax.jit(jax.vmap(program.init, in_axes=(0, None, 0))).lower(
+        keys, env_params, init_params).compile()
+    runner = init(keys, env_params, init_params)
+    chunk = jax.jit(jax.vmap(program.chunk, in_axes=(0, None, None, None)),
+                    donate_argnums=0).lower(runner, jnp.int32(0), env_params,
+                                            eval_env_params).compile()
+    compiled_at = time.perf_counter()
+    chunks = []
+    with tqdm(total=config.num_updates, desc=desc, unit="update", disable=not show) as bar:
+        for index in range(program.num_chunks):
+            runner, (metrics, evaluation) = chunk(runner, jnp.int32(index), env_params,
+                                                  eval_env_params)
+            chunks.append(jax.device_get((metrics, evaluation)))
+            returns = np.asarray(chunks[-1][0]["mean_return"], np.float64)
+            if np.isfinite(returns).any():
+                bar.set_postfix(train_return=f"{np.nanmean(returns):.3g}", refresh=False)
+            bar.update(config.updates_per_eval)
+    params = jax.block_until_ready(runner.train_state.params)
+    if timings is not None:
+        timings.update(compile_s=compiled_at - started, run_s=time.perf_counter() - compiled_at)
+    metrics = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *[m for m, _ in chunks])
+    evaluation = jax.tree.map(lambda *xs: np.stack(xs, axis=1), *[e for _, e in chunks])
+    return TrainOutput(params, metrics, evaluation)

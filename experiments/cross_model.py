@@ -1,7 +1,8 @@
 """Cross-model protocol: policies trained in the model of one group of real runs, evaluated in
 the model of another, disjoint group (both directions), per robustness variant.
 
-    python -m experiments.cross_model [--variants plain ensemble randomized both]
+    python -m experiments.cross_model [--variants plain ensemble randomized both incremental
+        incremental_randomized]
         [--seeds 4] [--ppo-steps 2000000] [--ensemble-seeds 3] [--quick]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
@@ -15,7 +16,10 @@ group's model (``cross``, through ``evaluation.models``). Variants:
 - ``plain``: as today;
 - ``ensemble``: in an ensemble of ``--ensemble-seeds`` model seeds (``env.ensemble_seeds``);
 - ``randomized``: with the plant randomized per episode (``RANDOMIZATION``);
-- ``both``: the ensemble, randomized.
+- ``both``: the ensemble, randomized;
+- ``incremental``: incremental actions (``env.action_mode=incremental``, ``INCREMENTAL_STEP_KPA``
+  per control period): integral action;
+- ``incremental_randomized``: incremental actions, randomized.
 
 Printed per variant and direction: median final distance, its 90th percentile and the success
 rates within 1 and 3 mm (all seeds' episodes together), own and cross; the table is also written
@@ -40,7 +44,8 @@ from experiments.paper_figures import run_stage
 # half a millimetre of drift over a 20 s episode
 RANDOMIZATION = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
                  "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5}
-VARIANTS = ("plain", "ensemble", "randomized", "both")
+INCREMENTAL_STEP_KPA = 1.0
+VARIANTS = ("plain", "ensemble", "randomized", "both", "incremental", "incremental_randomized")
 QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
          "dataset.window=32", "agent.num_envs=16", "agent.num_steps=8", "agent.num_evals=1",
          "agent.eval_envs=4", "agent.progress=false", "env.goal_every=20",
@@ -65,8 +70,10 @@ def groups(data_dir: Path, group_a: list[str] | None) -> tuple[list[str], list[s
 def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
     ensemble = [f"env.ensemble_seeds={ensemble_seeds}"]
     randomized = [f"env.randomization.{name}={value}" for name, value in RANDOMIZATION.items()]
+    incremental = ["env.action_mode=incremental", f"env.action_step_kpa={INCREMENTAL_STEP_KPA}"]
     return {"plain": [], "ensemble": ensemble, "randomized": randomized,
-            "both": ensemble + randomized}[variant]
+            "both": ensemble + randomized, "incremental": incremental,
+            "incremental_randomized": incremental + randomized}[variant]
 
 
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],
@@ -89,12 +96,12 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
 
 
 def print_table(table: pd.DataFrame) -> None:
-    header = (f"{'variant':<11}{'dir':<7}{'own median':>11}{'p90':>7}{'<1mm':>7}{'<3mm':>7}"
+    header = (f"{'variant':<23}{'dir':<7}{'own median':>11}{'p90':>7}{'<1mm':>7}{'<3mm':>7}"
               f"{'cross median':>14}{'p90':>7}{'<1mm':>7}{'<3mm':>7}")
     print(header)
     print("-" * len(header))
     for row in table.itertuples():
-        print(f"{row.variant:<11}{row.direction:<7}{row.own_median_final_mm:>11.2f}"
+        print(f"{row.variant:<23}{row.direction:<7}{row.own_median_final_mm:>11.2f}"
               f"{row.own_p90_final_mm:>7.2f}{row.own_success_1mm:>7.2f}"
               f"{row.own_success_3mm:>7.2f}{row.cross_median_final_mm:>14.2f}"
               f"{row.cross_p90_final_mm:>7.2f}{row.cross_success_1mm:>7.2f}"

@@ -83,6 +83,11 @@ class GoalSource(Choice):
     measured = "measured"  # the runs' recorded positions
 
 
+class ActionMode(Choice):
+    absolute = "absolute"  # the action sets each valve's pressure on its range
+    incremental = "incremental"  # the action changes each valve's last command
+
+
 class GoalMode(Choice):
     data = "data"  # uniform over the positions seen in the data
     perturb = "perturb"  # the paper's: the initial pose plus N(0, 1) * goal_perturbation_m
@@ -502,6 +507,10 @@ class EnvConfig:
     include_last_action: bool = False
     include_error: bool = False  # also observe (goal - position) / error_scale_m
     error_scale_m: float = 0.005
+    # incremental: each action changes the last command by up to action_step_kpa per control
+    # period (integral action: the commands rest only where the policy outputs zero)
+    action_mode: ActionMode = ActionMode.absolute
+    action_step_kpa: float = 1.0
     gymnax_name: str = "Pendulum-v1"
     scale_observations: bool = False  # gymnax: observations divided by the space's bounds
     settle_seconds: float = 5.0  # preload held before an episode starts
@@ -823,7 +832,8 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
 
 
 def _check_env(cfg: Any) -> None:
-    """The robustness settings of ``env``: counts, magnitudes and the environments they fit."""
+    """The robustness settings of ``env``: counts, magnitudes and the environments they fit; the
+    incremental action's step."""
     env = cfg.get("env")
     if env is None:
         return
@@ -840,6 +850,11 @@ def _check_env(cfg: Any) -> None:
             raise ConfigError(f"env.randomization.{field_name}={value} must be finite and >= 0")
     if name is EnvName.gymnax and any(float(v) for v in randomization.values()):
         raise ConfigError("env.randomization: env=gymnax has no plant to randomize")
+    step = float(env.get("action_step_kpa", 1.0))
+    if str(env.get("action_mode", "absolute")) == "incremental" and not (
+            math.isfinite(step) and step > 0):
+        raise ConfigError(f"env.action_step_kpa={step} must be finite and > 0 (the change of a "
+                          f"command per control period at action 1, env.action_mode=incremental)")
     period = 1.0 / float(cfg.robot.control_hz)
     delay = float(randomization.get("max_delay_s", 0.0))
     if delay > period + 1e-9:

@@ -116,6 +116,9 @@ def env_spec(cfg: Any) -> dict[str, Any]:
     if int(env.get("ensemble_seeds", 1)) == 1:
         env.pop("ensemble_seeds", None)
     env.pop("models", None)
+    if env.get("action_mode", "absolute") == "absolute":
+        env.pop("action_mode", None)
+        env.pop("action_step_kpa", None)
     randomization = {name: value for name, value in (env.pop("randomization", None) or {}).items()
                      if float(value) != 0.0}
     if randomization:

@@ -164,6 +164,25 @@ def test_control_on_the_simulated_arm_records_every_period_and_ends_at_the_prelo
     assert not list((artifact.path.parents[2] / "recovery").glob("*/*"))
 
 
+def test_an_incremental_policy_changes_the_last_command_on_the_arm(tmp_path):
+    # the arm applies the environment's action mapping: last command + 0.5 kPa x action, projected
+    cfg = compose_config(tmp_path, *SMALL, "env.action_mode=incremental",
+                         "env.action_step_kpa=0.5", "control.policy=ppo_ff", "stage=control")
+    _, train_params = write_policy(cfg)
+    cfg.control.goals = goals_mm(train_params, 2)
+    cfg.control.hold_s = 2.0
+    periods = pd.read_parquet(control(cfg).file("periods.parquet"))
+    commanded = periods[periods["goal_index"] >= 0]
+    sent = commanded[CMD_COLUMNS].to_numpy()
+    actions = np.clip(commanded.filter(like="action_").to_numpy(), -1.0, 1.0)
+    last = np.vstack([[2.0, 2.0, 2.0], sent[:-1]])
+    assert_within_limits(sent)
+    inside = (sent > LIMITS["p_min"] + 1e-6) & (sent < LIMITS["p_max"] - 1e-6)
+    np.testing.assert_allclose(sent[inside], (last + 0.5 * actions)[inside], atol=1e-5)
+    assert np.abs(sent - last).max() <= 0.5 + 1e-6
+    assert np.abs(sent - last).max() > 1e-3  # it moved
+
+
 def _loop(cfg, deployment, arm_factory, tmp_path):
     schedule = goal_schedule(cfg.control, deployment.control_hz, deployment.workspace_m)
     gate = CommandGate(cfg.robot.limits, 3)

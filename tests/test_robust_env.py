@@ -1,4 +1,5 @@
-"""Robustness to model error: ensemble environments and randomization around the plant.
+"""Robustness to model error: ensemble environments, randomization around the plant and
+incremental actions.
 
 Known answers on the linear-lag toy (``position = offset + G @ lagged``, ``lagged`` a first-order
 lag of the received pressure with factor 1/2 per plant step, five plant steps per period), the
@@ -335,6 +336,7 @@ def test_ensemble_and_randomization_are_part_of_the_train_ppo_key(make_cfg):
     (["env.randomization.max_delay_s=0.6"], "at most one control period"),
     (["env.randomization.gain_std=-0.1"], "must be finite and >= 0"),
     (["env=gymnax", "env.randomization.gain_std=0.1"], "no plant"),
+    (["env.action_mode=incremental", "env.action_step_kpa=0"], "action_step_kpa=0.0 must be"),
 ])
 def test_unusable_robustness_settings_are_refused(make_cfg, overrides, message):
     with pytest.raises(ConfigError, match=message):
@@ -373,3 +375,79 @@ def test_train_ppo_in_an_ensemble_of_two_model_seeds_with_randomization(make_cfg
     assert inputs["fit_model"] != inputs["fit_model/seed+1"]
     assert artifact.manifest["summary"]["env"] == "SoftArmReach-learned_ensemble"
     assert artifact.file("policy.msgpack").is_file()
+
+
+# ---------------------------------------------------------------------------------------------
+# incremental actions
+# ---------------------------------------------------------------------------------------------
+def incremental_toy(step_kpa=0.5, **overrides):
+    env = SoftArmReachEnv(linear_lag_plant(10.0), control_hz=2.0, settle_seconds=2.0,
+                          include_last_action=True, include_error=True,
+                          incremental_actions=True)
+    settings = {"safe_set": SafeSet.from_limits(LIMITS), "preload": 2.0, "rest_pose": REST_POSE,
+                "goal_set": GOALS, "max_steps": 5, "reset_bank_size": 4,
+                "action_step_kpa": step_kpa}
+    settings.update(overrides)
+    return env, make_env_params(env, default_linear_lag_params(), key=jax.random.PRNGKey(0),
+                                **settings)
+
+
+def test_incremental_actions_change_the_last_command_by_hand():
+    env, params = incremental_toy(step_kpa=0.5)
+    _, state = env.reset(jax.random.PRNGKey(1), params)
+    np.testing.assert_allclose(state.last_pressure, [2.0, 2.0, 2.0])
+    # 2 + 0.5 * [1, -0.5, 0] = [2.5, 1.75, 2.0]; then 2.5 + 0.5 * 1 = 3.0, clipped actions
+    _, state, *_ = env.step_env(jax.random.PRNGKey(2), state, jnp.array([1.0, -0.5, 0.0]),
+                                params)
+    np.testing.assert_allclose(state.last_pressure, [2.5, 1.75, 2.0], atol=1e-6)
+    _, state, *_ = env.step_env(jax.random.PRNGKey(3), state, jnp.array([4.0, 0.0, -1.0]),
+                                params)
+    np.testing.assert_allclose(state.last_pressure, [3.0, 1.75, 1.5], atol=1e-6)
+    # action zero holds the command: the position settles where holding 3, 1.75, 1.5 kPa does
+    held = state
+    for period in range(6):
+        _, held, *_ = env.step_env(jax.random.PRNGKey(10 + period), held, jnp.zeros(3), params)
+    np.testing.assert_allclose(held.last_pressure, [3.0, 1.75, 1.5], atol=1e-6)
+    absolute, absolute_params = toy()
+    _, reference = absolute.reset(jax.random.PRNGKey(1), absolute_params)
+    reference = hold_command(absolute, absolute_params, reference, [3.0, 1.75, 1.5], periods=8)
+    np.testing.assert_allclose(held.position, reference.position, atol=1e-5)
+
+
+def test_incremental_commands_stay_inside_the_safe_set():
+    env, params = incremental_toy(step_kpa=5.0)
+    _, state = env.reset(jax.random.PRNGKey(1), params)
+    for period in range(4):  # push every valve up: each at most p_max, the sum at most sum_max
+        _, state, *_ = env.step_env(jax.random.PRNGKey(period), state, jnp.ones(3), params)
+    assert float(state.last_pressure.max()) <= 7.0 + 1e-5
+    assert float(state.last_pressure.sum()) <= 13.0 + 1e-4
+    for period in range(4):
+        _, state, *_ = env.step_env(jax.random.PRNGKey(period), state, -jnp.ones(3), params)
+    np.testing.assert_allclose(state.last_pressure, [0.0, 0.0, 0.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("incremental", [False, True])
+def test_action_for_inverts_the_command(incremental):
+    env, params = incremental_toy() if incremental else toy()
+    last = jnp.array([2.0, 3.0, 1.0])
+    target = jnp.array([2.3, 2.8, 1.0])  # within one step of the last command
+    action = env.action_for(target, last, params)
+    np.testing.assert_allclose(env.command(action, last, params), target, atol=1e-6)
+    if incremental:  # farther than one step: the largest step towards it
+        far = env.action_for(jnp.array([5.0, 3.0, 0.0]), last, params)
+        np.testing.assert_allclose(far, [1.0, 0.0, -1.0], atol=1e-6)
+
+
+def test_incremental_actions_are_part_of_the_keys_and_reach_the_environment(make_cfg):
+    from pipeline.rl.envs.factory import common_params, observation_options
+
+    base = make_cfg("experiment=quick")
+    assert "action_mode" not in keys.train_ppo_spec(base)[0]["env"]
+    spelled = make_cfg("experiment=quick", "env.action_mode=absolute", "env.action_step_kpa=3")
+    assert keys.key("train_ppo", spelled) == keys.key("train_ppo", base)
+    incremental = make_cfg("experiment=quick", "env.action_mode=incremental")
+    wider = make_cfg("experiment=quick", "env.action_mode=incremental", "env.action_step_kpa=2")
+    assert len({keys.key("train_ppo", c) for c in (base, incremental, wider)}) == 3
+    assert observation_options(wider.env)["incremental_actions"] is True
+    assert common_params(wider)["action_step_kpa"] == 2.0
+    assert observation_options(base.env)["incremental_actions"] is False

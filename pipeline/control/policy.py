@@ -120,7 +120,7 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
                       include_last_action=env.include_last_action)
         act = policy_controller(network, policy_params)
         (hidden, _), action = act(None, obs, None, (hidden, first))
-        return hidden, obs, action, env.pressure_command(action, env_params)
+        return hidden, obs, action, env.command(action, last_pressure, env_params)
 
     return jax.jit(step)
 

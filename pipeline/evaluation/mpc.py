@@ -92,8 +92,12 @@ def mpc_controller(
         offset = state.position - model_position
         command = plan(key, model, model_params, model_carry, state.goal - offset, previous,
                        env_params.safe_set, steps, settings)
+        action = env.action_for(command, state.last_pressure, env_params)
+        if env.incremental_actions:  # rate-limited: the model holds what will be sent
+            command = project(env.command(action, state.last_pressure, env_params),
+                              env_params.safe_set)
         model_carry, path = hold(model, model_params, model_carry, command, steps)
-        return (model_carry, path[-1], command), env.pressure_to_action(command, env_params)
+        return (model_carry, path[-1], command), action
 
     return act
 

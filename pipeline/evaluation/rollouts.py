@@ -69,8 +69,8 @@ def policy_controller(network: Any, policy_params: Any) -> Controller:
 
 def preload_controller(env: SoftArmReachEnv, params: EnvParams) -> Controller:
     """Do nothing: hold the preload."""
-    action = env.pressure_to_action(params.preload, params)
-    return lambda key, obs, state, carry: (carry, action)
+    return lambda key, obs, state, carry: (
+        carry, env.action_for(params.preload, state.last_pressure, params))
 
 
 def random_controller() -> Controller:

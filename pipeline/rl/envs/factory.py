@@ -67,6 +67,7 @@ def common_params(cfg: Any) -> dict[str, Any]:
         "goal_tolerance_m": float(env_cfg.goal_tolerance_m),
         "obs_noise_std_m": float(env_cfg.obs_noise_std),
         "error_scale_m": float(env_cfg.error_scale_m),
+        "action_step_kpa": float(env_cfg.get("action_step_kpa", 1.0)),
         "action_noise_std_kpa": float(env_cfg.action_noise_std),
         "max_steps": int(env_cfg.max_steps),
         "reset_bank_size": int(env_cfg.reset_bank_size),
@@ -96,7 +97,9 @@ def observation_options(env_cfg: Any) -> dict[str, Any]:
     """The :class:`SoftArmReachEnv` arguments of the env config besides plant and rate."""
     return {"settle_seconds": float(env_cfg.settle_seconds),
             "include_last_action": bool(env_cfg.include_last_action),
-            "include_error": bool(env_cfg.include_error)}
+            "include_error": bool(env_cfg.include_error),
+            # absent in a config rebuilt from an artifact's spec where it is the default
+            "incremental_actions": str(env_cfg.get("action_mode", "absolute")) == "incremental"}
 
 
 def _safe_set(cfg: Any) -> SafeSet:

@@ -5,7 +5,10 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
 (zero-order hold, as the data was recorded).
 
 - **Action** ``[3]`` in ``[-1, 1]`` (clipped), mapped linearly onto each valve's range
-  ``[p_min, p_max]`` kPa, plus Gaussian action noise (kPa), then projected onto the safe set
+  ``[p_min, p_max]`` kPa; or, with ``incremental_actions``, the change of each valve's last
+  command, ``action * action_step`` kPa per control period (integral action: the commands stand
+  still only where the policy's output is zero, whatever pressure that takes on this plant).
+  Plus Gaussian action noise (kPa), then projected onto the safe set
   (:func:`pipeline.arm.safety.project`) before it reaches the plant.
 - **Observation** ``[6]``: the measured position (plus Gaussian noise, m) and the goal, both
   standardized with ``obs_mean`` / ``obs_scale``; with ``include_error`` ``+3``, the error
@@ -151,6 +154,8 @@ class EnvParams:
     obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
     obs_noise_std: m, Gaussian noise on the observed position.
     error_scale: m, divides ``goal - measured`` in the observation (``include_error``).
+    action_step: kPa, the change of a command per control period at action 1
+      (``incremental_actions`` only).
     action_noise_std: kPa, Gaussian noise on the commanded pressures (before projection).
     randomization: magnitudes of the per-episode randomization around the plant.
     max_steps_in_episode: control periods before truncation.
@@ -169,6 +174,7 @@ class EnvParams:
     obs_scale: jax.Array
     obs_noise_std: jax.Array
     error_scale: jax.Array
+    action_step: jax.Array
     action_noise_std: jax.Array
     randomization: Randomization
     max_steps_in_episode: int = struct.field(pytree_node=False)
@@ -184,10 +190,13 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         :func:`make_env_params` to fill the reset bank).
       include_last_action: append the last applied pressure (in ``[-1, 1]``) to the observation.
       include_error: append ``(goal - measured) / error_scale`` to the observation.
+      incremental_actions: an action changes the last command (``params.action_step`` kPa at
+        1) instead of setting it.
     """
 
     def __init__(self, plant: Plant, control_hz: float = 2.0, settle_seconds: float = 5.0,
-                 include_last_action: bool = False, include_error: bool = False):
+                 include_last_action: bool = False, include_error: bool = False,
+                 incremental_actions: bool = False):
         super().__init__()
         ratio = plant.model_hz / control_hz
         if ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
@@ -200,6 +209,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         self.settle_steps = max(1, round(settle_seconds * plant.model_hz))
         self.include_last_action = bool(include_last_action)
         self.include_error = bool(include_error)
+        self.incremental_actions = bool(incremental_actions)
 
     # -----------------------------------------------------------------------------------------
     # gymnax API
@@ -278,7 +288,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         """
         chex.assert_shape(action, (NUM_VALVES,))
         action_noise_key, obs_key = jax.random.split(key)
-        pressure = self.pressure_command(action, params)
+        pressure = self.command(action, state.last_pressure, params)
         pressure = pressure + params.action_noise_std * jax.random.normal(
             action_noise_key, (NUM_VALVES,))
         perturbation = state.perturbation
@@ -314,6 +324,24 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
     # -----------------------------------------------------------------------------------------
     # helpers
     # -----------------------------------------------------------------------------------------
+    def command(self, action: jax.Array, last_pressure: jax.Array, params: EnvParams
+                ) -> jax.Array:
+        """``[..., 3]`` action -> the pressures it commands, kPa (before noise and projection):
+        :meth:`pressure_command`, or with ``incremental_actions`` ``last_pressure`` (the last
+        applied command) plus ``clip(action) * action_step``."""
+        if self.incremental_actions:
+            return last_pressure + jnp.clip(action, -1.0, 1.0) * params.action_step
+        return self.pressure_command(action, params)
+
+    def action_for(self, pressure: jax.Array, last_pressure: jax.Array, params: EnvParams
+                   ) -> jax.Array:
+        """The action that commands ``pressure`` [..., 3] kPa after ``last_pressure``: the
+        inverse of :meth:`command`, clipped to ``[-1, 1]`` (an incremental action reaches at
+        most ``action_step`` from the last command)."""
+        if self.incremental_actions:
+            return jnp.clip((pressure - last_pressure) / params.action_step, -1.0, 1.0)
+        return self.pressure_to_action(pressure, params)
+
     @staticmethod
     def pressure_command(action: jax.Array, params: EnvParams) -> jax.Array:
         """``[..., 3]`` action in [-1, 1] (clipped) -> pressures in ``[p_min, p_max]`` kPa.
@@ -363,6 +391,7 @@ def make_env_params(
     goal_tolerance_m: float = 0.001,
     obs_noise_std_m: float = 0.0,
     error_scale_m: float = 0.005,
+    action_step_kpa: float = 1.0,
     action_noise_std_kpa: float = 0.0,
     max_steps: int = 40,
     reset_bank_size: int = 64,
@@ -418,6 +447,7 @@ def make_env_params(
         obs_scale=f32(obs_scale),
         obs_noise_std=f32(obs_noise_std_m),
         error_scale=f32(error_scale_m),
+        action_step=f32(action_step_kpa),
         action_noise_std=f32(action_noise_std_kpa),
         randomization=randomization() if randomization_params is None else randomization_params,
         max_steps_in_episode=int(max_steps),

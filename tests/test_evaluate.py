@@ -71,8 +71,17 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg):
     markdown = artifact.file("report.md").read_text()
     for section in ("Summary", "Configuration", "Data", "Model accuracy", "Policy results",
                     "Baselines",
-                    "Plant gap", "Consecutive goals"):
+                    "Plant gap", "Time to a controller", "Consecutive goals"):
         assert f"## {section}" in markdown, section
+    # every artifact of the chain says how long it took to build; the policies split theirs
+    for stage in ("collect", "align", "fit_model", "train_ppo"):
+        built = results[stage].manifest["build_seconds"]
+        assert built is not None and built > 0, stage
+    assert artifact.manifest["build_seconds"] > 0
+    timing = markdown.split("## Time to a controller")[1].split("\n## ")[0]
+    for stage in ("collect", "align", "fit_model", "train_ppo (ppo_ff)", "train_ppo (ppo_rnn)",
+                  "evaluate (until this report)"):
+        assert f"| {stage} |" in timing, stage
     page = artifact.file("report.html").read_text()
     assert page.count("<img") >= 6  # upstream figures linked, and this stage's own
     for image in ("returns.png", "distance.png", "trajectories.png"):

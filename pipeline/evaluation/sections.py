@@ -155,11 +155,34 @@ def _chatter_sentence(summary: pd.DataFrame, policies: list[str]) -> str | None:
     return sentence
 
 
+def timing_table(upstream: dict[str, Artifact | None], policies: dict[str, Artifact],
+                 evaluate_seconds: float | None = None) -> pd.DataFrame:
+    """One row per artifact of the chain: the wall seconds its build took when it was built
+    (``build_seconds`` of its manifest; empty for artifacts written before it was recorded), and
+    for the policies their compile and training seconds and env steps per second."""
+    rows = []
+    for stage, artifact in upstream.items():
+        if artifact is not None:
+            rows.append({"stage": stage, "artifact": artifact.path.name,
+                         "built in [s]": artifact.manifest.get("build_seconds")})
+    for name, artifact in policies.items():
+        summary = artifact.manifest.get("summary", {})
+        rows.append({"stage": f"train_ppo ({name})", "artifact": artifact.path.name,
+                     "built in [s]": artifact.manifest.get("build_seconds"),
+                     "compile [s]": summary.get("compile_seconds"),
+                     "training [s]": summary.get("train_seconds"),
+                     "env steps/s": summary.get("env_steps_per_second")})
+    if evaluate_seconds is not None:
+        rows.append({"stage": "evaluate (until this report)", "artifact": "this one",
+                     "built in [s]": round(float(evaluate_seconds), 2)})
+    return pd.DataFrame(rows)
+
+
 def report_sections(cfg, policies, results, figures, collect: Artifact | None = None,
-                    aligned: Artifact | None = None, model: Artifact | None = None
-                    ) -> list[Section]:
+                    aligned: Artifact | None = None, model: Artifact | None = None,
+                    evaluate_seconds: float | None = None) -> list[Section]:
     """The report of an evaluation; ``collect``, ``aligned``, ``model``: the upstream artifacts
-    where there are any (env=learned)."""
+    where there are any (env=learned); ``evaluate_seconds``: how long this evaluation has run."""
     tables = results["tables"]
     summary = tables["summary"]
     episodes = tables["episodes"]
@@ -236,6 +259,13 @@ def report_sections(cfg, policies, results, figures, collect: Artifact | None = 
         gap_section.add(f"No plant for robot `{cfg.robot.name}`: evaluated on the learned "
                         "model only.")
     sections.append(gap_section)
+
+    upstream = {"collect": collect, "align": aligned, "fit_model": model}
+    sections.append(Section("Time to a controller", [
+        "Wall seconds of each artifact's build, when it was built (a reused artifact keeps the "
+        "time of the run that built it); for the policies, the compilation and the training "
+        "apart.",
+        Table(timing_table(upstream, policies, evaluate_seconds))]))
 
     consecutive = tables["consecutive"]
     if len(consecutive):

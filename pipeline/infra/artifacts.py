@@ -23,6 +23,7 @@ import json
 import logging
 import os
 import shutil
+import time
 import uuid
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -158,6 +159,7 @@ class ArtifactWriter:
     spec: dict[str, Any]
     inputs: dict[str, str]
     summary: dict[str, Any] | None = None
+    build_seconds: float | None = None  # wall time of the build (produce sets it)
 
     def file(self, name: str) -> Path:
         target = self.path / name
@@ -172,6 +174,7 @@ class ArtifactWriter:
             "inputs": self.inputs,
             "spec": self.spec,
             "summary": self.summary or {},
+            "build_seconds": self.build_seconds,
             "files": sorted(
                 str(p.relative_to(self.path)) for p in self.path.rglob("*") if p.is_file()
             ),
@@ -208,7 +211,9 @@ def produce(
                      existing.path)
             return existing
         with store.writing(stage, key, spec, inputs) as writer:
+            started = time.perf_counter()
             build(writer)
+            writer.build_seconds = round(time.perf_counter() - started, 2)
         artifact = store.require(stage, key)
         log.info("%s: wrote artifact %s", stage, artifact.path)
         return artifact

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,7 @@ def evaluate(cfg: Any) -> Artifact:
                     for entry in cfg.evaluation.models}
 
     def build(writer):
+        started = time.perf_counter()
         env, _, eval_params = environment(cfg, upstream["model"], upstream["aligned"])
         models = {name: load_dynamics(artifact.file("model.msgpack"))
                   for name, artifact in other_models.items()}
@@ -68,7 +70,8 @@ def evaluate(cfg: Any) -> Artifact:
             write_parquet(frame, writer.file(f"{name}.parquet"),
                           table_metadata(frame, name, config, {"stage": STAGE, "inputs": inputs}))
         figures = make_figures(writer.path / "figures", cfg, policies, results)
-        sections = report_sections(cfg, policies, results, figures, **upstream)
+        sections = report_sections(cfg, policies, results, figures, **upstream,
+                                   evaluate_seconds=time.perf_counter() - started)
         write_report(writer.path, f"sorolearn run: robot={cfg.robot.name}", sections)
         writer.summary = results["headline"]
         log.info("evaluate: %s", json.dumps(results["headline"]))

@@ -1,7 +1,11 @@
 """PPO in the PureJaxRL style: the whole training run is one pure, jittable function.
 
 ``make_train(agent, env, env_params)`` returns ``train(rng) -> TrainOutput``; jit it once and
-``vmap`` it over seeds (``train_seeds`` does both). Inside, ``lax.scan`` runs
+``vmap`` it over seeds. ``train_seeds`` runs the same training as its two parts
+(:func:`make_train_program`: ``init`` and one evaluation chunk, each vmapped over seeds and
+compiled once) with the loop over chunks on the host, where the progress bar advances: no host
+callback inside a compiled program, so JAX's persistent cache keeps both. Inside, ``lax.scan``
+runs
 
     evaluation chunks (agent.num_evals)
       └ updates (num_updates / num_evals)

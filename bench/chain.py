@@ -3,7 +3,8 @@
 Runs ``python -m pipeline`` (or the given overrides) in fresh processes into fresh output
 folders: first with an empty compilation cache (cold), then again into another fresh output
 folder with the cache the first run filled (warm). Prints each stage's wall time and, for
-train_ppo, its compile and training seconds, side by side. ``--ref COMMIT`` adds the same chain
+train_ppo, its compile and training seconds, side by side, and the evaluation's headline
+figures (median final distance and success within 1 mm, per plant and controller). ``--ref COMMIT`` adds the same chain
 run from that commit (a temporary git worktree, with its own cold runs), where it still runs.
 
     python -m bench chain [--ref a8a1940] [overrides ...]
@@ -25,6 +26,7 @@ from pipeline.config import PROJECT_ROOT
 
 STAGE_LINE = re.compile(r"stage (\S+(?: \([^)]*\))?) done in ([\d.]+) s")
 TRAIN_LINE = re.compile(r"train_ppo: (\{.*\})")
+HEADLINE_LINE = re.compile(r"evaluate: (\{.*\})")
 
 
 def run_chain(root: Path, output: Path, cache: Path | None, overrides: list[str]) -> dict:
@@ -42,8 +44,10 @@ def run_chain(root: Path, output: Path, cache: Path | None, overrides: list[str]
         return {"wall_s": wall, "error": log[-2000:]}
     stages = {name: float(s) for name, s in STAGE_LINE.findall(log)}
     trainings = [json.loads(m) for m in TRAIN_LINE.findall(log)]
+    headlines = [json.loads(m) for m in HEADLINE_LINE.findall(log)]
     return {"wall_s": wall, "stages": stages,
-            "train": {t["agent"]: (t["compile_seconds"], t["train_seconds"]) for t in trainings}}
+            "train": {t["agent"]: (t["compile_seconds"], t["train_seconds"]) for t in trainings},
+            "results": headlines[-1] if headlines else {}}
 
 
 def table(runs: dict[str, dict]) -> str:
@@ -60,6 +64,13 @@ def table(runs: dict[str, dict]) -> str:
         lines.append(f"| {agent}: compile / train s | " + " | ".join(
             "{:.1f} / {:.1f}".format(*r["train"][agent]) if agent in r.get("train", {})
             else "—" for r in runs.values()) + " |")
+    # the report's headline: a faster chain must give the same figures (within seed noise)
+    entries = list(dict.fromkeys(e for r in runs.values() for e in r.get("results", {})))
+    for entry in entries:
+        lines.append(f"| {entry}: median mm / ≤ 1 mm | " + " | ".join(
+            "{:.3f} / {:.1%}".format(r["results"][entry]["median_final_mm"],
+                                     r["results"][entry]["success_1mm"])
+            if entry in r.get("results", {}) else "—" for r in runs.values()) + " |")
     return "\n".join(lines)
 
 

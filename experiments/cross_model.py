@@ -8,7 +8,8 @@ the model of another, disjoint group (both directions), per robustness variant.
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
 (sorted by name, alternating: ``A`` the even positions, ``B`` the odd ones; or ``--group-a``).
 Each group is its own dataset (``robot.files``), with its own fit_model artifact. For each
-direction (train in A, evaluate in B; and B in A) and each variant, ``ppo_ff`` is trained in the
+direction (train in A, evaluate in B; and B in A) and each variant, ``--agent`` (default
+``ppo_ff``) is trained in the
 training group's model (``experiment=real_arm``'s env and agent settings) and the evaluate stage
 rolls it out on the training group's held-out goals in its own model (``own``) and in the other
 group's model (``cross``, through ``evaluation.models``). Variants:
@@ -77,18 +78,19 @@ def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
 
 
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],
-            variant: str, ensemble_seeds: int) -> dict[str, Any]:
-    """ppo_ff trained in ``train``'s model (``variant``), evaluated in its own and in ``test``'s
-    model: one row of the results table."""
+            variant: str, ensemble_seeds: int, agent: str = "ppo_ff") -> dict[str, Any]:
+    """``agent`` trained in ``train``'s model (``variant``), evaluated in its own and in
+    ``test``'s model: one row of the results table."""
     files = lambda names: f"robot.files=[{','.join(names)}]"  # noqa: E731
     other = run_stage(output_dir, "fit_model", *base, files(test))["fit_model"]
     evaluated = run_stage(output_dir, "evaluate", *base, files(train),
                           *variant_overrides(variant, ensemble_seeds),
-                          "evaluation.policies=[ppo_ff]", "evaluation.baselines=[preload]",
+                          f"evaluation.policies=[{agent}]", "evaluation.baselines=[preload]",
                           "evaluation.plant=false", f"evaluation.models=[{other.path}]")
     summary = pd.read_parquet(evaluated["evaluate"].file("summary.parquet"))
-    policy = summary[summary["controller"] == "ppo_ff"].set_index("plant")
-    row: dict[str, Any] = {"variant": variant, "train": "+".join(train), "test": "+".join(test)}
+    policy = summary[summary["controller"] == agent].set_index("plant")
+    row: dict[str, Any] = {"agent": agent, "variant": variant, "train": "+".join(train),
+                           "test": "+".join(test)}
     for where, plant in (("own", "learned"), ("cross", f"model {other.path.name}")):
         for metric in METRICS:
             row[f"{where}_{metric}"] = float(policy.loc[plant, metric])
@@ -119,6 +121,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="recording names of group A (default: every other one)")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     parser.add_argument("--seeds", type=int, default=4, help="PPO seeds per variant")
+    parser.add_argument("--agent", default="ppo_ff", choices=("ppo_ff", "ppo_rnn"))
     parser.add_argument("--ppo-steps", type=int, default=2_000_000,
                         help="PPO environment steps per seed")
     parser.add_argument("--ensemble-seeds", type=int, default=3,
@@ -129,20 +132,21 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
     group_a, group_b = groups(args.data_dir, args.group_a)
     print(f"group A: {group_a}\ngroup B: {group_b}", flush=True)
-    base = ["experiment=real_arm", "agent=ppo_ff", f"robot.data_dir={args.data_dir}",
+    base = ["experiment=real_arm", f"agent={args.agent}", f"robot.data_dir={args.data_dir}",
             f"agent.num_seeds={args.seeds}", f"agent.total_timesteps={args.ppo_steps}",
             *(QUICK if args.quick else [])]
     rows = []
     for direction, (train, test) in {"A->B": (group_a, group_b),
                                      "B->A": (group_b, group_a)}.items():
         for variant in args.variants:
-            row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds)
+            row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds,
+                          args.agent)
             rows.append({"direction": direction, **row})
     table = pd.DataFrame(rows)
     out = args.output_dir / "cross_model"
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "results.csv", index=False)
-    print(f"\nppo_ff final distance [mm] and success rates, own model vs the other group's "
+    print(f"\n{args.agent} final distance [mm] and success rates, own model vs the other group's "
           f"({args.seeds} seeds x evaluation.num_episodes episodes each)")
     print_table(table)
     print(f"\n{out / 'results.csv'}")

@@ -362,6 +362,7 @@ SHRUNK = ["experiment=quick", "robot.num_runs=2", "exploration.num_steps=30",
           "env.goal_every=4", "stage=train_ppo"]
 
 
+@pytest.mark.slow  # a minute; the members, the bank and the draws are checked one by one above
 def test_train_ppo_in_an_ensemble_of_two_model_seeds_with_randomization(make_cfg):
     cfg = make_cfg(*SHRUNK, "env.ensemble_seeds=2", "env.randomization.gain_std=0.05",
                    "env.randomization.max_delay_s=0.2")

@@ -4,8 +4,9 @@ Runs ``python -m pipeline`` (or the given overrides) in fresh processes into fre
 folders: first with an empty compilation cache (cold), then again into another fresh output
 folder with the cache the first run filled (warm). Prints each stage's wall time and, for
 train_ppo, its compile and training seconds, side by side, and the evaluation's headline
-figures (median final distance and success within 1 mm, per plant and controller). ``--ref COMMIT`` adds the same chain
-run from that commit (a temporary git worktree, with its own cold runs), where it still runs.
+figures (median final distance and success within 1 mm, per plant and controller).
+``--ref COMMIT`` adds the same chain run from that commit (a temporary git worktree, with its
+own cold runs), where it still runs.
 
     python -m bench chain [--ref a8a1940] [overrides ...]
 """

@@ -531,6 +531,13 @@ class EnvConfig:
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
 
 
+
+def incremental_actions(env: Any) -> bool:
+    """Whether the env config ``env`` acts incrementally (``env.action_mode``; absent, as in a
+    config rebuilt from an artifact's spec where it is the default: absolute)."""
+    mode = ActionMode(str(env.get("action_mode", EnvConfig.action_mode)))
+    return mode is ActionMode.incremental
+
 @dataclass
 class AgentConfig:
     """PPO (``pipeline/rl/ppo.py``); ``recurrent`` selects the GRU actor-critic."""
@@ -852,9 +859,8 @@ def _check_env(cfg: Any) -> None:
             raise ConfigError(f"env.randomization.{field_name}={value} must be finite and >= 0")
     if name is EnvName.gymnax and any(float(v) for v in randomization.values()):
         raise ConfigError("env.randomization: env=gymnax has no plant to randomize")
-    step = float(env.get("action_step_kpa", 1.0))
-    if str(env.get("action_mode", "absolute")) == "incremental" and not (
-            math.isfinite(step) and step > 0):
+    step = float(env.get("action_step_kpa", EnvConfig.action_step_kpa))
+    if incremental_actions(env) and not (math.isfinite(step) and step > 0):
         raise ConfigError(f"env.action_step_kpa={step} must be finite and > 0 (the change of a "
                           f"command per control period at action 1, env.action_mode=incremental)")
     period = 1.0 / float(cfg.robot.control_hz)

@@ -14,7 +14,13 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from pipeline.config import PROJECT_ROOT, EnvName, ModelProtocol, RobotKind
+from pipeline.config import (
+    PROJECT_ROOT,
+    EnvName,
+    ModelProtocol,
+    RobotKind,
+    incremental_actions,
+)
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
 from pipeline.rl.policy_io import init_policy_file
@@ -116,7 +122,7 @@ def env_spec(cfg: Any) -> dict[str, Any]:
     if int(env.get("ensemble_seeds", 1)) == 1:
         env.pop("ensemble_seeds", None)
     env.pop("models", None)
-    if env.get("action_mode", "absolute") == "absolute":
+    if not incremental_actions(env):
         env.pop("action_mode", None)
         env.pop("action_step_kpa", None)
     randomization = {name: value for name, value in (env.pop("randomization", None) or {}).items()

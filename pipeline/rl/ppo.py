@@ -131,7 +131,6 @@ def make_train(
     ``lax.scan``; the arguments are the same.
     """
     program = make_train_program(agent, env, env_params, eval_env_params, eval_steps)
-    num_updates = AgentConfig.from_any(agent).num_updates
     eval_env_params = env_params if eval_env_params is None else eval_env_params
 
     def train(rng: jax.Array, env_params=env_params, eval_env_params=eval_env_params,
@@ -140,7 +139,8 @@ def make_train(
         runner, (metrics, evaluation) = jax.lax.scan(
             lambda r, i: program.chunk(r, i, env_params, eval_env_params), runner,
             jnp.arange(program.num_chunks))
-        metrics = jax.tree.map(lambda x: x.reshape(num_updates, *x.shape[2:]), metrics)
+        # [num_chunks, updates_per_eval, ...] -> [num_updates, ...]
+        metrics = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), metrics)
         return TrainOutput(runner.train_state.params, metrics, evaluation)
 
     return train

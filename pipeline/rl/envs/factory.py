@@ -32,7 +32,14 @@ from gymnax.wrappers.purerl import GymnaxWrapper
 
 from pipeline.arm import sim_arm
 from pipeline.arm.safety import SafeSet, project, validate_limits
-from pipeline.config import EnvName, GoalSource, RandomizationConfig, dataclass_values
+from pipeline.config import (
+    EnvConfig,
+    EnvName,
+    GoalSource,
+    RandomizationConfig,
+    dataclass_values,
+    incremental_actions,
+)
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, read_table
 from pipeline.dynamics.training import load_dynamics, predict_run
@@ -67,7 +74,7 @@ def common_params(cfg: Any) -> dict[str, Any]:
         "goal_tolerance_m": float(env_cfg.goal_tolerance_m),
         "obs_noise_std_m": float(env_cfg.obs_noise_std),
         "error_scale_m": float(env_cfg.error_scale_m),
-        "action_step_kpa": float(env_cfg.get("action_step_kpa", 1.0)),
+        "action_step_kpa": float(env_cfg.get("action_step_kpa", EnvConfig.action_step_kpa)),
         "action_noise_std_kpa": float(env_cfg.action_noise_std),
         "max_steps": int(env_cfg.max_steps),
         "reset_bank_size": int(env_cfg.reset_bank_size),
@@ -98,8 +105,7 @@ def observation_options(env_cfg: Any) -> dict[str, Any]:
     return {"settle_seconds": float(env_cfg.settle_seconds),
             "include_last_action": bool(env_cfg.include_last_action),
             "include_error": bool(env_cfg.include_error),
-            # absent in a config rebuilt from an artifact's spec where it is the default
-            "incremental_actions": str(env_cfg.get("action_mode", "absolute")) == "incremental"}
+            "incremental_actions": incremental_actions(env_cfg)}
 
 
 def _safe_set(cfg: Any) -> SafeSet:

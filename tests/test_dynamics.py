@@ -111,3 +111,69 @@ def test_shape_asserts():
         predict_sequence(params, jnp.zeros((5, 2)), jnp.zeros(3))
     with pytest.raises(AssertionError):
         dynamics.init_carry(params, jnp.zeros(2))
+
+
+# ---------------------------------------------------------------------------------------------
+# recurrent dropout
+# ---------------------------------------------------------------------------------------------
+def test_dropout_gru_cell_is_flax_gru_cell_without_a_mask():
+    import flax.linen as nn
+
+    x, h = jnp.linspace(-1.0, 1.0, 5), jnp.linspace(0.5, -0.5, 8)
+    variables = nn.GRUCell(8).init(jax.random.PRNGKey(1), h, x)
+    ours = dynamics.DropoutGRUCell(8)
+    assert (jax.tree.structure(ours.init(jax.random.PRNGKey(1), h, x))
+            == jax.tree.structure(variables))
+    expected, _ = nn.GRUCell(8).apply(variables, h, x)
+    unmasked, _ = ours.apply(variables, h, x)
+    all_kept, _ = ours.apply(variables, h, x, jnp.ones(8))
+    np.testing.assert_allclose(unmasked, expected, rtol=1e-6)
+    np.testing.assert_allclose(all_kept, expected, rtol=1e-6)
+
+
+def test_dropout_gru_cell_masks_only_the_recurrent_products():
+    """With every unit dropped, the gates and the candidate see h = 0, while the update still
+    carries the unmasked h: h' = GRU(0, x) + z(x) h, where z(x) = sigmoid(W_iz x + b_iz)."""
+    import flax.linen as nn
+
+    x, h = jnp.linspace(-1.0, 1.0, 5), jnp.linspace(0.5, -0.5, 8)
+    variables = nn.GRUCell(8).init(jax.random.PRNGKey(2), h, x)
+    from_zero, _ = nn.GRUCell(8).apply(variables, jnp.zeros(8), x)
+    iz = variables["params"]["iz"]
+    z = jax.nn.sigmoid(x @ iz["kernel"] + iz["bias"])
+    dropped, _ = dynamics.DropoutGRUCell(8).apply(variables, h, x, jnp.zeros(8))
+    np.testing.assert_allclose(dropped, from_zero + z * h, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("cell", ["gru", "lstm"])
+def test_recurrent_dropout_keeps_the_state_bounded_over_a_long_rollout(cell):
+    """An LSTM's and a GRU's h stay in [-1, 1]: dropout rescales what enters the recurrent
+    products, never the state itself (rescaling a GRU's carry by 1 / (1 - rate) every step
+    made it grow without bound)."""
+    config = DynamicsConfig(hidden=16, layers=2, cell=cell)
+    params = make_params(config)
+    network = dynamics.make_network(config)
+    rate = 0.5
+    mask = jax.random.bernoulli(jax.random.PRNGKey(3), 1 - rate, (2, 16)) / (1 - rate)
+    inputs = jax.random.normal(jax.random.PRNGKey(4), (2000, config.input_dim)) * 3.0
+
+    def one_step(carry, x):
+        carry, _ = network.apply(params.network, carry, x, mask)
+        return carry, carry
+
+    carry0 = network.apply(params.network, jnp.zeros(3), method=type(network).initial_carry)
+    _, states = jax.lax.scan(one_step, carry0, inputs)
+    hs = [layer if cell == "gru" else layer[1] for layer in states]
+    assert all(bool(jnp.all(jnp.isfinite(h))) and float(jnp.abs(h).max()) <= 1.0 for h in hs)
+
+
+def test_recurrent_dropout_rollout_with_all_units_kept_is_the_plain_rollout():
+    for cell in ("lstm", "gru"):
+        params = make_params(DynamicsConfig(hidden=8, layers=2, cell=cell))
+        inputs = jax.random.normal(jax.random.PRNGKey(5), (30, params.config.input_dim))
+        pose = dynamics.normalize_pose(params.normalizer, jnp.array([0.03, 0.35, 0.2]))
+        plain = dynamics.predict_normalized(params, inputs, pose)
+        kept = dynamics.predict_normalized(params, inputs, pose, jnp.ones((2, 8)))
+        dropped = dynamics.predict_normalized(params, inputs, pose, jnp.zeros((2, 8)))
+        np.testing.assert_allclose(kept, plain, rtol=1e-5, atol=1e-6)
+        assert float(jnp.abs(dropped - plain).max()) > 1e-3

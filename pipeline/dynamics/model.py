@@ -136,6 +136,35 @@ class DynamicsCarry(NamedTuple):
 # ---------------------------------------------------------------------------------------------
 # network
 # ---------------------------------------------------------------------------------------------
+class DropoutGRUCell(nn.GRUCell):
+    """flax's ``GRUCell`` (same parameters and names) whose recurrent products may read a
+    dropped-out ``h`` (variational dropout, Gal & Ghahramani 2016).
+
+    The mask multiplies ``h`` where it enters the gates and the candidate (``U_r h``, ``U_z h``,
+    ``U_n h``), never the carried ``h`` of the update ``h' = (1 - z) n + z h``: masking the carry
+    itself would rescale it by ``1 / (1 - rate)`` at every step and let it grow without bound.
+    """
+
+    @nn.compact
+    def __call__(self, carry, inputs, recurrent_mask=None):
+        h = carry
+        h_in = h if recurrent_mask is None else h * recurrent_mask
+        features = h.shape[-1]
+        dense_h = functools.partial(nn.Dense, features=features, use_bias=False, dtype=self.dtype,
+                                    param_dtype=self.param_dtype,
+                                    kernel_init=self.recurrent_kernel_init,
+                                    bias_init=self.bias_init)
+        dense_i = functools.partial(nn.Dense, features=features, use_bias=True, dtype=self.dtype,
+                                    param_dtype=self.param_dtype, kernel_init=self.kernel_init,
+                                    bias_init=self.bias_init)
+        r = self.gate_fn(dense_i(name="ir")(inputs) + dense_h(name="hr")(h_in))
+        z = self.gate_fn(dense_i(name="iz")(inputs) + dense_h(name="hz")(h_in))
+        n = self.activation_fn(dense_i(name="in")(inputs)
+                               + r * dense_h(name="hn", use_bias=True)(h_in))
+        new_h = (1.0 - z) * n + z * h
+        return new_h, new_h
+
+
 class LSTMDynamicsNet(nn.Module):
     """Stacked LSTM (or GRU) + MLP head, one unbatched time step per call (vmap for batches)."""
 
@@ -147,7 +176,8 @@ class LSTMDynamicsNet(nn.Module):
 
     def setup(self):
         if self.cell == "gru":
-            self.cells = [nn.GRUCell(self.hidden, name=f"gru_{i}") for i in range(self.layers)]
+            self.cells = [DropoutGRUCell(self.hidden, name=f"gru_{i}")
+                          for i in range(self.layers)]
         else:
             self.cells = [
                 nn.OptimizedLSTMCell(self.hidden, name=f"lstm_{i}") for i in range(self.layers)
@@ -174,13 +204,24 @@ class LSTMDynamicsNet(nn.Module):
             return tuple(jnp.tanh(encoded[i, 1]) for i in range(self.layers))
         return tuple((encoded[i, 0], jnp.tanh(encoded[i, 1])) for i in range(self.layers))
 
-    def __call__(self, carry, inputs: jax.Array):
+    def __call__(self, carry, inputs: jax.Array, recurrent_mask: jax.Array | None = None):
         """One step: ``(carry_t, [D] standardized inputs_t) -> (carry_{t+1}, [3] standardized
-        y_t)``; the inputs are ``p_t`` and its features (:func:`network_inputs`)."""
+        y_t)``; the inputs are ``p_t`` and its features (:func:`network_inputs`).
+
+        ``recurrent_mask`` ([layers, hidden], training only): recurrent dropout, multiplying each
+        layer's ``h`` where it enters the cell's recurrent products (for the LSTM that is all of
+        ``h_t``'s use; its cell state ``c`` and the outputs are never masked).
+        """
         features = inputs
         next_carry = []
-        for cell, layer_carry in zip(self.cells, carry):
-            layer_carry, features = cell(layer_carry, features)
+        for i, (cell, layer_carry) in enumerate(zip(self.cells, carry)):
+            if recurrent_mask is None:
+                layer_carry, features = cell(layer_carry, features)
+            elif self.cell == "gru":
+                layer_carry, features = cell(layer_carry, features, recurrent_mask[i])
+            else:
+                c, h = layer_carry
+                layer_carry, features = cell((c, h * recurrent_mask[i]), features)
             next_carry.append(layer_carry)
         for dense in self.head_layers:
             features = nn.relu(dense(features))
@@ -207,17 +248,6 @@ def init_network(key: jax.Array, config: DynamicsConfig) -> Any:
     pose = jnp.zeros((POSITION_DIM,), jnp.float32)
     inputs = jnp.zeros((config.input_dim,), jnp.float32)
     return make_network(config).init(key, pose, inputs, method=LSTMDynamicsNet.initialize)
-
-
-def mask_hidden(carry: tuple[Any, ...], mask: jax.Array) -> tuple[Any, ...]:
-    """The carry with each layer's ``h`` multiplied by ``mask[layer]`` ([layers, hidden]).
-
-    Recurrent (variational) dropout during training: one mask per window, every step.
-    """
-    return tuple(
-        (layer[0], layer[1] * mask[i]) if isinstance(layer, tuple) else layer * mask[i]
-        for i, layer in enumerate(carry)
-    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -346,8 +376,8 @@ def predict_normalized(
     """Open-loop rollout in standardized units: [T, D], [3] -> [T, 3] (the training path).
 
     ``inputs``: :func:`network_inputs` rows (``D = config.input_dim``). ``hidden_mask``
-    ([layers, hidden], optional): multiplies each layer's ``h`` after every step (recurrent
-    dropout in training).
+    ([layers, hidden], optional): one recurrent-dropout mask for the whole rollout (training),
+    see :meth:`LSTMDynamicsNet.__call__`.
     """
     chex.assert_shape(inputs, (None, params.config.input_dim))
     chex.assert_shape(pose_normalized, (POSITION_DIM,))
@@ -355,10 +385,7 @@ def predict_normalized(
     carry = network.apply(params.network, pose_normalized, method=LSTMDynamicsNet.initial_carry)
 
     def one_step(carry, inputs_t):
-        carry, output = network.apply(params.network, carry, inputs_t)
-        if hidden_mask is not None:
-            carry = mask_hidden(carry, hidden_mask)
-        return carry, output
+        return network.apply(params.network, carry, inputs_t, hidden_mask)
 
     _, outputs = jax.lax.scan(one_step, carry, inputs)
     return outputs

@@ -451,6 +451,8 @@ class ModelConfig:
     checkpoint_every: int = 500
     seed: int = 0
     reference_pose: ReferencePose = ReferencePose.run_start
+    # gru: with the default dropout as accurate leave-one-run-out as the LSTM (2.81 against
+    # 2.82 mm over 3 seeds) at about 4/5 of its training CPU
     cell: Cell = Cell.lstm
     # input features (pipeline/model_features.py); empty / false: off
     # default: the last command step and the time since it (leave-one-run-out on the real runs

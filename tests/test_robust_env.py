@@ -52,12 +52,17 @@ def toy(plant=None, plant_params=None, **overrides):
     return env, params
 
 
+@functools.partial(jax.jit, static_argnums=(0, 4))
 def hold_command(env, params, state, pressure, periods=1):
-    """Step ``periods`` control periods commanding ``pressure [3]`` kPa; the last state."""
+    """Step ``periods`` control periods commanding ``pressure [3]`` kPa; the last state (one
+    compiled program: the env's steps scanned, period ``k`` with ``PRNGKey(50 + k)``)."""
     action = env.pressure_to_action(jnp.asarray(pressure, jnp.float32), params)
-    for period in range(periods):
-        _, state, *_ = env.step_env(jax.random.PRNGKey(50 + period), state, action, params)
-    return state
+    keys = jax.vmap(jax.random.PRNGKey)(50 + jnp.arange(periods))
+
+    def one_period(state, key):
+        return env.step_env(key, state, action, params)[1], None
+
+    return jax.lax.scan(one_period, state, keys)[0]
 
 
 # ---- defaults ---------------------------------------------------------------------------------
@@ -255,13 +260,17 @@ def test_even_and_odd_bank_entries_follow_members_zero_and_one(selection):
     np.testing.assert_array_equal(params.reset_carries.member, [0, 1, 0, 1])
     gain_matrix = members[0].gain
     command = jnp.array([5.0, 1.0, 3.0])
-    for entry in range(4):
-        carry = jax.tree.map(lambda leaf, i=entry: leaf[i], params.reset_carries)
+
+    @jax.vmap
+    @jax.jit
+    def moved(entry):  # one compiled program for the four bank entries
+        carry = jax.tree.map(lambda leaf: leaf[entry], params.reset_carries)
         state = env.start_state(jax.random.PRNGKey(entry), carry,
                                 params.reset_positions[entry], GOALS[0], params)
-        moved = hold_command(env, params, state, command, periods=12).position - state.position
-        np.testing.assert_allclose(moved, (1 + entry % 2) * gain_matrix @ (command - 2.0),
-                                   atol=1e-7)
+        return hold_command(env, params, state, command, periods=12).position - state.position
+
+    expected = [(1 + entry % 2) * gain_matrix @ (command - 2.0) for entry in range(4)]
+    np.testing.assert_allclose(moved(jnp.arange(4)), np.stack(expected), atol=1e-7)
 
 
 def test_members_are_drawn_about_uniformly():

@@ -533,12 +533,12 @@ class EnvConfig:
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
 
 
-
 def incremental_actions(env: Any) -> bool:
     """Whether the env config ``env`` acts incrementally (``env.action_mode``; absent, as in a
     config rebuilt from an artifact's spec where it is the default: absolute)."""
     mode = ActionMode(str(env.get("action_mode", EnvConfig.action_mode)))
     return mode is ActionMode.incremental
+
 
 @dataclass
 class AgentConfig:

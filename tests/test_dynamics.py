@@ -116,15 +116,21 @@ def test_shape_asserts():
 # ---------------------------------------------------------------------------------------------
 # recurrent dropout
 # ---------------------------------------------------------------------------------------------
-def test_dropout_gru_cell_is_flax_gru_cell_without_a_mask():
+def flax_gru_and_inputs(seed):
+    """flax's GRUCell with 8 units, its variables, an input ``x`` [5] and a state ``h`` [8]."""
     import flax.linen as nn
 
     x, h = jnp.linspace(-1.0, 1.0, 5), jnp.linspace(0.5, -0.5, 8)
-    variables = nn.GRUCell(8).init(jax.random.PRNGKey(1), h, x)
+    cell = nn.GRUCell(8)
+    return cell, cell.init(jax.random.PRNGKey(seed), h, x), x, h
+
+
+def test_dropout_gru_cell_is_flax_gru_cell_without_a_mask():
+    flax_cell, variables, x, h = flax_gru_and_inputs(1)
     ours = dynamics.DropoutGRUCell(8)
     assert (jax.tree.structure(ours.init(jax.random.PRNGKey(1), h, x))
             == jax.tree.structure(variables))
-    expected, _ = nn.GRUCell(8).apply(variables, h, x)
+    expected, _ = flax_cell.apply(variables, h, x)
     unmasked, _ = ours.apply(variables, h, x)
     all_kept, _ = ours.apply(variables, h, x, jnp.ones(8))
     np.testing.assert_allclose(unmasked, expected, rtol=1e-6)
@@ -134,11 +140,8 @@ def test_dropout_gru_cell_is_flax_gru_cell_without_a_mask():
 def test_dropout_gru_cell_masks_only_the_recurrent_products():
     """With every unit dropped, the gates and the candidate see h = 0, while the update still
     carries the unmasked h: h' = GRU(0, x) + z(x) h, where z(x) = sigmoid(W_iz x + b_iz)."""
-    import flax.linen as nn
-
-    x, h = jnp.linspace(-1.0, 1.0, 5), jnp.linspace(0.5, -0.5, 8)
-    variables = nn.GRUCell(8).init(jax.random.PRNGKey(2), h, x)
-    from_zero, _ = nn.GRUCell(8).apply(variables, jnp.zeros(8), x)
+    flax_cell, variables, x, h = flax_gru_and_inputs(2)
+    from_zero, _ = flax_cell.apply(variables, jnp.zeros(8), x)
     iz = variables["params"]["iz"]
     z = jax.nn.sigmoid(x @ iz["kernel"] + iz["bias"])
     dropped, _ = dynamics.DropoutGRUCell(8).apply(variables, h, x, jnp.zeros(8))
@@ -172,9 +175,9 @@ def test_recurrent_dropout_rollout_with_all_units_kept_is_the_plain_rollout(cell
     params = make_params(DynamicsConfig(hidden=8, layers=2, cell=cell))
     inputs = jax.random.normal(jax.random.PRNGKey(5), (30, params.config.input_dim))
     pose = dynamics.normalize_pose(params.normalizer, jnp.array([0.03, 0.35, 0.2]))
-    plain = jax.jit(dynamics.predict_normalized)(params, inputs, pose)
-    masked = jax.jit(dynamics.predict_normalized)  # one program for both masks
-    kept = masked(params, inputs, pose, jnp.ones((2, 8)))
-    dropped = masked(params, inputs, pose, jnp.zeros((2, 8)))
+    rollout = jax.jit(dynamics.predict_normalized)  # one program for both masks
+    plain = rollout(params, inputs, pose)
+    kept = rollout(params, inputs, pose, jnp.ones((2, 8)))
+    dropped = rollout(params, inputs, pose, jnp.zeros((2, 8)))
     np.testing.assert_allclose(kept, plain, rtol=1e-5, atol=1e-6)
     assert float(jnp.abs(dropped - plain).max()) > 1e-3

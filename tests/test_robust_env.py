@@ -261,8 +261,8 @@ def test_even_and_odd_bank_entries_follow_members_zero_and_one(selection):
     gain_matrix = members[0].gain
     command = jnp.array([5.0, 1.0, 3.0])
 
-    @jax.vmap
     @jax.jit
+    @jax.vmap
     def moved(entry):  # one compiled program for the four bank entries
         carry = jax.tree.map(lambda leaf: leaf[entry], params.reset_carries)
         state = env.start_state(jax.random.PRNGKey(entry), carry,

@@ -151,14 +151,18 @@ def test_band_coverage_and_ensemble_mean():
 
 
 def test_protocol_defaults_cv_for_recorded_data_and_split_for_the_simulated_arm(make_cfg):
-    from pipeline.keys import fit_model_spec
     from pipeline.keys import model_protocol as protocol
 
     assert protocol(make_cfg()) == "split"
     assert protocol(make_cfg("robot=sorolex_csv")) == "cv"
     assert protocol(make_cfg("robot=sorolex_csv", "dataset.protocol=split")) == "split"
     assert protocol(make_cfg("dataset.protocol=cv")) == "cv"
-    cv_spec, _ = fit_model_spec(make_cfg("robot=sorolex_csv"))
+
+
+def test_the_cv_key_leaves_out_the_train_fraction(make_cfg, sorolex_dir):
+    from pipeline.keys import fit_model_spec
+
+    cv_spec, _ = fit_model_spec(make_cfg("robot=sorolex_csv", f"robot.data_dir={sorolex_dir}"))
     assert cv_spec["dataset"]["protocol"] == "cv" and "train_fraction" not in cv_spec["dataset"]
 
 

@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.__main__ import run
-from pipeline.evaluation import rollouts
+from pipeline.evaluation import closed_loop, rollouts
+from pipeline.evaluation.closed_loop import rollout_program
 from pipeline.evaluation.metrics import episode_metrics
 from pipeline.infra.parquet import read_metadata
 from pipeline.rl.envs.factory import make_sim_env
@@ -57,7 +58,7 @@ TINY = ["experiment=quick", "robot.num_runs=2", "exploration.num_steps=40",
         "model.checkpoint_every=10", "dataset.window=32", "dataset.train_fraction=0.5"]
 
 
-def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg):
+def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, monkeypatch):
     cfg = make_cfg(*TINY)
     results = run(cfg)  # collect -> align -> fit_model -> train_ppo (both types) -> evaluate
     assert list(results) == ["collect", "align", "fit_model", "train_ppo", "evaluate"]
@@ -100,7 +101,16 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg):
     # as a separate plant with its own settled starts, same goals and observation
     model = results["fit_model"]
     cfg.stage, cfg.evaluation.models = "evaluate", [str(model.path)]
+    built = []  # the environment of every rollout program compiled
+
+    def counting(env, make):
+        built.append(env)
+        return rollout_program(env, make)
+
+    monkeypatch.setattr(closed_loop, "rollout_program", counting)
     crossed = run(cfg)["evaluate"]
+    # the other model runs the learned env's programs: one per (environment, controller)
+    assert len(built) == 2 * 4 and len({id(env) for env in built}) == 2
     assert crossed.key != artifact.key
     summary = pd.read_parquet(crossed.file("summary.parquet"))
     other = f"model {model.key}"

@@ -129,17 +129,20 @@ def _controllers(cfg, env, params, learned_params, policies_loaded, num_episodes
 
 
 class _Programs:
-    """The compiled rollout program of each (plant, controller kind), built on first use."""
+    """The compiled rollout program of each (environment, controller kind), built on first use:
+    plants that differ only in their parameters (the learned model and other fitted models) run
+    the same program."""
 
     def __init__(self):
-        self._programs: dict[tuple[str, str], Callable[..., Any]] = {}
+        self._programs: dict[tuple[int, str], Callable[..., Any]] = {}
 
-    def run(self, plant: str, name: str, env: SoftArmReachEnv, env_params: EnvParams,
+    def run(self, name: str, env: SoftArmReachEnv, env_params: EnvParams,
             controllers: Controllers, keys, starts, goals) -> tuple[np.ndarray, np.ndarray]:
-        if (plant, name) not in self._programs:
-            self._programs[(plant, name)] = rollout_program(env, controllers.make)
+        program = (id(env), name)
+        if program not in self._programs:
+            self._programs[program] = rollout_program(env, controllers.make)
         start_carries, start_positions = starts
-        positions, commands = self._programs[(plant, name)](
+        positions, commands = self._programs[program](
             env_params, controllers.params, controllers.carries, keys, start_carries,
             start_positions, goals)
         return np.asarray(positions), np.asarray(commands)
@@ -193,8 +196,8 @@ def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv
         controllers = _controllers(cfg, plant_env_i, plant_params, eval_params, loaded, episodes)
         starts = _starts(plant_params, episodes)
         for controller, batch in controllers.items():
-            positions, commands = programs.run(plant_name, controller, plant_env_i, plant_params,
-                                               batch, keys, starts, goal_paths)
+            positions, commands = programs.run(controller, plant_env_i, plant_params, batch,
+                                               keys, starts, goal_paths)
             for seed in range(positions.shape[0]):
                 table = episode_metrics(positions[seed], np.asarray(goals), commands[seed],
                                         limits)
@@ -254,7 +257,7 @@ def _consecutive(cfg, plants, loaded, key, eval_params, programs: _Programs) -> 
         for controller, batch in controllers.items():
             if controller in ("preload", "random"):
                 continue
-            positions, _ = programs.run(plant_name, controller, env, params, batch, keys, starts,
+            positions, _ = programs.run(controller, env, params, batch, keys, starts,
                                         jnp.asarray(goals))
             ends = positions[:, :, per_goal::per_goal]  # pose at the end of each goal's time
             targets = goals[:, per_goal - 1::per_goal]

@@ -134,11 +134,11 @@ class _Programs:
     the same program."""
 
     def __init__(self):
-        self._programs: dict[tuple[int, str], Callable[..., Any]] = {}
+        self._programs: dict[tuple[SoftArmReachEnv, str], Callable[..., Any]] = {}
 
     def run(self, name: str, env: SoftArmReachEnv, env_params: EnvParams,
             controllers: Controllers, keys, starts, goals) -> tuple[np.ndarray, np.ndarray]:
-        program = (id(env), name)
+        program = (env, name)  # environments compare by identity
         if program not in self._programs:
             self._programs[program] = rollout_program(env, controllers.make)
         start_carries, start_positions = starts

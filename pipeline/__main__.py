@@ -34,7 +34,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pipeline import cli, keys
-from pipeline.arm.safety import UnsafeCommandError
+from pipeline.arm.limits import UnsafeCommandError
 from pipeline.config import ConfigError, RobotKind, Stage, register_configs, validate_config
 from pipeline.data.importers import RecordingNotFoundError
 from pipeline.data.raw import CollectionInterrupted

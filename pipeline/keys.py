@@ -23,7 +23,6 @@ from pipeline.config import (
 )
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
-from pipeline.rl.policy_io import init_policy_file
 
 Spec = tuple[dict[str, Any], dict[str, str]]
 
@@ -167,6 +166,8 @@ def train_ppo_spec(cfg: Any) -> Spec:
             agent.pop(name, None)
     spec: dict[str, Any] = {"env": env_spec(cfg), "agent": agent, "seed": int(cfg.seed)}
     if agent.get("init_policy"):  # a warm start: the starting policy's content decides too
+        from pipeline.rl.policy_io import init_policy_file  # JAX only where a policy is read
+
         path = init_policy_file(agent["init_policy"])
         spec["init_policy_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
     inputs: dict[str, str] = {}

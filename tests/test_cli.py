@@ -49,3 +49,35 @@ def test_the_command_line_exits_with_that_message():
     assert done.returncode == 1
     assert "Unknown config key 'exploration.alpah'" in done.stderr
     assert "exploration.alpha" in done.stderr and "+exploration" not in done.stderr
+
+
+def _python(code: str) -> subprocess.CompletedProcess:
+    env = {key: value for key, value in os.environ.items() if not key.startswith("JAX_")}
+    env["PYTHONPATH"] = str(PROJECT_ROOT)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=PROJECT_ROOT, env=env, timeout=120)
+
+
+def test_the_entry_point_and_the_guard_start_without_jax():
+    """Composing, keying and the command checks are NumPy: a run that reuses its artifact, or the
+    guard between a controller and the valves, does not load JAX for them."""
+    done = _python("import sys, pipeline.__main__, pipeline.keys, pipeline.stages.guard, "
+                   "pipeline.ros2.guard; print(sorted(m for m in sys.modules if m == 'jax' "
+                   "or m.startswith(('jax.', 'distrax', 'tensorflow_probability'))))")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+
+
+def test_the_compilation_cache_reaches_a_jax_imported_before_or_after(tmp_path):
+    done = _python(
+        "from pipeline.infra.compile_cache import use_compilation_cache\n"
+        f"use_compilation_cache({str(tmp_path / 'before')!r}, 0.25)\n"
+        "import jax\n"
+        "print(jax.config.jax_compilation_cache_dir,\n"
+        "      jax.config.jax_persistent_cache_min_compile_time_secs)\n"
+        f"use_compilation_cache({str(tmp_path / 'after')!r}, 2.0)\n"
+        "print(jax.config.jax_compilation_cache_dir,\n"
+        "      jax.config.jax_persistent_cache_min_compile_time_secs)\n")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [str(tmp_path / "before"), "0.25", str(tmp_path / "after"), "2.0"]
+    assert (tmp_path / "before").is_dir() and (tmp_path / "after").is_dir()

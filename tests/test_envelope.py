@@ -13,7 +13,7 @@ import pytest
 
 import pipeline.__main__ as router
 from pipeline.__main__ import DRIVES_ARM, run, stages_to_run
-from pipeline.arm.safety import UnsafeCommandError
+from pipeline.arm.limits import UnsafeCommandError
 from pipeline.config import PROJECT_ROOT, ConfigError, Stage, validate_config
 from pipeline.ros2.gate import CommandGate
 

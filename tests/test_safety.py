@@ -11,7 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.arm.safety import SafeSet, assert_safe, project, validate_limits
+from pipeline.arm.limits import assert_safe, validate_limits
+from pipeline.arm.safety import SafeSet, project
 
 LIMITS = SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0, preload=2.0)
 SAFE = SafeSet.from_limits(LIMITS)

@@ -2,8 +2,8 @@
 
 Safe set: ``p_min <= p_j <= p_max`` for every valve j and ``sum_j p_j <= sum_max`` (kPa).
 Exploration, policies and the hardware path all call :func:`project`; the hardware path then
-checks the projected command once more in float64 with :func:`assert_safe` before it leaves the
-process, so a bug upstream can stop a command but never send one outside the limits.
+checks the projected command once more in float64 with :func:`pipeline.arm.limits.assert_safe`
+before it leaves the process, so a bug upstream can stop a command but never send one outside the limits.
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+
+from pipeline.arm.limits import validate_limits
 
 # Bisection on the multiplier of the sum constraint: 40 halvings of a bracket of at most a few
 # tens of kPa resolve it far below float32 precision.
@@ -58,25 +60,6 @@ def _float32_inside(value: float, upward: bool) -> np.float32:
     return rounded
 
 
-def validate_limits(limits: Any, n_valves: int = 3) -> None:
-    """Reject limit settings whose safe set is empty or excludes the preload."""
-    p_min, p_max, sum_max = float(limits.p_min), float(limits.p_max), float(limits.sum_max)
-    if not p_min < p_max:
-        raise ValueError(f"robot.limits: p_min={p_min} must be below p_max={p_max} kPa")
-    if not n_valves * p_min < sum_max:
-        raise ValueError(
-            f"robot.limits: sum_max={sum_max} kPa must exceed {n_valves} x p_min={p_min} kPa"
-        )
-    preload = getattr(limits, "preload", None)
-    if preload is not None:
-        preload = float(preload)
-        if not (p_min <= preload <= p_max and n_valves * preload <= sum_max):
-            raise ValueError(
-                f"robot.limits: preload={preload} kPa is outside the safe set "
-                f"[{p_min}, {p_max}] per valve, sum <= {sum_max}"
-            )
-
-
 def project(pressures: chex.Array, safe: SafeSet) -> chex.Array:
     """Euclidean projection of ``pressures [..., n_valves]`` onto the safe set.
 
@@ -106,22 +89,3 @@ def project(pressures: chex.Array, safe: SafeSet) -> chex.Array:
     _, hi = jax.lax.fori_loop(0, _BISECTION_STEPS, bisect, (lo, hi))
     box = clipped(jnp.zeros_like(lo))
     return jnp.where((box.sum(-1) <= target)[..., None], box, clipped(hi))
-
-
-class UnsafeCommandError(ValueError):
-    """A pressure command outside the limits or the arm's rating was stopped before sending."""
-
-
-def assert_safe(command: np.ndarray, limits: Any, what: str = "robot.limits") -> np.ndarray:
-    """Final float64 gate before a command leaves the process; raises
-    :class:`UnsafeCommandError` if unsafe. ``what`` names the bounds in the message."""
-    p = np.asarray(command, dtype=np.float64)
-    if not np.all(np.isfinite(p)):
-        raise UnsafeCommandError(f"refusing non-finite pressure command {p.tolist()}")
-    p_min, p_max, sum_max = float(limits.p_min), float(limits.p_max), float(limits.sum_max)
-    if (p < p_min).any() or (p > p_max).any() or p.sum() > sum_max:
-        raise UnsafeCommandError(
-            f"refusing pressure command {p.tolist()} kPa outside {what}: "
-            f"[{p_min}, {p_max}] per valve, sum <= {sum_max}"
-        )
-    return p

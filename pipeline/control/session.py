@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from pipeline import keys
-from pipeline.arm.safety import validate_limits
+from pipeline.arm.limits import validate_limits
 from pipeline.config import RobotKind
 from pipeline.control.goals import GoalError, GoalSchedule, goal_schedule
 from pipeline.control.loop import ControlLoop, Outcome, SimArm

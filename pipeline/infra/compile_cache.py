@@ -3,14 +3,17 @@ processes (runs, sweep jobs, tests) instead of compiling the same program again.
 
 JAX writes each entry under a content hash of the program and its compile options, so parallel
 sweep jobs may share one folder: the same program gives the same entry, written whole.
+
+JAX itself is not imported here: a process that never compiles (an artifact reused, a ROS 2 node
+that only checks commands) starts without loading it.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import sys
 from pathlib import Path
-
-import jax
 
 log = logging.getLogger(__name__)
 
@@ -22,7 +25,13 @@ def use_compilation_cache(folder: str | Path | None, min_compile_seconds: float 
         return
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    settings = {"jax_compilation_cache_dir": str(folder),
+                "jax_persistent_cache_min_compile_time_secs": float(min_compile_seconds),
+                "jax_persistent_cache_min_entry_size_bytes": 0}
+    # JAX reads each option from its upper-case environment variable when it is imported (later
+    # in this process, or in a child); a JAX already imported is told directly
+    os.environ.update({name.upper(): str(value) for name, value in settings.items()})
+    if "jax" in sys.modules:
+        for name, value in settings.items():
+            sys.modules["jax"].config.update(name, value)
     log.debug("JAX compilation cache in %s", folder)

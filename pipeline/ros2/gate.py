@@ -1,7 +1,7 @@
 """The safety gate every pressure command passes on its way to the valves.
 
 First the same projection onto the safe set as the exploration (:func:`pipeline.arm.safety.project`),
-then the float64 check :func:`pipeline.arm.safety.assert_safe` against ``robot.limits`` and the
+then the float64 check :func:`pipeline.arm.limits.assert_safe` against ``robot.limits`` and the
 arm's ``robot.rating`` right before it is published: a bug upstream (or a config whose limits
 escaped validation) can stop the collection but never send a command outside either.
 """
@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline.arm.safety import SafeSet, assert_safe, project
+from pipeline.arm.limits import assert_safe
+from pipeline.arm.safety import SafeSet, project
 
 
 class CommandGate:
@@ -44,7 +45,7 @@ class CommandGate:
 
     def check(self, pressures: np.ndarray) -> np.ndarray:
         """``pressures`` in float64 if inside the limits and the rating; else
-        :class:`pipeline.arm.safety.UnsafeCommandError`."""
+        :class:`pipeline.arm.limits.UnsafeCommandError`."""
         if self.rating is not None:
             assert_safe(pressures, self.rating, "the arm's rating robot.rating")
         return assert_safe(pressures, self.limits)

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.arm.safety import UnsafeCommandError, assert_safe
+from pipeline.arm.limits import UnsafeCommandError, assert_safe
 from pipeline.config import RobotKind
 from pipeline.data.ros_messages import message_class, read_pressures, write_pressures
 from pipeline.ros2.node import StopSignals, qos_profile, require_rclpy, ros_node

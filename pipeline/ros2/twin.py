@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pipeline.arm import sim_arm
-from pipeline.arm.safety import UnsafeCommandError, validate_limits
+from pipeline.arm.limits import UnsafeCommandError, validate_limits
 from pipeline.config import RobotKind
 from pipeline.data.ros_messages import (
     NS_PER_S,

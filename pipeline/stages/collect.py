@@ -30,7 +30,7 @@ from omegaconf import OmegaConf
 from pipeline import keys
 from pipeline.arm import sim_arm
 from pipeline.arm.exploration import exploration_plan, plan_keys, plot_walks
-from pipeline.arm.safety import validate_limits
+from pipeline.arm.limits import validate_limits
 from pipeline.config import RobotKind
 from pipeline.data.importers import READERS, list_recordings, recording_id
 from pipeline.data.raw import CollectionInterrupted, write_raw

@@ -31,7 +31,8 @@ from gymnax.environments import spaces
 from gymnax.wrappers.purerl import GymnaxWrapper
 
 from pipeline.arm import sim_arm
-from pipeline.arm.safety import SafeSet, project, validate_limits
+from pipeline.arm.limits import validate_limits
+from pipeline.arm.safety import SafeSet, project
 from pipeline.config import (
     EnvConfig,
     EnvName,

@@ -3,7 +3,8 @@
 Safe set: ``p_min <= p_j <= p_max`` for every valve j and ``sum_j p_j <= sum_max`` (kPa).
 Exploration, policies and the hardware path all call :func:`project`; the hardware path then
 checks the projected command once more in float64 with :func:`pipeline.arm.limits.assert_safe`
-before it leaves the process, so a bug upstream can stop a command but never send one outside the limits.
+before it leaves the process, so a bug upstream can stop a command but never send one outside the
+limits.
 """
 
 from __future__ import annotations

@@ -11,10 +11,16 @@ from pipeline.cli import unknown_key_message
 from pipeline.config import PROJECT_ROOT
 
 
+def _python(*args: str) -> subprocess.CompletedProcess:
+    """``python *args`` in the project, without the caller's JAX_* settings."""
+    env = {key: value for key, value in os.environ.items() if not key.startswith("JAX_")}
+    env["PYTHONPATH"] = str(PROJECT_ROOT)
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True,
+                          cwd=PROJECT_ROOT, env=env, timeout=120)
+
+
 def _pipeline(*args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(PROJECT_ROOT)}
-    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True,
-                          text=True, cwd=PROJECT_ROOT, env=env, timeout=120)
+    return _python("-m", "pipeline", *args)
 
 
 def test_help_names_the_stages_and_groups_in_under_40_lines():
@@ -51,17 +57,10 @@ def test_the_command_line_exits_with_that_message():
     assert "exploration.alpha" in done.stderr and "+exploration" not in done.stderr
 
 
-def _python(code: str) -> subprocess.CompletedProcess:
-    env = {key: value for key, value in os.environ.items() if not key.startswith("JAX_")}
-    env["PYTHONPATH"] = str(PROJECT_ROOT)
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          cwd=PROJECT_ROOT, env=env, timeout=120)
-
-
 def test_the_entry_point_and_the_guard_start_without_jax():
     """Composing, keying and the command checks are NumPy: a run that reuses its artifact, or the
     guard between a controller and the valves, does not load JAX for them."""
-    done = _python("import sys, pipeline.__main__, pipeline.keys, pipeline.stages.guard, "
+    done = _python("-c", "import sys, pipeline.__main__, pipeline.keys, pipeline.stages.guard, "
                    "pipeline.ros2.guard; print(sorted(m for m in sys.modules if m == 'jax' "
                    "or m.startswith(('jax.', 'distrax', 'tensorflow_probability'))))")
     assert done.returncode == 0, done.stderr
@@ -70,6 +69,7 @@ def test_the_entry_point_and_the_guard_start_without_jax():
 
 def test_the_compilation_cache_reaches_a_jax_imported_before_or_after(tmp_path):
     done = _python(
+        "-c",
         "from pipeline.infra.compile_cache import use_compilation_cache\n"
         f"use_compilation_cache({str(tmp_path / 'before')!r}, 0.25)\n"
         "import jax\n"

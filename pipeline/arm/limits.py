@@ -1,9 +1,9 @@
 """The float64 checks of pressure limits, in NumPy only: what a command must pass before it leaves
 the process (:func:`assert_safe`) and what a limits setting must be (:func:`validate_limits`).
 
-Kept apart from the JAX projection (:mod:`pipeline.arm.safety`) so that a process that only checks
-commands (the guard between a controller and the valves) or limits (the entry point, a stage that
-reuses its artifact) does not load JAX for it.
+Kept apart from the JAX projection (:mod:`pipeline.arm.safety`) so that the entry point and a
+process that only checks commands (the guard between a controller and the valves) do not load JAX
+for it.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ processes (runs, sweep jobs, tests) instead of compiling the same program again.
 JAX writes each entry under a content hash of the program and its compile options, so parallel
 sweep jobs may share one folder: the same program gives the same entry, written whole.
 
-JAX itself is not imported here: a process that never compiles (an artifact reused, a ROS 2 node
-that only checks commands) starts without loading it.
+JAX itself is not imported here: a process that never compiles (the guard, which only checks
+commands) starts without loading it.
 """
 
 from __future__ import annotations

@@ -12,15 +12,16 @@ direction (train in A, evaluate in B; and B in A) and each variant, ``--agent`` 
 ``ppo_ff``) is trained in the
 training group's model (``experiment=real_arm``'s env and agent settings) and the evaluate stage
 rolls it out on the training group's held-out goals in its own model (``own``) and in the other
-group's model (``cross``, through ``evaluation.models``). Variants:
+group's model (``cross``, through ``evaluation.models``). Variants, made of
+``experiment=real_arm``'s robustness settings (its incremental actions and its per-episode
+randomization of the plant, ``env.randomization``):
 
-- ``plain``: as today;
-- ``ensemble``: in an ensemble of ``--ensemble-seeds`` model seeds (``env.ensemble_seeds``);
-- ``randomized``: with the plant randomized per episode (``RANDOMIZATION``);
+- ``plain``: absolute actions, no randomization (the model as it is);
+- ``ensemble``: plain, in an ensemble of ``--ensemble-seeds`` model seeds (``env.ensemble_seeds``);
+- ``randomized``: absolute actions, the plant randomized;
 - ``both``: the ensemble, randomized;
-- ``incremental``: incremental actions (``env.action_mode=incremental``, ``INCREMENTAL_STEP_KPA``
-  per control period): integral action;
-- ``incremental_randomized``: incremental actions, randomized.
+- ``incremental``: incremental actions (integral action), no randomization;
+- ``incremental_randomized``: incremental actions, randomized: ``experiment=real_arm`` as it is.
 
 Printed per variant and direction: median final distance, its 90th percentile and the success
 rates within 1 and 3 mm (all seeds' episodes together), own and cross; the table is also written
@@ -40,12 +41,6 @@ import pandas as pd
 
 from experiments.paper_figures import run_stage
 
-# per-episode randomization of the `randomized` variants: a few per cent of valve gain, a tenth of
-# a kPa of offset, up to half a period of delay, a millimetre of rest-pose error, and up to about
-# half a millimetre of drift over a 20 s episode
-RANDOMIZATION = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
-                 "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5}
-INCREMENTAL_STEP_KPA = 1.0
 VARIANTS = ("plain", "ensemble", "randomized", "both", "incremental", "incremental_randomized")
 QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
          "dataset.window=32", "agent.num_envs=16", "agent.num_steps=8", "agent.num_evals=1",
@@ -69,12 +64,15 @@ def groups(data_dir: Path, group_a: list[str] | None) -> tuple[list[str], list[s
 
 
 def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
+    """The overrides of ``variant`` on top of ``experiment=real_arm`` (incremental, randomized)."""
+    from pipeline.config import no_randomization_overrides
+
+    absolute, no_randomization = ["env.action_mode=absolute"], no_randomization_overrides()
     ensemble = [f"env.ensemble_seeds={ensemble_seeds}"]
-    randomized = [f"env.randomization.{name}={value}" for name, value in RANDOMIZATION.items()]
-    incremental = ["env.action_mode=incremental", f"env.action_step_kpa={INCREMENTAL_STEP_KPA}"]
-    return {"plain": [], "ensemble": ensemble, "randomized": randomized,
-            "both": ensemble + randomized, "incremental": incremental,
-            "incremental_randomized": incremental + randomized}[variant]
+    return {"plain": absolute + no_randomization,
+            "ensemble": absolute + no_randomization + ensemble, "randomized": absolute,
+            "both": absolute + ensemble, "incremental": no_randomization,
+            "incremental_randomized": []}[variant]
 
 
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],

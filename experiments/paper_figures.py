@@ -253,13 +253,16 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
                   steps: int) -> None:
     import matplotlib.pyplot as plt
 
+    from pipeline.config import no_randomization_overrides
     from pipeline.rl.results import RETURN_LABEL, training_curves
 
     fig, ax = plt.subplots(figsize=(8, 4.2))
     finals, durations, cfg = {}, {}, None
+    # the paper's task: absolute pressures, the model as it is (no robustness settings)
+    paper_task = ("env.action_mode=absolute", *no_randomization_overrides())
     for i, agent in enumerate(("ppo_ff", "ppo_rnn")):
-        overrides = ("experiment=real_arm", f"agent={agent}", f"agent.num_seeds={seeds}",
-                     f"agent.total_timesteps={steps}")
+        overrides = ("experiment=real_arm", *paper_task, f"agent={agent}",
+                     f"agent.num_seeds={seeds}", f"agent.total_timesteps={steps}")
         artifact = run_stage(output_dir, "train_ppo", *overrides)["train_ppo"]
         summary = artifact.manifest["summary"]
         durations[agent] = float(summary["compile_seconds"]) + float(summary["train_seconds"])
@@ -293,7 +296,7 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
         "permuted-order model of Fig. 6), mean ± one std over seeds; the return of an update "
         "is the mean over the training episodes that ended in it, the first updates (no episode "
         f"could yet have lasted {int(cfg.env.max_steps)} periods) left out. Run: python -m "
-        f"pipeline stage=train_ppo experiment=real_arm agent=ppo_ff|ppo_rnn "
+        f"pipeline stage=train_ppo experiment=real_arm {' '.join(paper_task)} agent=ppo_ff|ppo_rnn "
         f"agent.num_seeds={seeds} agent.total_timesteps={steps} ({durations['ppo_ff']:.0f} s and "
         f"{durations['ppo_rnn']:.0f} s of compilation and training). Shrunk to run in minutes: "
         f"{'; '.join(shrunk)}. Return of the last update: ppo_ff {ff:.1f} ± {ff_std:.1f}, "

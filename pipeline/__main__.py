@@ -131,8 +131,8 @@ def run(cfg: Any) -> dict[str, Any]:
     for name in stages_to_run(cfg):
         started = time.perf_counter()
         stage_cfg = cfg if name is stage else upstream_cfg
-        if name is Stage.train_ppo and stage is Stage.all:
-            # the chain trains its own agent and every policy type evaluate compares
+        if name is Stage.train_ppo and stage in (Stage.all, Stage.evaluate):
+            # upstream of evaluate: its own agent and every policy type evaluate compares
             results[name.value] = train_policies(stage_cfg, int(cfg.train_workers))
         elif name is Stage.fit_model and stage is not Stage.fit_model:
             results[name.value] = fit_models(stage_cfg)

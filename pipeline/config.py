@@ -533,6 +533,11 @@ class EnvConfig:
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
 
 
+def no_randomization_overrides() -> list[str]:
+    """Overrides that turn every ``env.randomization`` off (as ``experiment=real_arm`` sets it)."""
+    return [f"env.randomization.{f.name}=0" for f in dataclasses.fields(RandomizationConfig)]
+
+
 def incremental_actions(env: Any) -> bool:
     """Whether the env config ``env`` acts incrementally (``env.action_mode``; absent, as in a
     config rebuilt from an artifact's spec where it is the default: absolute)."""

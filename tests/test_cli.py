@@ -67,6 +67,20 @@ def test_the_entry_point_and_the_guard_start_without_jax():
     assert done.stdout.strip() == "[]"
 
 
+def test_stages_that_reuse_the_simulated_arms_collection_start_without_jax(tmp_path):
+    """Only simulating the arm needs JAX: align, on a collection already recorded, runs without."""
+    script = ("import sys\n"
+              "from pipeline.__main__ import run\n"
+              "from pipeline.config import compose\n"
+              f"run(compose('paths.output_dir={tmp_path}', 'experiment=quick', 'stage=align'))\n"
+              "print('jax' in sys.modules)\n")
+    first, again = _python("-c", script), _python("-c", script)
+    assert first.returncode == 0 and again.returncode == 0, first.stderr + again.stderr
+    assert first.stdout.split()[-1] == "True"  # it simulated the arm
+    assert again.stdout.split()[-1] == "False"
+    assert len(list((tmp_path / "artifacts" / "collect").glob("[!.]*"))) == 1  # reused
+
+
 def test_the_compilation_cache_reaches_a_jax_imported_before_or_after(tmp_path):
     done = _python(
         "-c",

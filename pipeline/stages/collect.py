@@ -22,14 +22,11 @@ from __future__ import annotations
 import logging
 from typing import Any, NamedTuple
 
-import jax
 import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import keys
-from pipeline.arm import sim_arm
-from pipeline.arm.exploration import exploration_plan, plan_keys, plot_walks
 from pipeline.arm.limits import validate_limits
 from pipeline.config import RobotKind
 from pipeline.data.importers import READERS, list_recordings, recording_id
@@ -108,6 +105,9 @@ class SimSessions(NamedTuple):
 
 def walk_sessions(cfg: Any, mocap_hz: float) -> SimSessions:
     """``robot.num_runs`` exploration walks at ``robot.control_hz``."""
+    from pipeline.arm import sim_arm
+    from pipeline.arm.exploration import exploration_plan
+
     robot = cfg.robot
     plan = exploration_plan(cfg.exploration, robot.limits, robot.n_valves, robot.num_runs)
     runs, n = plan.commands.shape[:2]
@@ -146,6 +146,13 @@ def frame_commands(times: np.ndarray, num_frames: int, mocap_hz: float) -> np.nd
 
 
 def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None:
+    # JAX only for the simulated arm: importing recordings, and every stage that reuses this
+    # one's artifact, start without it
+    import jax
+
+    from pipeline.arm import sim_arm
+    from pipeline.arm.exploration import plan_keys, plot_walks
+
     robot, exploration = cfg.robot, cfg.exploration
     params = sim_arm.SimParams.from_config(robot)
     preload = np.full(robot.n_valves, float(robot.limits.preload))

@@ -3,7 +3,7 @@ the model of another, disjoint group (both directions), per robustness variant.
 
     python -m experiments.cross_model [--variants plain ensemble randomized both incremental
         incremental_randomized]
-        [--seeds 4] [--ppo-steps 2000000] [--ensemble-seeds 3] [--quick]
+        [--seeds 4] [--ppo-steps 2000000] [--ensemble-seeds 3] [--quick] [--set KEY=VALUE ...]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
 (sorted by name, alternating: ``A`` the even positions, ``B`` the odd ones; or ``--group-a``).
@@ -27,7 +27,8 @@ Printed per variant and direction: median final distance, its 90th percentile an
 rates within 1 and 3 mm (all seeds' episodes together), own and cross; the table is also written
 to ``<output-dir>/cross_model/results.csv``. Everything goes through the pipeline's router
 (artifacts reused when present). ``--quick`` shrinks every stage to check the script in minutes
-(the numbers then mean nothing).
+(the numbers then mean nothing). ``--set KEY=VALUE ...`` adds pipeline overrides for every
+stage (say ``agent.lr=3e-4``), beside the variant's; the table's ``overrides`` column lists them.
 """
 
 from __future__ import annotations
@@ -124,6 +125,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="PPO environment steps per seed")
     parser.add_argument("--ensemble-seeds", type=int, default=3,
                         help="model seeds of the ensemble variants")
+    parser.add_argument("--set", dest="overrides", nargs="+", action="extend", default=[],
+                        metavar="KEY=VALUE",
+                        help="further pipeline overrides for every stage (agent.lr=3e-4 ...)")
     parser.add_argument("--quick", action="store_true",
                         help="shrink every stage (checks the script; the numbers mean nothing)")
     args = parser.parse_args(argv)
@@ -132,14 +136,14 @@ def main(argv: list[str] | None = None) -> None:
     print(f"group A: {group_a}\ngroup B: {group_b}", flush=True)
     base = ["experiment=real_arm", f"agent={args.agent}", f"robot.data_dir={args.data_dir}",
             f"agent.num_seeds={args.seeds}", f"agent.total_timesteps={args.ppo_steps}",
-            *(QUICK if args.quick else [])]
+            *(QUICK if args.quick else []), *args.overrides]
     rows = []
     for direction, (train, test) in {"A->B": (group_a, group_b),
                                      "B->A": (group_b, group_a)}.items():
         for variant in args.variants:
             row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds,
                           args.agent)
-            rows.append({"direction": direction, **row})
+            rows.append({"direction": direction, **row, "overrides": " ".join(args.overrides)})
     table = pd.DataFrame(rows)
     out = args.output_dir / "cross_model"
     out.mkdir(parents=True, exist_ok=True)

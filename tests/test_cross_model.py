@@ -23,5 +23,5 @@ def test_each_variant_sets_what_its_name_says(make_cfg, variant):
     assert env.action_mode == ("incremental" if incremental else "absolute")
     expected = RANDOMIZED if randomized else dict.fromkeys(RANDOMIZED, 0.0)
     assert dict(env.randomization) == pytest.approx(expected)
-    assert set(env.randomization) == {f for f in RandomizationConfig.__dataclass_fields__}
+    assert set(env.randomization) == set(RandomizationConfig.__dataclass_fields__)
     assert env.ensemble_seeds == (3 if variant in ("ensemble", "both") else 1)

@@ -139,8 +139,9 @@ def test_multirun_sweeps_exploration_and_shares_nothing_it_should_not(tmp_path):
     assert len(list((out / "multirun").rglob("multirun.yaml"))) == 1
 
 
-@pytest.mark.parametrize("stage", ["evaluate", "all"])
-def test_evaluate_trains_every_policy_type_it_compares_upstream(make_cfg, monkeypatch, stage):
+@pytest.fixture
+def stage_calls(monkeypatch):
+    """(stage, agent) of every stage function the router calls; each returns "stage:agent"."""
     import pipeline.__main__ as entry
 
     calls = []
@@ -152,19 +153,19 @@ def test_evaluate_trains_every_policy_type_it_compares_upstream(make_cfg, monkey
         return stage_fn
 
     monkeypatch.setattr(entry, "stage_function", recorder)
+    return calls
+
+
+@pytest.mark.parametrize("stage", ["evaluate", "all"])
+def test_evaluate_trains_every_policy_type_it_compares_upstream(make_cfg, stage_calls, stage):
     cfg = make_cfg(f"stage={stage}", "agent=ppo_ff", "evaluation.policies=[ppo_ff,ppo_rnn]")
     results = run(cfg)
-    trained = sorted(agent for name, agent in calls if name == "train_ppo")
+    trained = sorted(agent for name, agent in stage_calls if name == "train_ppo")
     assert trained == ["ppo_ff", "ppo_rnn"]
     assert results["train_ppo"] == "train_ppo:ppo_ff"  # the config's own agent
-    assert calls[-1][0] == "evaluate"
+    assert stage_calls[-1][0] == "evaluate"
 
 
-def test_train_ppo_alone_trains_only_its_own_agent(make_cfg, monkeypatch):
-    import pipeline.__main__ as entry
-
-    calls = []
-    monkeypatch.setattr(entry, "stage_function",
-                        lambda name: lambda cfg: calls.append((name.value, cfg.agent.name)))
+def test_train_ppo_alone_trains_only_its_own_agent(make_cfg, stage_calls):
     run(make_cfg("stage=train_ppo", "agent=ppo_rnn", "evaluation.policies=[ppo_ff,ppo_rnn]"))
-    assert [agent for name, agent in calls if name == "train_ppo"] == ["ppo_rnn"]
+    assert [agent for name, agent in stage_calls if name == "train_ppo"] == ["ppo_rnn"]

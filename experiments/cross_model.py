@@ -3,7 +3,7 @@ the model of another, disjoint group (both directions), per robustness variant.
 
     python -m experiments.cross_model [--variants plain ensemble randomized both incremental
         incremental_randomized]
-        [--seeds 4] [--ppo-steps 2000000] [--ensemble-seeds 3] [--quick] [--set KEY=VALUE ...]
+        [--directions A->B B->A] [--seeds 4] [--ppo-steps 2000000] [--ensemble-seeds 3] [--quick] [--set KEY=VALUE ...]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
 (sorted by name, alternating: ``A`` the even positions, ``B`` the odd ones; or ``--group-a``).
@@ -48,6 +48,7 @@ QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10
          "agent.eval_envs=4", "agent.progress=false", "env.goal_every=20",
          "env.reset_bank_size=8", "evaluation.num_episodes=8",
          "evaluation.consecutive_episodes=1", "evaluation.num_consecutive_goals=2"]
+DIRECTIONS = ("A->B", "B->A")
 METRICS = ("median_final_mm", "p90_final_mm", "success_1mm", "success_3mm")
 
 
@@ -119,6 +120,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--group-a", nargs="*", default=None,
                         help="recording names of group A (default: every other one)")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--directions", nargs="+", default=list(DIRECTIONS), choices=DIRECTIONS,
+                        help="train in A and evaluate in B (A->B), the reverse (B->A), or both")
     parser.add_argument("--seeds", type=int, default=4, help="PPO seeds per variant")
     parser.add_argument("--agent", default="ppo_ff", choices=("ppo_ff", "ppo_rnn"))
     parser.add_argument("--ppo-steps", type=int, default=2_000_000,
@@ -138,8 +141,9 @@ def main(argv: list[str] | None = None) -> None:
             f"agent.num_seeds={args.seeds}", f"agent.total_timesteps={args.ppo_steps}",
             *(QUICK if args.quick else []), *args.overrides]
     rows = []
-    for direction, (train, test) in {"A->B": (group_a, group_b),
-                                     "B->A": (group_b, group_a)}.items():
+    splits = {"A->B": (group_a, group_b), "B->A": (group_b, group_a)}
+    for direction in args.directions:
+        train, test = splits[direction]
         for variant in args.variants:
             row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds,
                           args.agent)

@@ -3,7 +3,7 @@ the model of another, disjoint group (both directions), per robustness variant.
 
     python -m experiments.cross_model [--variants plain ensemble randomized both incremental
         incremental_randomized]
-        [--directions A->B B->A] [--seeds 4] [--ppo-steps 2000000] [--ensemble-seeds 3] [--quick] [--set KEY=VALUE ...]
+        [--directions A->B B->A] [--seeds 4] [--ppo-steps N] [--ensemble-seeds 3] [--quick] [--set KEY=VALUE ...]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
 (sorted by name, alternating: ``A`` the even positions, ``B`` the odd ones; or ``--group-a``).
@@ -45,6 +45,7 @@ from experiments.paper_figures import run_stage
 VARIANTS = ("plain", "ensemble", "randomized", "both", "incremental", "incremental_randomized")
 QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
          "dataset.window=32", "agent.num_envs=16", "agent.num_steps=8", "agent.num_evals=1",
+         "agent.total_timesteps=1024", "agent.recurrent_total_timesteps=null",
          "agent.eval_envs=4", "agent.progress=false", "env.goal_every=20",
          "env.reset_bank_size=8", "evaluation.num_episodes=8",
          "evaluation.consecutive_episodes=1", "evaluation.num_consecutive_goals=2"]
@@ -124,8 +125,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="train in A and evaluate in B (A->B), the reverse (B->A), or both")
     parser.add_argument("--seeds", type=int, default=4, help="PPO seeds per variant")
     parser.add_argument("--agent", default="ppo_ff", choices=("ppo_ff", "ppo_rnn"))
-    parser.add_argument("--ppo-steps", type=int, default=2_000_000,
-                        help="PPO environment steps per seed")
+    parser.add_argument("--ppo-steps", type=int, default=None,
+                        help="PPO environment steps per seed (default: experiment=real_arm's "
+                             "budget of the policy type)")
     parser.add_argument("--ensemble-seeds", type=int, default=3,
                         help="model seeds of the ensemble variants")
     parser.add_argument("--set", dest="overrides", nargs="+", action="extend", default=[],
@@ -138,8 +140,10 @@ def main(argv: list[str] | None = None) -> None:
     group_a, group_b = groups(args.data_dir, args.group_a)
     print(f"group A: {group_a}\ngroup B: {group_b}", flush=True)
     base = ["experiment=real_arm", f"agent={args.agent}", f"robot.data_dir={args.data_dir}",
-            f"agent.num_seeds={args.seeds}", f"agent.total_timesteps={args.ppo_steps}",
-            *(QUICK if args.quick else []), *args.overrides]
+            f"agent.num_seeds={args.seeds}", *(QUICK if args.quick else []),
+            *([] if args.ppo_steps is None else [f"agent.total_timesteps={args.ppo_steps}",
+                                                 "agent.recurrent_total_timesteps=null"]),
+            *args.overrides]
     rows = []
     splits = {"A->B": (group_a, group_b), "B->A": (group_b, group_a)}
     for direction in args.directions:

@@ -262,7 +262,8 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
     paper_task = ("env.action_mode=absolute", *no_randomization_overrides())
     for i, agent in enumerate(("ppo_ff", "ppo_rnn")):
         overrides = ("experiment=real_arm", *paper_task, f"agent={agent}",
-                     f"agent.num_seeds={seeds}", f"agent.total_timesteps={steps}")
+                     f"agent.num_seeds={seeds}", f"agent.total_timesteps={steps}",
+                     "agent.recurrent_total_timesteps=null")
         artifact = run_stage(output_dir, "train_ppo", *overrides)["train_ppo"]
         summary = artifact.manifest["summary"]
         durations[agent] = float(summary["compile_seconds"]) + float(summary["train_seconds"])
@@ -287,7 +288,10 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
         comparison = f"{'ppo_ff' if ff > rnn else 'ppo_rnn'} ahead by more than two standard " \
                      "errors over seeds at this budget"
     full = compose(output_dir, "experiment=real_arm").agent  # the experiment as configured
-    shrunk = [f"{steps:,} steps per seed instead of {int(full.total_timesteps):,}"]
+    budget = f"{int(full.total_timesteps):,}"
+    if full.recurrent_total_timesteps is not None:
+        budget += f" (ppo_rnn {int(full.recurrent_total_timesteps):,})"
+    shrunk = [f"{steps:,} steps per seed instead of {budget}"]
     if seeds != int(full.num_seeds):
         shrunk.append(f"{seeds} seeds instead of {int(full.num_seeds)}")
     _save(fig, out / "fig8_returns_ff_vs_rnn.png", (

@@ -555,6 +555,8 @@ class AgentConfig:
     num_envs: int = 64
     num_steps: int = 32  # rollout length per update
     total_timesteps: int = 1_200_000  # per seed (its results: experiments/PPO_RESULTS.md)
+    # the recurrent policy's budget per seed where it needs another (None: total_timesteps)
+    recurrent_total_timesteps: int | None = None
     update_epochs: int = 4
     num_minibatches: int = 4
     gamma: float = 0.99
@@ -596,12 +598,20 @@ class AgentConfig:
         return self.num_steps * self.num_envs
 
     @property
+    def timesteps(self) -> int:
+        """This policy type's budget per seed: ``recurrent_total_timesteps`` for a recurrent
+        policy where it is set, else ``total_timesteps``."""
+        if self.recurrent and self.recurrent_total_timesteps is not None:
+            return self.recurrent_total_timesteps
+        return self.total_timesteps
+
+    @property
     def updates_per_eval(self) -> int:
-        return max(1, self.total_timesteps // self.steps_per_update // self.num_evals)
+        return max(1, self.timesteps // self.steps_per_update // self.num_evals)
 
     @property
     def num_updates(self) -> int:
-        """Updates actually run: a multiple of ``num_evals`` (total_timesteps rounded down)."""
+        """Updates actually run: a multiple of ``num_evals`` (:attr:`timesteps` rounded down)."""
         return self.updates_per_eval * self.num_evals
 
     def check(self) -> None:

@@ -3,7 +3,8 @@ the model of another, disjoint group (both directions), per robustness variant.
 
     python -m experiments.cross_model [--variants plain ensemble randomized both incremental
         incremental_randomized]
-        [--directions A->B B->A] [--seeds 4] [--ppo-steps N] [--ensemble-seeds 3] [--quick] [--set KEY=VALUE ...]
+        [--directions A->B B->A] [--seeds 4] [--ppo-steps N] [--ensemble-seeds 3] [--quick]
+        [--set KEY=VALUE ...]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
 (sorted by name, alternating: ``A`` the even positions, ``B`` the odd ones; or ``--group-a``).

@@ -46,10 +46,10 @@ from experiments.paper_figures import run_stage
 VARIANTS = ("plain", "ensemble", "randomized", "both", "incremental", "incremental_randomized")
 QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
          "dataset.window=32", "agent.num_envs=16", "agent.num_steps=8", "agent.num_evals=1",
-         "agent.total_timesteps=1024", "agent.recurrent_total_timesteps=null",
          "agent.eval_envs=4", "agent.progress=false", "env.goal_every=20",
          "env.reset_bank_size=8", "evaluation.num_episodes=8",
          "evaluation.consecutive_episodes=1", "evaluation.num_consecutive_goals=2"]
+QUICK_PPO_STEPS = 1024  # --quick's budget per seed, unless --ppo-steps
 DIRECTIONS = ("A->B", "B->A")
 METRICS = ("median_final_mm", "p90_final_mm", "success_1mm", "success_3mm")
 
@@ -113,7 +113,7 @@ def print_table(table: pd.DataFrame) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from pipeline.config import PROJECT_ROOT, sorolex_dir
+    from pipeline.config import PROJECT_ROOT, budget_overrides, sorolex_dir
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--output-dir", type=Path, default=PROJECT_ROOT / "outputs",
@@ -140,11 +140,10 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
     group_a, group_b = groups(args.data_dir, args.group_a)
     print(f"group A: {group_a}\ngroup B: {group_b}", flush=True)
+    steps = QUICK_PPO_STEPS if args.quick and args.ppo_steps is None else args.ppo_steps
     base = ["experiment=real_arm", f"agent={args.agent}", f"robot.data_dir={args.data_dir}",
             f"agent.num_seeds={args.seeds}", *(QUICK if args.quick else []),
-            *([] if args.ppo_steps is None else [f"agent.total_timesteps={args.ppo_steps}",
-                                                 "agent.recurrent_total_timesteps=null"]),
-            *args.overrides]
+            *([] if steps is None else budget_overrides(steps)), *args.overrides]
     rows = []
     splits = {"A->B": (group_a, group_b), "B->A": (group_b, group_a)}
     for direction in args.directions:

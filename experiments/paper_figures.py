@@ -253,7 +253,7 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
                   steps: int) -> None:
     import matplotlib.pyplot as plt
 
-    from pipeline.config import no_randomization_overrides
+    from pipeline.config import budget_overrides, no_randomization_overrides
     from pipeline.rl.results import RETURN_LABEL, training_curves
 
     fig, ax = plt.subplots(figsize=(8, 4.2))
@@ -262,8 +262,7 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
     paper_task = ("env.action_mode=absolute", *no_randomization_overrides())
     for i, agent in enumerate(("ppo_ff", "ppo_rnn")):
         overrides = ("experiment=real_arm", *paper_task, f"agent={agent}",
-                     f"agent.num_seeds={seeds}", f"agent.total_timesteps={steps}",
-                     "agent.recurrent_total_timesteps=null")
+                     f"agent.num_seeds={seeds}", *budget_overrides(steps))
         artifact = run_stage(output_dir, "train_ppo", *overrides)["train_ppo"]
         summary = artifact.manifest["summary"]
         durations[agent] = float(summary["compile_seconds"]) + float(summary["train_seconds"])

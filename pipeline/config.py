@@ -538,6 +538,12 @@ def no_randomization_overrides() -> list[str]:
     return [f"env.randomization.{f.name}=0" for f in dataclasses.fields(RandomizationConfig)]
 
 
+def budget_overrides(steps: int) -> list[str]:
+    """Overrides that train every policy type for ``steps`` environment steps per seed (also the
+    recurrent one, which an experiment may give a budget of its own)."""
+    return [f"agent.total_timesteps={int(steps)}", "agent.recurrent_total_timesteps=null"]
+
+
 def incremental_actions(env: Any) -> bool:
     """Whether the env config ``env`` acts incrementally (``env.action_mode``; absent, as in a
     config rebuilt from an artifact's spec where it is the default: absolute)."""

@@ -3,7 +3,7 @@
 import pytest
 
 from experiments.cross_model import VARIANTS, variant_overrides
-from pipeline.config import AgentConfig, RandomizationConfig
+from pipeline.config import AgentConfig, RandomizationConfig, budget_overrides
 from pipeline.keys import policy_configs
 
 RANDOMIZED = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
@@ -42,6 +42,5 @@ def test_experiment_real_arm_trains_the_gru_twice_as_long(make_cfg):
             # 64 envs x 32 steps per update, 10 evaluations: 1950 and 970 updates
             assert agent.num_updates == (1950 if agent.recurrent else 970)
     # a budget given for both (as cross_model --ppo-steps does) reaches the GRU too
-    cfg = make_cfg("experiment=real_arm", "agent=ppo_rnn", "agent.total_timesteps=65536",
-                   "agent.recurrent_total_timesteps=null")
+    cfg = make_cfg("experiment=real_arm", "agent=ppo_rnn", *budget_overrides(65536))
     assert AgentConfig.from_any(cfg.agent).timesteps == 65536

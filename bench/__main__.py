@@ -14,6 +14,7 @@ BENCHMARKS = {
     "control_latency": "bench.control_latency",
     "peers": "bench.peers",
     "ensemble_selection": "bench.ensemble_selection",
+    "gru_kernel": "bench.gru_kernel",
 }
 OPTIONAL = {"peers"}  # needs the "peers" extra (torch, stable-baselines3): run only when named
 

@@ -23,6 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax.linen.initializers import constant, orthogonal
 
+from pipeline.rl.gru import gru_sequence
+
 ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
 
 
@@ -141,10 +143,10 @@ class ResettingGRU(nn.Module):
     """A GRU over time; the state is zeroed where ``resets[t]`` before step t.
 
     ``carry [B, H]``, ``inputs = (x [T, B, D], resets [T, B])`` -> ``(carry_T, y [T, B, H])``.
-    The equations and parameters are ``flax.linen.GRUCell``'s (variables under ``GRUCell_0``),
-    computed fused: the input projections of all T steps in one ``[T*B, D] x [D, 3H]`` product
-    before the scan, and one ``[B, H] x [H, 3H]`` product per step inside it (the cell does six
-    products per step)."""
+    The equations and parameters are ``flax.linen.GRUCell``'s (variables under ``GRUCell_0``):
+    the input projections of all T steps in one ``[T*B, D] x [D, 3H]`` product before the
+    recurrence, then :func:`pipeline.rl.gru.gru_sequence` (per-gate products, its own
+    backward pass)."""
 
     features: int
 
@@ -155,20 +157,8 @@ class ResettingGRU(nn.Module):
         chex.assert_shape(resets, x.shape[:2])
         input_kernel, input_bias, hidden_kernel, hidden_bias = GRUWeights(
             self.features, name="GRUCell_0")(x.shape[-1])
-        projected = x @ input_kernel + input_bias  # [T, B, 3H]
-        h = self.features
-
-        def step(state, inputs_t):
-            projected_t, reset_t = inputs_t
-            state = jnp.where(reset_t[:, None], jnp.zeros_like(state), state)
-            recurrent = state @ hidden_kernel  # [B, 3H]
-            r = nn.sigmoid(projected_t[:, :h] + recurrent[:, :h])
-            z = nn.sigmoid(projected_t[:, h:2 * h] + recurrent[:, h:2 * h])
-            n = jnp.tanh(projected_t[:, 2 * h:] + r * (recurrent[:, 2 * h:] + hidden_bias))
-            state = (1.0 - z) * n + z * state
-            return state, state
-
-        return jax.lax.scan(step, carry, (projected, resets))
+        return gru_sequence(hidden_kernel, hidden_bias, carry, x @ input_kernel + input_bias,
+                            resets)
 
 
 class ActorCriticRNN(nn.Module):

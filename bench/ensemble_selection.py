@@ -3,7 +3,7 @@
     python -m bench.ensemble_selection [--members 2 4] [--envs 64] [--steps 64]
 
 A vmapped rollout (``--envs`` environments, ``--steps`` control periods, random actions) on an
-ensemble of ``--members`` LSTMs of the default size (``model.hidden`` units, ``dataset.model_hz``,
+ensemble of ``--members`` LSTMs of the default architecture (``model.*``, ``dataset.model_hz``,
 five model steps per 2 Hz action), with each selection of
 :func:`pipeline.rl.envs.plants.ensemble_plant`:
 
@@ -23,9 +23,9 @@ import time
 
 import jax
 
-from bench.ppo_throughput import LIMITS, REST_POSE, random_model
+from bench.ppo_throughput import DEFAULT_MODEL, LIMITS, REST_POSE, random_model
 from pipeline.arm.safety import SafeSet
-from pipeline.config import DatasetConfig, ModelConfig
+from pipeline.config import DatasetConfig
 from pipeline.rl.envs import SoftArmReachEnv, ensemble_plant, learned_plant, make_env_params
 from pipeline.rl.envs.plants import stack_members
 
@@ -53,9 +53,9 @@ def rollout_program(env: SoftArmReachEnv, num_envs: int, num_steps: int):
 
 def measure(selection: str | None, members: int, num_envs: int, num_steps: int) -> float:
     """Environment steps per second (``selection`` None: one model, no ensemble)."""
-    model_hz, hidden = DatasetConfig().model_hz, ModelConfig().hidden
+    model_hz = DatasetConfig().model_hz
     plant = learned_plant(model_hz)
-    models = [random_model(hidden) for _ in range(members)]
+    models = [random_model(DEFAULT_MODEL) for _ in range(members)]
     if selection is None:
         plant_params = models[0]
     else:

@@ -2,10 +2,12 @@
 
     python bench/ppo_throughput.py [--updates 20] [--seeds 1]
 
-- ``default``: this project's defaults — LSTM of ``model.hidden`` units at ``dataset.model_hz``
-  stepped model_hz / 2 times per 2 Hz action (zero-order hold), ``agent.num_envs`` environments.
+- ``default``: this project's defaults — the default model architecture (an LSTM of
+  ``model.hidden`` units with the default input features) at ``dataset.model_hz``, stepped
+  model_hz / 2 times per 2 Hz action (zero-order hold), ``agent.num_envs`` environments.
 - ``default, GRU policy``: the same environment, the recurrent policy of ``agent=ppo_rnn``.
-- ``paper``: the paper's environment — a 1024-unit LSTM stepped once per action, 32 environments.
+- ``paper``: the paper's environment — a 1024-unit LSTM (pressures in, no further features)
+  stepped once per action, 32 environments.
 
 Same PPO (feed-forward unless named, ``agent.num_steps`` = 32, 4 epochs x 4 minibatches), same run, random
 model weights (throughput does not depend on them). Compilation is timed apart; throughput is
@@ -25,23 +27,24 @@ from omegaconf import OmegaConf
 from pipeline.arm.safety import SafeSet
 from pipeline.config import AgentConfig, DatasetConfig, ModelConfig
 from pipeline.dynamics import model as dynamics
+from pipeline.dynamics.training import ModelTrainConfig
 from pipeline.rl.envs import SoftArmReachEnv, learned_plant, make_env_params
 from pipeline.rl.ppo import make_train, seed_keys
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 REST_POSE = jnp.array([0.032, 0.353, 0.202])
 CONTROL_HZ = 2.0
+DEFAULT_MODEL = ModelTrainConfig.from_any(ModelConfig()).architecture()
 SETTINGS = {
-    # name: (LSTM units, model Hz, environments, recurrent policy)
-    "default": (ModelConfig().hidden, DatasetConfig().model_hz, AgentConfig().num_envs, False),
-    "default, GRU policy": (ModelConfig().hidden, DatasetConfig().model_hz,
-                            AgentConfig().num_envs, True),
-    "paper": (1024, 2.0, 32, False),
+    # name: (model architecture, model Hz, environments, recurrent policy)
+    "default": (DEFAULT_MODEL, DatasetConfig().model_hz, AgentConfig().num_envs, False),
+    "default, GRU policy": (DEFAULT_MODEL, DatasetConfig().model_hz, AgentConfig().num_envs,
+                            True),
+    "paper": (dynamics.DynamicsConfig(hidden=1024), 2.0, 32, False),
 }
 
 
-def random_model(hidden: int) -> dynamics.DynamicsParams:
-    config = dynamics.DynamicsConfig(hidden=hidden)
+def random_model(config: dynamics.DynamicsConfig) -> dynamics.DynamicsParams:
     ones, zeros = jnp.ones(3), jnp.zeros(3)
     normalizer = dynamics.Normalizer(2.0 * ones, ones, REST_POSE, 0.01 * ones, zeros,
                                      0.01 * ones)
@@ -50,10 +53,10 @@ def random_model(hidden: int) -> dynamics.DynamicsParams:
 
 
 def measure(name: str, updates: int, seeds: int) -> dict:
-    hidden, model_hz, num_envs, recurrent = SETTINGS[name]
+    architecture, model_hz, num_envs, recurrent = SETTINGS[name]
     env = SoftArmReachEnv(learned_plant(model_hz), CONTROL_HZ, settle_seconds=5.0,
                           include_last_action=True)
-    params = make_env_params(env, random_model(hidden), key=jax.random.PRNGKey(0),
+    params = make_env_params(env, random_model(architecture), key=jax.random.PRNGKey(0),
                              safe_set=SafeSet.from_limits(LIMITS), preload=2.0,
                              rest_pose=REST_POSE, goal_mode="perturb", reset_bank_size=16)
     agent = AgentConfig(num_seeds=seeds, num_envs=num_envs, num_steps=32, recurrent=recurrent,
@@ -70,7 +73,8 @@ def measure(name: str, updates: int, seeds: int) -> dict:
     jax.block_until_ready(compiled(keys, params, params))
     run_s = time.perf_counter() - started
     steps = seeds * agent.num_updates * agent.steps_per_update
-    return {"name": name, "lstm": hidden, "model_steps_per_action": env.steps_per_action,
+    return {"name": name, "lstm": architecture.hidden,
+            "model_steps_per_action": env.steps_per_action,
             "envs": num_envs, "compile_s": compile_s, "run_s": run_s,
             "steps_per_s": steps / run_s, "model_steps_per_s": steps * env.steps_per_action / run_s}
 

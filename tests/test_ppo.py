@@ -214,6 +214,20 @@ def test_fused_gru_gradients_equal_flax_gru_cell_gradients():
                  got, expected)
     assert float(jnp.abs(got[1]).sum()) > 0  # the initial state matters where not reset
 
+
+@pytest.mark.parametrize("bad", ["kernel", "projected", "resets"])
+def test_gru_sequence_refuses_mismatched_shapes(bad):
+    from pipeline.rl.gru import gru_sequence
+
+    width, steps, batch = 4, 3, 2
+    shapes = {"kernel": (width, 3 * width), "projected": (steps, batch, 3 * width),
+              "resets": (steps, batch)}
+    shapes[bad] = {"kernel": (width, 2 * width), "projected": (steps, batch, width),
+                   "resets": (steps + 1, batch)}[bad]
+    with pytest.raises(AssertionError):
+        gru_sequence(jnp.zeros(shapes["kernel"]), jnp.zeros(width), jnp.zeros((batch, width)),
+                     jnp.zeros(shapes["projected"]), jnp.zeros(shapes["resets"], bool))
+
 def toy_reaching():
     env = SoftArmReachEnv(linear_lag_plant(10.0), 2.0, settle_seconds=1.0,
                           include_last_action=True)

@@ -41,6 +41,10 @@ def _gates(hidden_kernel: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
 def _forward(hidden_kernel, hidden_bias, carry, projected, resets):
     """The scan; returns ``((carry_T, ys), residuals)``, the residuals ``[T, B, H]`` each:
     the state each step read (after its reset), r, z, n and ``h' W_n + b_n``."""
+    chex.assert_rank([carry, projected, resets], [2, 3, 2])
+    chex.assert_shape(projected, (*resets.shape, 3 * carry.shape[-1]))
+    chex.assert_shape([hidden_kernel, hidden_bias], [(carry.shape[-1], 3 * carry.shape[-1]),
+                                                     (carry.shape[-1],)])
     w_r, w_z, w_n = _gates(hidden_kernel)
     h = carry.shape[-1]
     x_r, x_z, x_n = projected[..., :h], projected[..., h:2 * h], projected[..., 2 * h:]
@@ -73,8 +77,6 @@ def gru_sequence(hidden_kernel: jax.Array, hidden_bias: jax.Array, carry: jax.Ar
 
     Returns ``(carry_T [B, H], ys [T, B, H])``, ``ys[t]`` the state after step t.
     """
-    chex.assert_rank([carry, projected, resets], [2, 3, 2])
-    chex.assert_shape(projected, (*resets.shape, 3 * carry.shape[-1]))
     return _forward(hidden_kernel, hidden_bias, carry, projected, resets)[0]
 
 

@@ -55,8 +55,8 @@ def measure(width: int, seeds: int) -> list[tuple[str, float, float]]:
     agent = AgentConfig()
     envs, steps = agent.num_envs, agent.num_steps
     ours, flax_gru = ResettingGRU(width), FlaxScannedGRU(width)
-    key = jax.random.PRNGKey(0)
-    variables = ours.init(key, jnp.zeros((1, width)),
+    init_key, carry_key, input_key = jax.random.split(jax.random.PRNGKey(0), 3)
+    variables = ours.init(init_key, jnp.zeros((1, width)),
                           (jnp.zeros((1, 1, width)), jnp.zeros((1, 1), bool)))
     stacked = jax.tree.map(lambda x: jnp.stack([x] * seeds), variables)
 
@@ -81,8 +81,8 @@ def measure(width: int, seeds: int) -> list[tuple[str, float, float]]:
         return jax.vmap(lambda v, carry, x: apply(v, carry, x)[1])
 
     def inputs(length: int, rows: int):
-        carry = jax.random.normal(key, (seeds, rows, width))
-        return carry, jax.random.normal(key, (seeds, length, rows, width))
+        return (jax.random.normal(carry_key, (seeds, rows, width)),
+                jax.random.normal(input_key, (seeds, length, rows, width)))
 
     cases = {
         "act": (act, inputs(1, envs)),

@@ -103,10 +103,8 @@ def _gru_sequence_backward(saved, cotangents):
 
     d_carry, (d_r, d_z, d_n, d_candidate) = jax.lax.scan(
         step, d_last, (d_ys, read, r, z, n, candidate_in, resets), reverse=True)
-    rows = lambda x: x.reshape(-1, x.shape[-1])  # noqa: E731  [T, B, H] -> [T * B, H]
-    read_rows = rows(read).T
-    d_kernel = jnp.concatenate([read_rows @ rows(d_r), read_rows @ rows(d_z),
-                                read_rows @ rows(d_candidate)], axis=1)
+    d_recurrent = jnp.concatenate([d_r, d_z, d_candidate], axis=-1)  # at h' W, [T, B, 3H]
+    d_kernel = read.reshape(-1, read.shape[-1]).T @ d_recurrent.reshape(-1, d_recurrent.shape[-1])
     d_projected = jnp.concatenate([d_r, d_z, d_n], axis=-1)
     return d_kernel, d_candidate.sum(axis=(0, 1)), d_carry, d_projected, None
 

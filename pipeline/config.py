@@ -118,6 +118,13 @@ class Cell(Choice):
     gru = "gru"
 
 
+class ModelLoss(Choice):
+    """What the dynamics model's training minimizes over its open-loop windows."""
+
+    mse = "mse"  # mean squared error of the standardized position, per axis
+    distance = "distance"  # mean Euclidean distance to the measured position (the score)
+
+
 class Activation(Choice):
     tanh = "tanh"
     relu = "relu"
@@ -465,6 +472,7 @@ class ModelConfig:
     step_threshold_kpa: float = 0.05  # a command step: some chamber changed by more
     # regularization (training only)
     input_noise_std: float = 0.0  # on the standardized inputs
+    loss: ModelLoss = ModelLoss.mse
     # one mask on h per window; 0.3: leave-one-run-out on the real runs 2.83 / 6.28 mm (mean /
     # p95) against 3.09 / 7.40 without, better on every fold (experiments/MODEL_RESULTS.md)
     recurrent_dropout: float = 0.3

@@ -156,3 +156,40 @@ def test_a_corrupt_checkpoint_is_named_and_set_aside(tmp_path, caplog):
     assert f"moved it to {corrupt}.corrupt and trying the one before" in caplog.text
     assert (checkpoints / "step_00000030.msgpack.corrupt").is_file() and not corrupt.exists()
     assert list(table.step) == list(range(1, 41))  # 20 restored + 20 trained
+
+
+def test_window_losses_known_answer(monkeypatch):
+    """Two steps of error, standardized (3, 0, 0) and (0, 1, 1), target std (1, 2, 2) mm: the
+    squared error averages 11 / 6; the distances are 3 and 2 sqrt(2) mm, in units of the mean
+    std (5 / 3 mm) 1.8 and 1.697."""
+    import jax.numpy as jnp
+
+    from pipeline.dynamics import model as dynamics
+
+    outputs = jnp.asarray([[[3.0, 0.0, 0.0], [0.0, 1.0, 1.0]]])  # [B=1, W=2, 3]
+    monkeypatch.setattr(dynamics, "predict_normalized",
+                        lambda params, inputs, pose, mask: outputs[0])
+    ones, zeros = jnp.ones(3), jnp.zeros(3)
+    normalizer = dynamics.Normalizer(pressure_mean=zeros, pressure_std=ones, pose_mean=zeros,
+                                     pose_std=ones, target_mean=zeros,
+                                     target_std=jnp.asarray([1e-3, 2e-3, 2e-3]))
+    params = dynamics.DynamicsParams(network={}, normalizer=normalizer,
+                                     config=dynamics.DynamicsConfig(predict_displacement=False))
+    args = (params, jnp.zeros((1, 2, 4)), jnp.zeros((1, 2, 3)), jnp.zeros((1, 3)))
+    assert float(train_model.window_loss(*args)) == pytest.approx(11 / 6, rel=1e-6)
+    assert float(train_model.window_loss(*args, loss="distance")) == pytest.approx(
+        (1.8 + 1.2 * np.sqrt(2)) / 2, rel=1e-5)
+    with pytest.raises(ValueError, match="mse or distance"):
+        train_model.window_loss(*args, loss="l1")
+
+
+def test_a_distance_trained_model_learns_too():
+    runs = first_order_runs()
+    settings = {**TINY, "loss": "distance", "learning_rate": 3e-3, "num_steps": 120}
+    _, _, table = train_model.fit(runs[:2], settings, window=16, val_runs=runs[2:],
+                                  progress=False)
+    assert table.train_loss.iloc[-10:].mean() < 0.6 * table.train_loss.iloc[:5].mean()
+    val = table.dropna()
+    assert val.val_mean_mm.iloc[-1] < val.val_mean_mm.iloc[0]
+    with pytest.raises(ValueError, match="loss must be mse or distance"):
+        ModelTrainConfig.from_any({"loss": "huber"})

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -74,6 +75,8 @@ class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
         if self.input_noise_std < 0 or self.weight_decay < 0:
             raise ValueError("input_noise_std and weight_decay must be >= 0, got "
                              f"{self.input_noise_std}, {self.weight_decay}")
+        if self.loss not in ("mse", "distance"):
+            raise ValueError(f"loss must be mse or distance, got {self.loss!r}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be constant or cosine, got {self.lr_schedule!r}")
         if self.reference_pose not in ("run_start", "window_start"):
@@ -158,18 +161,26 @@ class TrainData(NamedTuple):
     num_windows: jax.Array
 
 
+DISTANCE_EPS = 1e-3  # [target std]: keeps the distance loss's gradient finite at zero error
+
+
 def window_loss(
     params: DynamicsParams,
     inputs: jax.Array,
     position: jax.Array,
     initial_pose: jax.Array,
     hidden_mask: jax.Array | None = None,
+    loss: str = "mse",
 ) -> jax.Array:
-    """Mean squared standardized error of the open-loop rollout over a batch of windows.
+    """Error of the open-loop rollout over a batch of windows, a scalar.
 
     inputs: [B, W, D] standardized network inputs; position: [B, W, 3] m; initial_pose: [B, 3]
     m, the pose each rollout is conditioned on (and displacements are measured from);
-    hidden_mask: optional [B, layers, hidden] recurrent-dropout masks.
+    hidden_mask: optional [B, layers, hidden] recurrent-dropout masks. ``loss``: ``mse``, the
+    mean over windows, steps and axes of the squared standardized error; ``distance``, the mean
+    over windows and steps of the Euclidean distance to the measured position, in units of the
+    mean target standard deviation (so both losses are of order one), smoothed by
+    :data:`DISTANCE_EPS` at zero.
     """
     targets = jax.vmap(dynamics.normalize_target, in_axes=(None, 0, 0))(
         params, position, initial_pose
@@ -178,7 +189,14 @@ def window_loss(
     outputs = jax.vmap(dynamics.predict_normalized, in_axes=(None, 0, 0, 0))(
         params, inputs, pose_normalized, hidden_mask
     )
-    return jnp.mean(jnp.square(outputs - targets))
+    chex.assert_equal_shape((outputs, targets))
+    if loss == "mse":
+        return jnp.mean(jnp.square(outputs - targets))
+    if loss == "distance":
+        target_std = params.normalizer.target_std
+        error = (outputs - targets) * target_std / jnp.mean(target_std)  # [B, W, 3]
+        return jnp.mean(jnp.sqrt(jnp.sum(jnp.square(error), axis=-1) + DISTANCE_EPS**2))
+    raise ValueError(f"model.loss must be mse or distance, got {loss!r}")
 
 
 def make_train_step(
@@ -189,6 +207,7 @@ def make_train_step(
     order: str,
     input_noise_std: float = 0.0,
     recurrent_dropout: float = 0.0,
+    loss: str = "mse",
 ) -> Callable[[TrainState, TrainData, jax.Array], tuple[TrainState, jax.Array]]:
     """``train_step(state, data, sample_key) -> (state, loss)``: one Adam step on one batch.
 
@@ -202,7 +221,7 @@ def make_train_step(
 
     def loss_fn(network, inputs, position, initial_pose, hidden_mask):
         params = model_template.replace(network=network)
-        return window_loss(params, inputs, position, initial_pose, hidden_mask)
+        return window_loss(params, inputs, position, initial_pose, hidden_mask, loss)
 
     def train_step(state: TrainState, data: TrainData, sample_key: jax.Array):
         batch_key, regularizer_key = jax.random.split(sample_key)
@@ -250,6 +269,7 @@ def train_chunk_unjitted(
     train_step = make_train_step(
         template, make_optimizer(config), window, config.batch_size, order,
         input_noise_std=config.input_noise_std, recurrent_dropout=config.recurrent_dropout,
+        loss=str(config.loss),
     )
     return jax.lax.scan(
         lambda s, _: train_step(s, data, sample_key), state, None, length=num_steps

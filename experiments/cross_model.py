@@ -2,7 +2,7 @@
 the model of another, disjoint group (both directions), per robustness variant.
 
     python -m experiments.cross_model [--variants plain ensemble randomized both incremental
-        incremental_randomized]
+        incremental_randomized incremental_randomized_ensemble]
         [--directions A->B B->A] [--seeds 4] [--ppo-steps N] [--ensemble-seeds 3] [--quick]
         [--set KEY=VALUE ...]
 
@@ -22,7 +22,8 @@ randomization of the plant, ``env.randomization``):
 - ``randomized``: absolute actions, the plant randomized;
 - ``both``: the ensemble, randomized;
 - ``incremental``: incremental actions (integral action), no randomization;
-- ``incremental_randomized``: incremental actions, randomized: ``experiment=real_arm`` as it is.
+- ``incremental_randomized``: incremental actions, randomized: ``experiment=real_arm`` as it is;
+- ``incremental_randomized_ensemble``: ``experiment=real_arm`` in the ensemble of model seeds.
 
 Printed per variant and direction: median final distance, its 90th percentile and the success
 rates within 1 and 3 mm (all seeds' episodes together), own and cross; the table is also written
@@ -43,7 +44,8 @@ import pandas as pd
 
 from experiments.paper_figures import run_stage
 
-VARIANTS = ("plain", "ensemble", "randomized", "both", "incremental", "incremental_randomized")
+VARIANTS = ("plain", "ensemble", "randomized", "both", "incremental", "incremental_randomized",
+            "incremental_randomized_ensemble")
 QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
          "dataset.window=32", "agent.num_envs=16", "agent.num_steps=8", "agent.num_evals=1",
          "agent.eval_envs=4", "agent.progress=false", "env.goal_every=20",
@@ -76,7 +78,7 @@ def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
     return {"plain": absolute + no_randomization,
             "ensemble": absolute + no_randomization + ensemble, "randomized": absolute,
             "both": absolute + ensemble, "incremental": no_randomization,
-            "incremental_randomized": []}[variant]
+            "incremental_randomized": [], "incremental_randomized_ensemble": ensemble}[variant]
 
 
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],

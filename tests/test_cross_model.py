@@ -20,12 +20,13 @@ def test_experiment_real_arm_trains_incremental_and_randomized(make_cfg):
 def test_each_variant_sets_what_its_name_says(make_cfg, variant):
     env = make_cfg("experiment=real_arm", *variant_overrides(variant, 3)).env
     incremental = variant.startswith("incremental")
-    randomized = variant in ("randomized", "both", "incremental_randomized")
+    randomized = variant in ("randomized", "both", "incremental_randomized",
+                             "incremental_randomized_ensemble")
     assert env.action_mode == ("incremental" if incremental else "absolute")
     expected = RANDOMIZED if randomized else dict.fromkeys(RANDOMIZED, 0.0)
     assert dict(env.randomization) == pytest.approx(expected)
     assert set(env.randomization) == set(RandomizationConfig.__dataclass_fields__)
-    assert env.ensemble_seeds == (3 if variant in ("ensemble", "both") else 1)
+    assert env.ensemble_seeds == (3 if variant.endswith("ensemble") or variant == "both" else 1)
 
 
 def test_experiment_real_arm_trains_the_gru_twice_as_long(make_cfg):

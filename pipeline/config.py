@@ -523,6 +523,8 @@ class EnvConfig:
     # period (integral action: the commands rest only where the policy outputs zero)
     action_mode: ActionMode = ActionMode.absolute
     action_step_kpa: float = 1.0
+    # reward: -(distance mm + command_change_cost x summed |change of the command| kPa) [mm/kPa]
+    command_change_cost: float = 0.0
     gymnax_name: str = "Pendulum-v1"
     scale_observations: bool = False  # gymnax: observations divided by the space's bounds
     settle_seconds: float = 5.0  # preload held before an episode starts
@@ -873,7 +875,7 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
 
 def _check_env(cfg: Any) -> None:
     """The robustness settings of ``env``: counts, magnitudes and the environments they fit; the
-    incremental action's step."""
+    incremental action's step and the price of a command change."""
     env = cfg.get("env")
     if env is None:
         return
@@ -890,6 +892,10 @@ def _check_env(cfg: Any) -> None:
             raise ConfigError(f"env.randomization.{field_name}={value} must be finite and >= 0")
     if name is EnvName.gymnax and any(float(v) for v in randomization.values()):
         raise ConfigError("env.randomization: env=gymnax has no plant to randomize")
+    cost = float(env.get("command_change_cost", EnvConfig.command_change_cost))
+    if not (math.isfinite(cost) and cost >= 0):
+        raise ConfigError(f"env.command_change_cost={cost} must be finite and >= 0 (mm of reward "
+                          f"per kPa of command change)")
     step = float(env.get("action_step_kpa", EnvConfig.action_step_kpa))
     if incremental_actions(env) and not (math.isfinite(step) and step > 0):
         raise ConfigError(f"env.action_step_kpa={step} must be finite and > 0 (the change of a "

@@ -43,7 +43,7 @@ _NON_DETERMINING_AGENT_KEYS = ("progress",)
 
 # settings added to the simulated arm later, left out of a spec while unset, so that configs
 # that do not use them keep the artifact keys they had
-_UNSET_LATER = {"session_std": {}, "replay": None, "loss": "mse"}
+_UNSET_LATER = {"session_std": {}, "replay": None, "loss": "mse", "command_change_cost": 0.0}
 
 
 def _container(node: Any) -> Any:

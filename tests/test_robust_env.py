@@ -461,3 +461,24 @@ def test_incremental_actions_are_part_of_the_keys_and_reach_the_environment(make
     assert observation_options(wider.env)["incremental_actions"] is True
     assert common_params(wider)["action_step_kpa"] == 2.0
     assert observation_options(base.env)["incremental_actions"] is False
+
+
+def test_the_command_change_costs_its_price_in_the_reward_by_hand():
+    """Incremental steps of 0.5 kPa at cost 2 mm/kPa: action [1, -0.5, 0] changes the command by
+    0.5 + 0.25 + 0 = 0.75 kPa, 1.5 mm off the reward; holding it costs nothing."""
+    env, params = incremental_toy(step_kpa=0.5, command_change_cost_mm_per_kpa=2.0)
+    _, state = env.reset(jax.random.PRNGKey(1), params)
+    goal = state.goal
+    _, moved, reward, _, info = env.step_env(jax.random.PRNGKey(2), state,
+                                             jnp.array([1.0, -0.5, 0.0]), params)
+    distance_mm = 1000.0 * float(jnp.linalg.norm(goal - moved.position))
+    assert float(reward) == pytest.approx(-distance_mm - 2.0 * 0.75, rel=1e-5)
+    assert float(info["distance_m"]) * 1000.0 == pytest.approx(distance_mm, rel=1e-5)
+    _, held, reward, _, _ = env.step_env(jax.random.PRNGKey(3), moved, jnp.zeros(3), params)
+    assert float(reward) == pytest.approx(
+        -1000.0 * float(jnp.linalg.norm(goal - held.position)), rel=1e-5)
+
+
+def test_a_negative_command_change_cost_is_refused(make_cfg):
+    with pytest.raises(ConfigError, match=r"env.command_change_cost=-1.0 must be finite and >= 0"):
+        validate_config(make_cfg("env.command_change_cost=-1"))

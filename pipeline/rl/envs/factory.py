@@ -77,6 +77,8 @@ def common_params(cfg: Any) -> dict[str, Any]:
         "error_scale_m": float(env_cfg.error_scale_m),
         "action_step_kpa": float(env_cfg.get("action_step_kpa", EnvConfig.action_step_kpa)),
         "action_noise_std_kpa": float(env_cfg.action_noise_std),
+        "command_change_cost_mm_per_kpa": float(
+            env_cfg.get("command_change_cost", EnvConfig.command_change_cost)),
         "max_steps": int(env_cfg.max_steps),
         "reset_bank_size": int(env_cfg.reset_bank_size),
     }

@@ -15,7 +15,10 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
   ``goal - measured`` divided by ``error_scale`` (a few mm, so that the last millimetres are not
   a hundredth of an input's range); with ``include_last_action`` ``+3``, the last applied
   pressure mapped back to ``[-1, 1]``.
-- **Reward** ``-||goal - position||`` in **millimetres** at the end of the control period.
+- **Reward** ``-||goal - position||`` in **millimetres** at the end of the control period, minus
+  ``command_change_cost`` (mm per kPa, 0 by default) times the summed absolute change of the
+  applied command ``sum_v |p_t - p_{t-1}|`` kPa: a price on moving the valves, so that a policy
+  that can stand still at the goal does so instead of dithering around it.
 - **Terminated** when the distance is within ``goal_tolerance`` (1 mm); **truncated** by gymnax
   at ``max_steps_in_episode`` steps. Both are returned separately (gymnax 1.x).
 - **Reset.** The plant rests at the preload: an initial pose (rest pose ± its spread) seeds the
@@ -157,6 +160,7 @@ class EnvParams:
     action_step: kPa, the change of a command per control period at action 1
       (``incremental_actions`` only).
     action_noise_std: kPa, Gaussian noise on the commanded pressures (before projection).
+    command_change_cost: mm per kPa, the reward's price on the summed change of the command.
     randomization: magnitudes of the per-episode randomization around the plant.
     max_steps_in_episode: control periods before truncation.
     """
@@ -176,6 +180,7 @@ class EnvParams:
     error_scale: jax.Array
     action_step: jax.Array
     action_noise_std: jax.Array
+    command_change_cost: jax.Array
     randomization: Randomization
     max_steps_in_episode: int = struct.field(pytree_node=False)
 
@@ -300,10 +305,11 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         seconds = (state.time + 1).astype(jnp.float32) / self.control_hz
         position = positions[-1] + (perturbation.rest_offset + perturbation.drift * seconds)
         distance = jnp.linalg.norm(state.goal - position)
+        change = jnp.sum(jnp.abs(pressure - state.last_pressure))  # [] kPa, applied commands
         state = EnvState(carry, position, state.goal, pressure, state.time + 1,
                          perturbation.replace(received=received))
         terminated = distance <= params.goal_tolerance
-        reward = -MM_PER_M * distance
+        reward = -MM_PER_M * distance - params.command_change_cost * change
         obs = self.observe(obs_key, state, None, params)
         obs, state = self._apply_transition_gradient_policy(obs, state)
         return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
@@ -393,6 +399,7 @@ def make_env_params(
     error_scale_m: float = 0.005,
     action_step_kpa: float = 1.0,
     action_noise_std_kpa: float = 0.0,
+    command_change_cost_mm_per_kpa: float = 0.0,
     max_steps: int = 40,
     reset_bank_size: int = 64,
     obs_mean: jax.Array | None = None,
@@ -448,6 +455,7 @@ def make_env_params(
         obs_noise_std=f32(obs_noise_std_m),
         error_scale=f32(error_scale_m),
         action_step=f32(action_step_kpa),
+        command_change_cost=f32(command_change_cost_mm_per_kpa),
         action_noise_std=f32(action_noise_std_kpa),
         randomization=randomization() if randomization_params is None else randomization_params,
         max_steps_in_episode=int(max_steps),

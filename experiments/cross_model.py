@@ -26,11 +26,14 @@ randomization of the plant, ``env.randomization``):
 - ``incremental_randomized_ensemble``: ``experiment=real_arm`` in the ensemble of model seeds.
 
 Printed per variant and direction: median final distance, its 90th percentile and the success
-rates within 1 and 3 mm (all seeds' episodes together), own and cross; the table is also written
-to ``<output-dir>/cross_model/results.csv``. Everything goes through the pipeline's router
-(artifacts reused when present). ``--quick`` shrinks every stage to check the script in minutes
-(the numbers then mean nothing). ``--set KEY=VALUE ...`` adds pipeline overrides for every
-stage (say ``agent.lr=3e-4``), beside the variant's; the table's ``overrides`` column lists them.
+rates within 1 and 3 mm (all seeds' episodes together), own and cross; the share of seeds whose
+median is within 1 mm across models; and the seed ``stage=control`` would deploy (the best in
+its training's last held-out evaluation) with its own and cross medians and its success within 1
+mm across models. The table is also written to ``<output-dir>/cross_model/results.csv``.
+Everything goes through the pipeline's router (artifacts reused when present). ``--quick``
+shrinks every stage to check the script in minutes (the numbers then mean nothing). ``--set
+KEY=VALUE ...`` adds pipeline overrides for every stage (say ``agent.lr=3e-4``), beside the
+variant's; the table's ``overrides`` column lists them.
 """
 
 from __future__ import annotations
@@ -84,7 +87,12 @@ def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],
             variant: str, ensemble_seeds: int, agent: str = "ppo_ff") -> dict[str, Any]:
     """``agent`` trained in ``train``'s model (``variant``), evaluated in its own and in
-    ``test``'s model: one row of the results table."""
+    ``test``'s model: one row of the results table. Beside the figures over every seed's
+    episodes: the share of seeds whose own median is within 1 mm, and the figures of the seed
+    that ``stage=control`` would deploy (the best in the training's last held-out evaluation,
+    ``pipeline.control.policy.best_seed``)."""
+    from pipeline.control.policy import best_seed
+
     files = lambda names: f"robot.files=[{','.join(names)}]"  # noqa: E731
     other = run_stage(output_dir, "fit_model", *base, files(test))["fit_model"]
     evaluated = run_stage(output_dir, "evaluate", *base, files(train),
@@ -93,25 +101,37 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
                           "evaluation.plant=false", f"evaluation.models=[{other.path}]")
     summary = pd.read_parquet(evaluated["evaluate"].file("summary.parquet"))
     policy = summary[summary["controller"] == agent].set_index("plant")
+    episodes = pd.read_parquet(evaluated["evaluate"].file("episodes.parquet"))
+    episodes = episodes[episodes["controller"] == agent]
+    seed = best_seed(evaluated["train_ppo"])  # the one stage=control drives the arm with
     row: dict[str, Any] = {"agent": agent, "variant": variant, "train": "+".join(train),
-                           "test": "+".join(test)}
+                           "test": "+".join(test), "deployed_seed": seed}
     for where, plant in (("own", "learned"), ("cross", f"model {other.path.name}")):
         for metric in METRICS:
             row[f"{where}_{metric}"] = float(policy.loc[plant, metric])
+        in_plant = episodes[episodes["plant"] == plant]
+        per_seed = in_plant.groupby("seed")["final_distance_mm"].median()
+        row[f"{where}_seeds_median_within_1mm"] = float((per_seed <= 1.0).mean())
+        deployed = in_plant[in_plant["seed"] == seed]
+        row[f"{where}_deployed_median_final_mm"] = float(deployed["final_distance_mm"].median())
+        row[f"{where}_deployed_success_1mm"] = float(deployed["success_1mm"].mean())
     return row
 
 
 def print_table(table: pd.DataFrame) -> None:
-    header = (f"{'variant':<23}{'dir':<7}{'own median':>11}{'p90':>7}{'<1mm':>7}{'<3mm':>7}"
-              f"{'cross median':>14}{'p90':>7}{'<1mm':>7}{'<3mm':>7}")
+    header = (f"{'variant':<32}{'dir':<7}{'own median':>11}{'p90':>7}{'<1mm':>7}{'<3mm':>7}"
+              f"{'cross median':>14}{'p90':>7}{'<1mm':>7}{'<3mm':>7}{'seeds <1mm':>11}"
+              f"{'deployed seed':>14}{'own':>6}{'cross':>7}{'<1mm':>7}")
     print(header)
     print("-" * len(header))
     for row in table.itertuples():
-        print(f"{row.variant:<23}{row.direction:<7}{row.own_median_final_mm:>11.2f}"
+        print(f"{row.variant:<32}{row.direction:<7}{row.own_median_final_mm:>11.2f}"
               f"{row.own_p90_final_mm:>7.2f}{row.own_success_1mm:>7.2f}"
               f"{row.own_success_3mm:>7.2f}{row.cross_median_final_mm:>14.2f}"
               f"{row.cross_p90_final_mm:>7.2f}{row.cross_success_1mm:>7.2f}"
-              f"{row.cross_success_3mm:>7.2f}")
+              f"{row.cross_success_3mm:>7.2f}{row.cross_seeds_median_within_1mm:>11.2f}"
+              f"{row.deployed_seed:>14d}{row.own_deployed_median_final_mm:>6.2f}"
+              f"{row.cross_deployed_median_final_mm:>7.2f}{row.cross_deployed_success_1mm:>7.2f}")
 
 
 def main(argv: list[str] | None = None) -> None:

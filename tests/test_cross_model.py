@@ -1,4 +1,4 @@
-"""The cross-model protocol's variants, composed on top of experiment=real_arm."""
+"""The cross-model protocol: its variants, composed on top of experiment=real_arm, and its rows."""
 
 import pytest
 
@@ -45,3 +45,50 @@ def test_experiment_real_arm_trains_the_gru_twice_as_long(make_cfg):
     # a budget given for both (as cross_model --ppo-steps does) reaches the GRU too
     cfg = make_cfg("experiment=real_arm", "agent=ppo_rnn", *budget_overrides(65536))
     assert AgentConfig.from_any(cfg.agent).timesteps == 65536
+
+
+class _Folder:
+    """An artifact's files in a folder (what measure reads of one)."""
+
+    def __init__(self, path):
+        self.path = path
+        path.mkdir(parents=True)
+
+    def file(self, name):
+        return self.path / name
+
+
+def test_measure_reports_the_seeds_and_the_one_control_would_deploy(tmp_path, monkeypatch):
+    """Two seeds, two episodes each: seed 1 is the training's best (0.4 against 0.9 mm), so it
+    is the deployed one; across models its episodes end 0.5 and 0.7 mm from the goal (median
+    0.6 mm, both within 1 mm) while seed 0's end 2 and 3 mm away."""
+    import pandas as pd
+
+    from experiments import cross_model
+
+    other, evaluated, policy = (_Folder(tmp_path / name) for name in ("other", "ev", "tp"))
+    pd.DataFrame({"evaluation": [0, 0, 1, 1], "seed": [0, 1, 0, 1],
+                  "median_final_distance_m": [1e-3, 2e-3, 0.9e-3, 0.4e-3]}).to_parquet(
+        policy.file("evaluation.parquet"))
+    cross = "model other"
+    finals = {("learned", 0): [0.8, 1.0], ("learned", 1): [0.3, 0.5],
+              (cross, 0): [2.0, 3.0], (cross, 1): [0.5, 0.7]}
+    episodes = pd.DataFrame([
+        {"plant": plant, "controller": "ppo_ff", "seed": seed, "final_distance_mm": d,
+         "success_1mm": float(d <= 1.0)}
+        for (plant, seed), distances in finals.items() for d in distances])
+    episodes.to_parquet(evaluated.file("episodes.parquet"))
+    summary = pd.DataFrame([{"plant": plant, "controller": "ppo_ff",
+                             **{metric: 0.0 for metric in cross_model.METRICS}}
+                            for plant in ("learned", cross)])
+    summary.to_parquet(evaluated.file("summary.parquet"))
+    answers = iter([{"fit_model": other}, {"evaluate": evaluated, "train_ppo": policy}])
+    monkeypatch.setattr(cross_model, "run_stage", lambda *args: next(answers))
+
+    row = cross_model.measure(tmp_path, [], ["a"], ["b"], "plain", 3)
+    assert row["deployed_seed"] == 1
+    assert row["own_deployed_median_final_mm"] == pytest.approx(0.4)
+    assert row["cross_deployed_median_final_mm"] == pytest.approx(0.6)
+    assert row["cross_deployed_success_1mm"] == 1.0
+    assert row["own_seeds_median_within_1mm"] == 1.0  # medians 0.9 and 0.4 mm
+    assert row["cross_seeds_median_within_1mm"] == 0.5  # medians 2.5 and 0.6 mm

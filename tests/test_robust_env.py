@@ -482,3 +482,30 @@ def test_the_command_change_costs_its_price_in_the_reward_by_hand():
 def test_a_negative_command_change_cost_is_refused(make_cfg):
     with pytest.raises(ConfigError, match=r"env.command_change_cost=-1.0 must be finite and >= 0"):
         validate_config(make_cfg("env.command_change_cost=-1"))
+
+
+def test_training_evaluations_run_the_whole_horizon_and_score_its_end():
+    """A random actor-critic on the toy (episodes of 5 steps): whatever the goal tolerance, every
+    episode runs its 5 steps to the same end, and it succeeded exactly where that end is within
+    the tolerance (here halfway between the nearest and the farthest end: some of them)."""
+    from pipeline.rl.evaluation import evaluate_policy
+    from pipeline.rl.networks import ActorCriticFF
+
+    env, params = toy()
+    network = ActorCriticFF(action_dim=3, width=8, num_layers=1)
+    weights = network.init(jax.random.PRNGKey(0), jnp.zeros((1, 1)),
+                           jnp.zeros((1, env.obs_dim)), jnp.zeros((1,), bool))
+
+    def evaluate(tolerance):
+        return evaluate_policy(env, params.replace(goal_tolerance=jnp.float32(tolerance)),
+                               network, weights, jax.random.PRNGKey(3), num_envs=16,
+                               num_steps=5, has_distance=True)
+
+    final = np.asarray(evaluate(1e-6)["episode_final_distance_m"])
+    tolerance = float(final.min() + final.max()) / 2
+    out = evaluate(tolerance)
+    assert bool(out["episode_finished"].all())
+    np.testing.assert_array_equal(np.asarray(out["episode_final_distance_m"]), final)
+    np.testing.assert_array_equal(np.asarray(out["episode_success"]), final <= tolerance)
+    assert 0 < float(out["success_rate"]) < 1
+    assert float(evaluate(1.0)["success_rate"]) == 1.0  # within a metre of every goal

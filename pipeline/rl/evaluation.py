@@ -1,8 +1,11 @@
 """The deterministic evaluation PPO runs during training: one episode per environment.
 
-An episode here ends where the environment ends it: within the goal tolerance (terminated) or at
-its step limit (truncated). Its ``final_distance_m`` is the distance when it ended; the evaluate
-stage instead runs every episode for the full horizon (the controller has to stay at the goal).
+On a reaching environment (one whose parameters have a ``goal_tolerance``) every episode runs its
+whole horizon, as in the evaluate stage: the goal tolerance does not end it, its
+``final_distance_m`` is the distance at the last step and it succeeded if that is within the
+tolerance. A policy that passes through the goal and leaves it again is not counted as there; it
+is what ``pipeline.control.policy.best_seed`` reads to choose the seed that drives an arm. On any
+other environment an episode ends where the environment ends it (terminated or truncated).
 """
 
 from __future__ import annotations
@@ -27,8 +30,9 @@ def evaluate_policy(env: Any, env_params: Any, network: Any, params: Any, key: j
     (Pendulum's torque limit). Default: read from ``env_params``.
 
     Returns ``[E]`` per episode: ``episode_return``, ``episode_final_distance_m`` (NaN where the
-    env reports no distance), ``episode_success`` (terminated), ``episode_finished``; and their
-    summaries ``mean_return``, ``median_final_distance_m``, ``success_rate``.
+    env reports no distance), ``episode_success`` (the final distance within the goal tolerance;
+    terminated, on an env without one), ``episode_finished``; and their summaries
+    ``mean_return``, ``median_final_distance_m``, ``success_rate``.
     """
     if num_envs == 0:  # evaluation switched off (saves compile time in tests)
         empty = jnp.zeros((0,))
@@ -37,6 +41,9 @@ def evaluate_policy(env: Any, env_params: Any, network: Any, params: Any, key: j
                 "episode_finished": empty.astype(bool), "mean_return": jnp.nan,
                 "median_final_distance_m": jnp.nan, "success_rate": jnp.nan}
     low, high = action_bounds(env, env_params) if bounds is None else bounds
+    tolerance = getattr(env_params, "goal_tolerance", None) if has_distance else None
+    if tolerance is not None:  # the whole horizon: reaching the goal does not end an episode
+        env_params = env_params.replace(goal_tolerance=jnp.full_like(tolerance, -jnp.inf))
     reset_key, episode_key = jax.random.split(key)
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(
         jax.random.split(reset_key, num_envs), env_params)
@@ -66,6 +73,8 @@ def evaluate_policy(env: Any, env_params: Any, network: Any, params: Any, key: j
              jnp.ones(num_envs, bool), jnp.zeros(num_envs), record)
     carry, _ = jax.lax.scan(step, carry, jax.random.split(episode_key, num_steps))
     *_, active, episode_return, record = carry
+    if tolerance is not None:
+        record["success"] = record["final_distance_m"] <= tolerance
     return {
         "episode_return": episode_return,
         "episode_final_distance_m": record["final_distance_m"],

@@ -14,8 +14,9 @@ direction (train in A, evaluate in B; and B in A) and each variant, ``--agent`` 
 training group's model (``experiment=real_arm``'s env and agent settings) and the evaluate stage
 rolls it out on the training group's held-out goals in its own model (``own``) and in the other
 group's model (``cross``, through ``evaluation.models``). Variants, made of
-``experiment=real_arm``'s robustness settings (its incremental actions and its per-episode
-randomization of the plant, ``env.randomization``):
+``experiment=real_arm``'s robustness settings (its incremental actions, its per-episode
+randomization of the plant, ``env.randomization``, and its price on command changes,
+``env.command_change_cost``, which only the ``incremental_randomized`` variants keep):
 
 - ``plain``: absolute actions, no randomization (the model as it is);
 - ``ensemble``: plain, in an ensemble of ``--ensemble-seeds`` model seeds (``env.ensemble_seeds``);
@@ -73,14 +74,18 @@ def groups(data_dir: Path, group_a: list[str] | None) -> tuple[list[str], list[s
 
 
 def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
-    """The overrides of ``variant`` on top of ``experiment=real_arm`` (incremental, randomized)."""
+    """The overrides of ``variant`` on top of ``experiment=real_arm`` (incremental, randomized,
+    command changes priced): the variants before the price went without it."""
     from pipeline.config import no_randomization_overrides
 
-    absolute, no_randomization = ["env.action_mode=absolute"], no_randomization_overrides()
+    unpriced = ["env.command_change_cost=0"]
+    absolute = ["env.action_mode=absolute", *unpriced]
+    no_randomization = no_randomization_overrides()
     ensemble = [f"env.ensemble_seeds={ensemble_seeds}"]
     return {"plain": absolute + no_randomization,
             "ensemble": absolute + no_randomization + ensemble, "randomized": absolute,
-            "both": absolute + ensemble, "incremental": no_randomization,
+            "both": absolute + ensemble,
+            "incremental": unpriced + no_randomization,
             "incremental_randomized": [], "incremental_randomized_ensemble": ensemble}[variant]
 
 
@@ -88,9 +93,9 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
             variant: str, ensemble_seeds: int, agent: str = "ppo_ff") -> dict[str, Any]:
     """``agent`` trained in ``train``'s model (``variant``), evaluated in its own and in
     ``test``'s model: one row of the results table. Beside the figures over every seed's
-    episodes: the share of seeds whose own median is within 1 mm, and the figures of the seed
-    that ``stage=control`` would deploy (the best in the training's last held-out evaluation,
-    ``pipeline.control.policy.best_seed``)."""
+    episodes: the share of seeds whose median is within 1 mm (own and cross), and the figures
+    of the seed that ``stage=control`` would deploy (the best in the training's last held-out
+    evaluation, ``pipeline.control.policy.best_seed``)."""
     from pipeline.control.policy import best_seed
 
     files = lambda names: f"robot.files=[{','.join(names)}]"  # noqa: E731

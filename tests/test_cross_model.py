@@ -8,6 +8,7 @@ from pipeline.keys import policy_configs
 
 RANDOMIZED = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
               "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5}
+PRICE = 10.0  # experiment=real_arm's env.command_change_cost
 
 
 def test_experiment_real_arm_trains_incremental_and_randomized(make_cfg):
@@ -27,6 +28,8 @@ def test_each_variant_sets_what_its_name_says(make_cfg, variant):
     assert dict(env.randomization) == pytest.approx(expected)
     assert set(env.randomization) == set(RandomizationConfig.__dataclass_fields__)
     assert env.ensemble_seeds == (3 if variant.endswith("ensemble") or variant == "both" else 1)
+    priced = variant.startswith("incremental_randomized")
+    assert env.command_change_cost == (PRICE if priced else 0)
 
 
 def test_experiment_real_arm_trains_the_gru_twice_as_long(make_cfg):

@@ -41,8 +41,9 @@ _SPLIT_KEYS = ("train_fraction", "split_seed")
 _NON_DETERMINING_AGENT_KEYS = ("progress",)
 
 
-# settings added to the simulated arm later, left out of a spec while unset, so that configs
-# that do not use them keep the artifact keys they had
+# settings added later (to the simulated arm, the model's training, the env's reward), left out
+# of a spec while they have their default, so that configs that do not use them keep the
+# artifact keys they had
 _UNSET_LATER = {"session_std": {}, "replay": None, "loss": "mse", "command_change_cost": 0.0}
 
 

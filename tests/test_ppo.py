@@ -178,7 +178,6 @@ def test_fused_gru_equals_flax_gru_cell_step_by_step_with_resets():
     jax.tree.map(np.testing.assert_array_equal, variables["params"], expected)
 
 
-
 def test_fused_gru_gradients_equal_flax_gru_cell_gradients():
     """The GRU's own backward pass gives the gradients autodiff gives through GRUCell, with
     respect to every variable, the initial state and the inputs, across resets."""
@@ -227,6 +226,7 @@ def test_gru_sequence_refuses_mismatched_shapes(bad):
     with pytest.raises(AssertionError):
         gru_sequence(jnp.zeros(shapes["kernel"]), jnp.zeros(width), jnp.zeros((batch, width)),
                      jnp.zeros(shapes["projected"]), jnp.zeros(shapes["resets"], bool))
+
 
 def toy_reaching():
     env = SoftArmReachEnv(linear_lag_plant(10.0), 2.0, settle_seconds=1.0,

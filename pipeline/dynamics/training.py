@@ -39,7 +39,7 @@ import pandas as pd
 from flax import serialization
 from tqdm.auto import tqdm
 
-from pipeline.config import ModelConfig, dataclass_values, frozen_twin
+from pipeline.config import ModelConfig, ModelLoss, dataclass_values, frozen_twin
 from pipeline.data.windows import gather_windows, make_windows, sample_batch
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.model import DynamicsConfig, DynamicsParams, Normalizer
@@ -75,7 +75,7 @@ class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
         if self.input_noise_std < 0 or self.weight_decay < 0:
             raise ValueError("input_noise_std and weight_decay must be >= 0, got "
                              f"{self.input_noise_std}, {self.weight_decay}")
-        if self.loss not in ("mse", "distance"):
+        if self.loss not in {loss.value for loss in ModelLoss}:
             raise ValueError(f"loss must be mse or distance, got {self.loss!r}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be constant or cosine, got {self.lr_schedule!r}")

@@ -32,10 +32,10 @@ import jax
 import jax.numpy as jnp
 
 
-def _gates(hidden_kernel: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """``[H, 3H]`` (gates r, z, n) -> the three ``[H, H]`` blocks."""
-    h = hidden_kernel.shape[0]
-    return hidden_kernel[:, :h], hidden_kernel[:, h:2 * h], hidden_kernel[:, 2 * h:]
+def _gates(array: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``[..., 3H]`` (gates r, z, n side by side on the last axis) -> the three ``[..., H]``."""
+    r, z, n = jnp.split(array, 3, axis=-1)
+    return r, z, n
 
 
 def _forward(hidden_kernel, hidden_bias, carry, projected, resets):
@@ -46,8 +46,7 @@ def _forward(hidden_kernel, hidden_bias, carry, projected, resets):
     chex.assert_shape([hidden_kernel, hidden_bias], [(carry.shape[-1], 3 * carry.shape[-1]),
                                                      (carry.shape[-1],)])
     w_r, w_z, w_n = _gates(hidden_kernel)
-    h = carry.shape[-1]
-    x_r, x_z, x_n = projected[..., :h], projected[..., h:2 * h], projected[..., 2 * h:]
+    x_r, x_z, x_n = _gates(projected)
 
     def step(state, inputs):
         x_r_t, x_z_t, x_n_t, reset_t = inputs

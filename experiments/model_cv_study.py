@@ -63,7 +63,7 @@ def load_runs(overrides: list[str]):
 
 def study_row(args: argparse.Namespace) -> dict:
     from pipeline.dynamics import cv as model_cv
-    from pipeline.dynamics.training import position_errors_mm
+    from pipeline.dynamics.training import LEARNED, position_errors_mm
 
     cfg, runs = load_runs(args.overrides)
     seeds = [int(s) for s in args.seeds.split(",")]
@@ -83,14 +83,14 @@ def study_row(args: argparse.Namespace) -> dict:
         mean, std = model_cv.ensemble_predictions(fold, run)
         held = metrics[(metrics["split"] == "cv") & (metrics["run_id"] == run_id)]
         train = metrics[(metrics["split"] == "cv_train") & (metrics["held_out"] == run_id)
-                        & (metrics["model"] == "lstm")]
+                        & (metrics["model"] == LEARNED)]
 
         def of(model, stat, held=held):
             return float(held.loc[held["model"] == model, stat].mean())
 
         per_run[run_id] = {
             **{f"model_{k}": v for k, v in position_errors_mm(mean, run["pos"]).items()},
-            "member_mean_mm": of("lstm", "mean_mm"), "member_p95_mm": of("lstm", "p95_mm"),
+            "member_mean_mm": of(LEARNED, "mean_mm"), "member_p95_mm": of(LEARNED, "p95_mm"),
             "linear_mean_mm": of("linear_lagged", "mean_mm"),
             "linear_p95_mm": of("linear_lagged", "p95_mm"),
             "mean_position_mean_mm": of("mean_position", "mean_mm"),

@@ -172,7 +172,7 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
     from pipeline.data.alignment import runs_at_model_rate
     from pipeline.data.schemas import ALIGNED, read_table
     from pipeline.dynamics.figures import plot_reconstruction
-    from pipeline.dynamics.training import load_dynamics
+    from pipeline.dynamics.training import LEARNED, load_dynamics
 
     fits, durations = {}, {}
     for order in ("permuted", "sequential"):
@@ -232,9 +232,10 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
     fig, _ = _image_figure(png, 14)
     png.unlink()
     metrics = pd.read_parquet(artifact.file("metrics.parquet"))
-    lstm = metrics[metrics["model"] == "lstm"].set_index("run_id")
+    learned = metrics[metrics["model"] == LEARNED].set_index("run_id")
     numbers = ", ".join(f"{rid} ({'train' if rid in split['train'] else 'held out'}) "
-                        f"{lstm.loc[rid, 'mean_mm']:.2f} mm mean / {lstm.loc[rid, 'p95_mm']:.2f} "
+                        f"{learned.loc[rid, 'mean_mm']:.2f} mm mean / "
+                        f"{learned.loc[rid, 'p95_mm']:.2f} "
                         "mm p95" for rid in [r["run_id"] for r in shown])
     _save(fig, out / "fig7_reconstruction.png", (
         "Fig. 7. Open-loop reconstruction by the permuted-order model of Fig. 6: the position "

@@ -77,6 +77,14 @@ def test_experiment_quick_shrinks_the_run(make_cfg):
     assert quick.exploration.num_steps < default.exploration.num_steps
 
 
+def test_experiment_paper_keeps_the_papers_lstm_while_the_default_is_a_gru(make_cfg):
+    default, paper = make_cfg(), make_cfg("experiment=paper")
+    assert default.model.cell.value == "gru" and default.model.recurrent_dropout > 0
+    assert paper.model.cell.value == "lstm" and paper.model.hidden == 1024
+    assert paper.model.recurrent_dropout == 0.0
+    assert not paper.model.step_size and list(paper.model.step_decays) == []
+
+
 def test_settings_a_simulated_arm_does_not_use_stay_out_of_its_keys(make_cfg):
     from pipeline import keys
 

@@ -106,9 +106,9 @@ def test_warning_fires_when_the_model_loses_to_the_linear_baseline(caplog):
         config) for m in members]
     metrics = model_cv.cv_metrics(runs, members, params, num_lags=5)
     assert set(metrics["split"]) == {"cv", "cv_train"}
-    held = metrics[(metrics["split"] == "cv") & (metrics["model"] == "lstm")]
+    held = metrics[(metrics["split"] == "cv") & (metrics["model"] == "learned")]
     assert held["loses_to_linear"].all() and len(held) == 2
-    assert not metrics.loc[metrics["model"] != "lstm", "loses_to_linear"].any()
+    assert not metrics.loc[metrics["model"] != "learned", "loses_to_linear"].any()
     with caplog.at_level(logging.WARNING):
         messages = model_cv.warn_if_losing(metrics)
     assert len(messages) == 2 and "run0" in messages[0] and "linear lagged" in messages[0]
@@ -187,7 +187,7 @@ def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
     assert split["train"] == ids and sorted(f["held_out"] for f in split["folds"]) == ids
     summary = artifact.manifest["summary"]
     assert summary["protocol"] == "cv" and isinstance(summary["warnings"], list)
-    losing = held[(held["model"] == "lstm") & held["loses_to_linear"]]["run_id"].tolist()
+    losing = held[(held["model"] == "learned") & held["loses_to_linear"]]["run_id"].tolist()
     assert len(summary["warnings"]) == len(losing)
 
     from pipeline.data.alignment import runs_at_model_rate

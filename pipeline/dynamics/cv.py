@@ -42,6 +42,8 @@ from pipeline.data.windows import make_windows
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.model import DynamicsParams
 from pipeline.dynamics.training import (
+    LEARNED,
+    MODELS,
     ModelTrainConfig,
     TrainData,
     TrainState,
@@ -61,7 +63,6 @@ from pipeline.dynamics.training import (
 
 log = logging.getLogger(__name__)
 LINEAR_LAGS = 30  # lags of the linear baseline (model steps), as train_model's default
-MODELS = ("lstm", "mean_position", "linear_lagged")
 
 
 @dataclass(frozen=True)
@@ -271,7 +272,7 @@ def cv_metrics(runs: Sequence[dict], members: Sequence[Member],
 
     Fold members (a held-out run): ``split="cv"`` rows on the held-out run and ``"cv_train"``
     rows on each training run. The all-runs member: ``"train"`` rows. Each row for the model
-    (``lstm``), the mean training position and the linear lagged-pressure model fitted on the
+    (``learned``), the mean training position and the linear lagged-pressure model fitted on the
     member's training runs. ``fold``: the member's index among the fold members (-1: all runs).
     ``loses_to_linear``: on the model's ``cv`` rows, its mean error is not below the linear
     baseline's on that fold.
@@ -286,17 +287,17 @@ def cv_metrics(runs: Sequence[dict], members: Sequence[Member],
             ("cv_train" if member.held_out else "train", run) for run in train_runs]
         for split, run in scored:
             linear = lagged_features(run["p"], num_lags) @ coefficients
-            errors = {"lstm": position_errors_mm(predict_run(member_params, run), run["pos"]),
+            errors = {LEARNED: position_errors_mm(predict_run(member_params, run), run["pos"]),
                       "mean_position": baseline_mean_position(train_runs, run),
                       "linear_lagged": position_errors_mm(linear, run["pos"])}
-            loses = bool(split == "cv" and errors["lstm"]["mean_mm"]
+            loses = bool(split == "cv" and errors[LEARNED]["mean_mm"]
                          >= errors["linear_lagged"]["mean_mm"])
             for model in MODELS:
                 rows.append({"run_id": str(run["run_id"]), "split": split,
                              "fold": fold if member.held_out else -1,
                              "held_out": member.held_out or "", "seed": member.seed,
                              "model": model, "steps": len(run["p"]), **errors[model],
-                             "loses_to_linear": loses and model == "lstm"})
+                             "loses_to_linear": loses and model == LEARNED})
         fold += bool(member.held_out)
     return pd.DataFrame(rows)
 
@@ -307,7 +308,7 @@ def warn_if_losing(metrics: pd.DataFrame) -> list[str]:
     messages = []
     held_out = metrics[metrics["split"].isin(["cv", "test"])]
     for run_id, group in held_out.groupby("run_id", sort=True):
-        model = group.loc[group["model"] == "lstm", "mean_mm"].mean()
+        model = group.loc[group["model"] == LEARNED, "mean_mm"].mean()
         linear = group.loc[group["model"] == "linear_lagged", "mean_mm"].mean()
         if not model < linear:
             messages.append(f"the model does not beat the linear lagged baseline on held-out "
@@ -324,7 +325,7 @@ def cv_summary(metrics: pd.DataFrame) -> pd.DataFrame:
     table = held.pivot_table(index="run_id", columns="model", values=["mean_mm", "p95_mm"],
                              aggfunc="mean")
     table.columns = [f"{model}_{stat}" for stat, model in table.columns]
-    train = metrics[(metrics["split"] == "cv_train") & (metrics["model"] == "lstm")]
+    train = metrics[(metrics["split"] == "cv_train") & (metrics["model"] == LEARNED)]
     train = train.groupby("held_out")[["mean_mm", "p95_mm"]].mean()
     table["train_runs_mean_mm"] = train["mean_mm"]
     table["train_runs_p95_mm"] = train["p95_mm"]

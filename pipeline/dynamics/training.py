@@ -50,6 +50,10 @@ log = logging.getLogger(__name__)
 CHECKPOINT_PREFIX = "step_"
 CHECKPOINT_SUFFIX = ".msgpack"
 LOSS_TABLE_COLUMNS = ["step", "train_loss", "val_loss", "val_mean_mm", "val_p95_mm"]
+# the ``model`` column of the model_metrics table: the learned model (whatever its cell) and the
+# two baselines fitted on the same training runs
+LEARNED = "learned"
+MODELS = (LEARNED, "mean_position", "linear_lagged")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -648,15 +652,15 @@ def evaluation_table(params, train_runs: list[dict], test_runs: list[dict]) -> p
     for split, runs in (("train", train_runs), ("test", test_runs)):
         for run in runs:
             errors = {
-                "lstm": evaluate_open_loop(params, run),
+                LEARNED: evaluate_open_loop(params, run),
                 "mean_position": baseline_mean_position(train_runs, run),
                 "linear_lagged": baseline_linear_lagged(train_runs, run),
             }
-            loses = split == "test" and errors["lstm"]["mean_mm"] >= errors["linear_lagged"][
+            loses = split == "test" and errors[LEARNED]["mean_mm"] >= errors["linear_lagged"][
                 "mean_mm"]
             for model, values in errors.items():
                 rows.append({"run_id": run["run_id"], "split": split, "fold": -1,
                              "held_out": "", "seed": 0, "model": model,
                              "steps": len(run["p"]), **values,
-                             "loses_to_linear": bool(loses and model == "lstm")})
+                             "loses_to_linear": bool(loses and model == LEARNED)})
     return pd.DataFrame(rows)

@@ -11,6 +11,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline.dynamics.cv import cv_summary
+from pipeline.dynamics.training import LEARNED
 from pipeline.evaluation.metrics import seed_spread
 from pipeline.evaluation.report import Figure, Section, Table, format_number
 from pipeline.infra.artifacts import Artifact
@@ -58,8 +59,8 @@ def _model_sentence(model: Artifact) -> str:
                 f"({', '.join(tested)})")
     else:
         runs = "the training runs (no run was held out)"
-    return (f"Dynamics model: **{format_number(held['lstm_mean_mm'])} mm** mean and "
-            f"{format_number(held['lstm_p95_mm'])} mm 95th-percentile open-loop error over "
+    return (f"Dynamics model: **{format_number(held[f'{LEARNED}_mean_mm'])} mm** mean and "
+            f"{format_number(held[f'{LEARNED}_p95_mm'])} mm 95th-percentile open-loop error over "
             f"{runs}, each predicted over its entire length from its commands alone "
             f"(mean-position baseline {format_number(held['mean_position_mean_mm'])} mm, linear "
             f"lagged-pressure baseline {format_number(held['linear_lagged_mean_mm'])} mm).")
@@ -73,7 +74,7 @@ def _summary_section(cfg, model, summary: pd.DataFrame, order: list[str]) -> Sec
         for warning in model.manifest["summary"].get("warnings", []):
             section.add(f"**Warning:** {warning}.")
     if "plant" in set(summary["plant"]):
-        section.add("Every controller is run on the **learned model** (the fitted LSTM the "
+        section.add("Every controller is run on the **learned model** (the fitted recurrent model the "
                     "policies were trained in) and on the **simulated arm** (the plant: "
                     "`robot=sim`'s own physics, with hysteresis, creep and a rest pose that "
                     "differs between sessions, which the model only saw through recorded data).")
@@ -119,7 +120,7 @@ def _model_section(model: Artifact | None) -> Section:
     names = {"mean_mm": "mean [mm]", "p95_mm": "p95 [mm]"}
     per_run.columns = [f"{model_name} {names[stat]}" if model_name else stat
                        for stat, model_name in per_run.columns]
-    models = [m for m in ("lstm", "linear_lagged", "mean_position") if m in set(metrics["model"])]
+    models = [m for m in (LEARNED, "linear_lagged", "mean_position") if m in set(metrics["model"])]
     columns = ["split", "run_id"] + [f"{m} {s}" for m in models for s in names.values()]
     per_run = per_run.sort_values("split", key=lambda c: c.map({"train": 0, "test": 1}))
     accuracy.add(Table(per_run[columns], "open-loop error per run (split test: held out)"))

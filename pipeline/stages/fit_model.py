@@ -1,4 +1,4 @@
-"""Stage ``fit_model``: the LSTM forward-dynamics model on the aligned runs.
+"""Stage ``fit_model``: the recurrent forward-dynamics model on the aligned runs.
 
 The aligned rows (~100 Hz) are resampled to ``dataset.model_hz`` (positions interpolated,
 pressures held) and cut into sliding windows (``dataset.window``, ``dataset.stride``,
@@ -41,7 +41,7 @@ from pipeline.data.schemas import ALIGNED, MODEL_METRICS, read_table, write_tabl
 from pipeline.data.windows import split_runs
 from pipeline.dynamics import cv as model_cv
 from pipeline.dynamics.figures import plot_losses, plot_reconstruction
-from pipeline.dynamics.training import evaluation_table, fit, save_dynamics
+from pipeline.dynamics.training import LEARNED, MODELS, evaluation_table, fit, save_dynamics
 from pipeline.infra.artifacts import Artifact, ArtifactStore, artifact_key, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.infra.tracking import tracking
@@ -102,15 +102,15 @@ def fit_model(cfg: Any) -> Artifact:
             "protocol": "split", "train_runs": train_ids, "test_runs": test_ids,
             "steps": int(losses["step"].max()) if len(losses) else 0,
             **{f"{m}_{k}": float(summary_of.loc[summary_of["model"] == m, k].mean())
-               for m in ("lstm", "mean_position", "linear_lagged") for k in ("mean_mm", "p95_mm")},
+               for m in MODELS for k in ("mean_mm", "p95_mm")},
             "warnings": warnings,
         }
         which = ("held-out" if len(held_out) else
                  "training-run (no test run: dataset.train_fraction keeps every run)")
         writer.summary["error_on"] = "test" if len(held_out) else "train"
         log.info("fit_model: %s open-loop error %.2f mm mean, %.2f mm p95 (baselines: mean "
-                 "position %.2f mm, linear lagged %.2f mm)", which, writer.summary["lstm_mean_mm"],
-                 writer.summary["lstm_p95_mm"], writer.summary["mean_position_mean_mm"],
+                 "position %.2f mm, linear lagged %.2f mm)", which, writer.summary[f"{LEARNED}_mean_mm"],
+                 writer.summary[f"{LEARNED}_p95_mm"], writer.summary["mean_position_mean_mm"],
                  writer.summary["linear_lagged_mean_mm"])
 
     artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)
@@ -161,14 +161,14 @@ def build_cv(cfg: Any, writer, runs: list[dict], work_dir: Path, spec: dict,
         "folds": [m.held_out for m in members if m.held_out],
         "steps": int(losses.shape[1]),
         **{f"{m}_{k}": float(average[f"{m}_{k}"])
-           for m in model_cv.MODELS for k in ("mean_mm", "p95_mm")},
+           for m in MODELS for k in ("mean_mm", "p95_mm")},
         "train_runs_mean_mm": float(average["train_runs_mean_mm"]),
         "warnings": warnings,
     }
     log.info("fit_model: leave-one-run-out open-loop error %.2f mm mean, %.2f mm p95 "
              "(baselines: mean position %.2f mm, linear lagged %.2f mm; fold models on their "
-             "training runs %.2f mm)", writer.summary["lstm_mean_mm"],
-             writer.summary["lstm_p95_mm"], writer.summary["mean_position_mean_mm"],
+             "training runs %.2f mm)", writer.summary[f"{LEARNED}_mean_mm"],
+             writer.summary[f"{LEARNED}_p95_mm"], writer.summary["mean_position_mean_mm"],
              writer.summary["linear_lagged_mean_mm"], writer.summary["train_runs_mean_mm"])
 
 

@@ -2,7 +2,7 @@
 
 ``env.name`` picks the environment (``pipeline.rl.envs.factory``):
 
-- ``learned`` (default): the fitted LSTM of the fit_model artifact of this config; goals
+- ``learned`` (default): the fitted recurrent model of the fit_model artifact of this config; goals
   (``goal_mode=data``) are the model's open-loop predictions along the training runs' commands
   (``env.goal_source=predicted``, reachable in the model's world) or their measured positions
   (``measured``); evaluation goals come from the held-out runs (the split recorded by fit_model);

@@ -2,7 +2,7 @@
 
 ``env.name``:
 
-- ``learned``: :class:`SoftArmReachEnv` on the fitted LSTM (:func:`make_learned_env`; the model,
+- ``learned``: :class:`SoftArmReachEnv` on the fitted recurrent model (:func:`make_learned_env`; the model,
   the rest pose and the goal sets come from the fit_model / align artifacts).
 - ``sim``: the same environment on the simulated arm (:func:`make_sim_env`), the ground-truth
   plant: goals are positions the simulated arm reaches holding random safe pressures.

@@ -521,6 +521,10 @@ class EnvConfig:
     include_last_action: bool = False
     include_error: bool = False  # also observe (goal - position) / error_scale_m
     error_scale_m: float = 0.005
+    # also observe the accumulated error: I_t = decay I_(t-1) + (1 - decay) (goal - measured_t) /
+    # error_scale_m after each control period (0 at the start; a leaky integral on the error's scale)
+    include_error_integral: bool = False
+    error_integral_decay: float = 0.8  # per control period, in [0, 1)
     # incremental: each action changes the last command by up to action_step_kpa per control
     # period (integral action: the commands rest only where the policy outputs zero)
     action_mode: ActionMode = ActionMode.absolute

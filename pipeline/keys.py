@@ -44,7 +44,8 @@ _NON_DETERMINING_AGENT_KEYS = ("progress",)
 # settings added later (to the simulated arm, the model's training, the env's reward), left out
 # of a spec while they have their default, so that configs that do not use them keep the
 # artifact keys they had
-_UNSET_LATER = {"session_std": {}, "replay": None, "loss": "mse", "command_change_cost": 0.0}
+_UNSET_LATER = {"session_std": {}, "replay": None, "loss": "mse", "command_change_cost": 0.0,
+                "include_error_integral": False, "error_integral_decay": 0.8}
 
 
 def _container(node: Any) -> Any:

@@ -11,7 +11,7 @@ from pipeline.arm.safety import SafeSet
 from pipeline.control.goals import GoalError, goal_schedule, workspace_problem
 from pipeline.control.loop import ControlLoop, SimArm
 from pipeline.control.policy import load_deployment
-from pipeline.control.records import PeriodRecorder
+from pipeline.control.records import GOAL_COLUMNS, PeriodRecorder
 from pipeline.control.results import goal_metrics
 from pipeline.control.session import ControlInterrupted, control
 from pipeline.data.schemas import CMD_COLUMNS
@@ -181,6 +181,29 @@ def test_an_incremental_policy_changes_the_last_command_on_the_arm(tmp_path):
     np.testing.assert_allclose(sent[inside], (last + 0.5 * actions)[inside], atol=1e-5)
     assert np.abs(sent - last).max() <= 0.5 + 1e-6
     assert np.abs(sent - last).max() > 1e-3  # it moved
+
+
+def test_the_arm_accumulates_the_error_as_the_environment_does(tmp_path):
+    # zero at a goal's first period, then 0.5 x the last + 0.5 x (goal - measured) / error scale
+    cfg = compose_config(tmp_path, *SMALL, "env.include_error_integral=true",
+                         "env.error_integral_decay=0.5", "control.policy=ppo_ff",
+                         "stage=control")
+    _, train_params = write_policy(cfg)
+    cfg.control.goals = goals_mm(train_params, 1)
+    cfg.control.hold_s = 3.0
+    periods = pd.read_parquet(control(cfg).file("periods.parquet"))
+    commanded = periods[periods["goal_index"] >= 0]
+    error = commanded.filter(like="obs_").to_numpy()[:, 6:9]  # (goal - measured) / scale
+    measured = (commanded[GOAL_COLUMNS].to_numpy() - commanded[["x", "y", "z"]].to_numpy())
+    np.testing.assert_allclose(error, measured / float(train_params.error_scale), rtol=1e-4,
+                               atol=1e-4)
+    integral = commanded.filter(like="obs_").to_numpy()[:, 9:12]
+    expected = [np.zeros(3)]
+    for row in error[1:]:
+        expected.append(0.5 * expected[-1] + 0.5 * row)
+    assert len(expected) >= 4
+    np.testing.assert_allclose(integral, np.array(expected), rtol=1e-4, atol=1e-4)
+    assert np.abs(integral).max() > 1e-3
 
 
 def _loop(cfg, deployment, arm_factory, tmp_path):

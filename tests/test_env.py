@@ -31,7 +31,8 @@ def toy_env(**overrides):
     """Linear-lag plant at 10 Hz, 2 Hz control; goals a few mm around the rest pose."""
     env = SoftArmReachEnv(linear_lag_plant(10.0), control_hz=2.0, settle_seconds=2.0,
                           include_last_action=overrides.pop("include_last_action", False),
-                          include_error=overrides.pop("include_error", False))
+                          include_error=overrides.pop("include_error", False),
+                          include_error_integral=overrides.pop("include_error_integral", False))
     goals = REST_POSE + jnp.array([[0.005, 0.0, 0.0], [0.0, 0.0, -0.005], [-0.004, 0.0, 0.003]])
     settings = {"safe_set": SafeSet.from_limits(LIMITS), "preload": 2.0, "rest_pose": REST_POSE,
                 "goal_set": goals, "max_steps": 5, "reset_bank_size": 4}
@@ -184,6 +185,31 @@ def test_scaled_error_in_the_observation():
     assert np.linalg.norm(error_mm) > 1.0  # the goals are mm away from the rest pose
     np.testing.assert_allclose(obs[6:9], error_mm / 2.0, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(obs[9:], env.pressure_to_action(params.preload, params))
+
+
+def test_accumulated_error_in_the_observation_by_hand():
+    """I_0 = 0, I_t = 0.75 I_(t-1) + 0.25 (goal - position_t) / 2 mm, between error and action."""
+    env, params = toy_env(include_error=True, include_error_integral=True,
+                          include_last_action=True, error_scale_m=0.002, error_integral_decay=0.75)
+    obs, state = env.reset(jax.random.PRNGKey(3), params)
+    assert obs.shape == (15,) == env.observation_space(params).shape
+    np.testing.assert_array_equal(obs[9:12], np.zeros(3))
+    expected = np.zeros(3)
+    for action in ([1.0, -1.0, 0.0], [0.0, 0.5, -0.5]):
+        obs, state, _, _, _ = env.step_env(jax.random.PRNGKey(1), state, jnp.array(action),
+                                           params)
+        error_units = 1000.0 * np.asarray(state.goal - state.position) / 2.0
+        expected = 0.75 * expected + 0.25 * error_units
+        np.testing.assert_allclose(obs[6:9], error_units, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(obs[9:12], expected, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(state.error_integral, expected, rtol=1e-4, atol=1e-5)
+    assert np.abs(expected).max() > 0.1  # the goal is millimetres away: it accumulated
+    # without the option the observation is what it was, the same numbers
+    plain_env, plain_params = toy_env(include_error=True, include_last_action=True,
+                                      error_scale_m=0.002)
+    plain_obs, _ = plain_env.reset(jax.random.PRNGKey(3), plain_params)
+    reset_obs, _ = env.reset(jax.random.PRNGKey(3), params)
+    np.testing.assert_array_equal(plain_obs, np.concatenate([reset_obs[:9], reset_obs[12:]]))
 
 
 def test_one_compiled_env_serves_a_batch_of_models():

@@ -27,7 +27,7 @@ from pipeline.evaluation.rollouts import policy_controller
 from pipeline.infra.artifacts import Artifact, ArtifactStore
 from pipeline.rl.envs.factory import environment
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
-from pipeline.rl.envs.observation import observe
+from pipeline.rl.envs.observation import observe, update_error_integral
 from pipeline.rl.networks import initial_hidden
 from pipeline.rl.policy_io import load_policy
 
@@ -44,15 +44,18 @@ class Deployment:
     env: SoftArmReachEnv
     env_params: EnvParams  # the evaluation parameters: the training standardization
     policy_params: Any
-    hidden: Any  # [1, H] initial recurrent state (a placeholder for feed-forward policies)
+    # the initial carry between periods: ([1, H] recurrent state, a placeholder for feed-forward
+    # policies; [3] accumulated error, zeros, used with env.include_error_integral)
+    hidden: Any
     workspace_m: np.ndarray  # [2, 3] lower and upper corner of the training goals
     control_hz: float
-    step: Any  # jitted (policy_params, env_params, hidden, first, measured, goal, last_pressure)
+    step: Any  # jitted (policy_params, env_params, carry, first, measured, goal, last_pressure)
 
     def act(self, hidden: Any, first: bool, measured: np.ndarray, goal: np.ndarray,
             last_pressure: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
-        """One period: ``(hidden, observation [obs_dim], action [3] in [-1, 1], pressure [3] kPa
-        before the gate)``; ``measured``, ``goal`` in m, ``last_pressure`` in kPa."""
+        """One period: ``(carry, observation [obs_dim], action [3] in [-1, 1], pressure [3] kPa
+        before the gate)``; ``hidden``: the carry of the previous period (``Deployment.hidden``
+        at the first, ``first=True``); ``measured``, ``goal`` in m, ``last_pressure`` in kPa."""
         hidden, obs, action, pressure = self.step(
             self.policy_params, self.env_params, hidden, jnp.asarray(first),
             jnp.asarray(measured, jnp.float32), jnp.asarray(goal, jnp.float32),
@@ -113,14 +116,20 @@ def best_seed(artifact: Artifact) -> int:
 def make_step(network: Any, env: SoftArmReachEnv) -> Any:
     """The jitted control step: observation (the environment's :func:`observe`), the
     deterministic action (evaluate's policy controller), the pressures (the environment's
-    action mapping)."""
+    action mapping). Its carry is ``(recurrent state, accumulated error)``; the accumulated
+    error is zero at the first period and then updated with each measured pose, as the
+    environment does from a reset (:func:`update_error_integral`)."""
 
-    def step(policy_params, env_params, hidden, first, measured, goal, last_pressure):
+    def step(policy_params, env_params, carry, first, measured, goal, last_pressure):
+        hidden, integral = carry
+        integral = jnp.where(first, jnp.zeros_like(integral),
+                             update_error_integral(integral, measured, goal, env_params))
         obs = observe(measured, goal, last_pressure, env_params, include_error=env.include_error,
-                      include_last_action=env.include_last_action)
+                      include_last_action=env.include_last_action,
+                      error_integral=integral if env.include_error_integral else None)
         act = policy_controller(network, policy_params)
         (hidden, _), action = act(None, obs, None, (hidden, first))
-        return hidden, obs, action, env.command(action, last_pressure, env_params)
+        return (hidden, integral), obs, action, env.command(action, last_pressure, env_params)
 
     return jax.jit(step)
 
@@ -151,7 +160,8 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
     goals = np.asarray(train_params.goal_set, np.float64)
     workspace = np.stack([goals.min(axis=0), goals.max(axis=0)])
     deployment = Deployment(artifact, seed, env, eval_params, policy_params,
-                            initial_hidden(network, 1), workspace, control_hz,
+                            (initial_hidden(network, 1), jnp.zeros(3, jnp.float32)),
+                            workspace, control_hz,
                             make_step(network, env))
     # compile before the first command: the first period must not wait for XLA
     preload = np.asarray(eval_params.preload, np.float64)

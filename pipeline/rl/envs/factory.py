@@ -75,6 +75,8 @@ def common_params(cfg: Any) -> dict[str, Any]:
         "goal_tolerance_m": float(env_cfg.goal_tolerance_m),
         "obs_noise_std_m": float(env_cfg.obs_noise_std),
         "error_scale_m": float(env_cfg.error_scale_m),
+        "error_integral_decay": float(
+            env_cfg.get("error_integral_decay", EnvConfig.error_integral_decay)),
         "action_step_kpa": float(env_cfg.get("action_step_kpa", EnvConfig.action_step_kpa)),
         "action_noise_std_kpa": float(env_cfg.action_noise_std),
         "command_change_cost_mm_per_kpa": float(
@@ -108,6 +110,8 @@ def observation_options(env_cfg: Any) -> dict[str, Any]:
     return {"settle_seconds": float(env_cfg.settle_seconds),
             "include_last_action": bool(env_cfg.include_last_action),
             "include_error": bool(env_cfg.include_error),
+            "include_error_integral": bool(
+                env_cfg.get("include_error_integral", EnvConfig.include_error_integral)),
             "incremental_actions": incremental_actions(env_cfg)}
 
 

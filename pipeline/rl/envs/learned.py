@@ -13,8 +13,10 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
 - **Observation** ``[6]``: the measured position (plus Gaussian noise, m) and the goal, both
   standardized with ``obs_mean`` / ``obs_scale``; with ``include_error`` ``+3``, the error
   ``goal - measured`` divided by ``error_scale`` (a few mm, so that the last millimetres are not
-  a hundredth of an input's range); with ``include_last_action`` ``+3``, the last applied
-  pressure mapped back to ``[-1, 1]``.
+  a hundredth of an input's range); with ``include_error_integral`` ``+3``, the accumulated
+  error ``I_t = decay * I_(t-1) + (1 - decay) * (goal - measured_t) / error_scale`` after each
+  control period (``EnvState.error_integral``, 0 at a reset; ``EnvParams.error_integral_decay``);
+  with ``include_last_action`` ``+3``, the last applied pressure mapped back to ``[-1, 1]``.
 - **Reward** ``-||goal - position||`` in **millimetres** at the end of the control period, minus
   ``command_change_cost`` (mm per kPa, 0 by default) times the summed absolute change of the
   applied command ``sum_v |p_t - p_{t-1}|`` kPa: a price on moving the valves, so that a policy
@@ -131,6 +133,8 @@ class EnvState:
     perturbation: this episode's randomization draw (:class:`Perturbation`, from
       :meth:`SoftArmReachEnv.start_state`); ``position`` is the plant's position shifted by its
       offset. None only in a state that is observed, never stepped.
+    error_integral: [3], the accumulated scaled error (:func:`observation.update_error_integral`
+      of the measured positions since the reset; zeros at a reset). None like ``perturbation``.
     """
 
     plant_carry: Any
@@ -139,6 +143,7 @@ class EnvState:
     last_pressure: jax.Array
     time: jax.Array
     perturbation: Perturbation | None = None
+    error_integral: jax.Array | None = None
 
 
 @struct.dataclass
@@ -157,6 +162,8 @@ class EnvParams:
     obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
     obs_noise_std: m, Gaussian noise on the observed position.
     error_scale: m, divides ``goal - measured`` in the observation (``include_error``).
+    error_integral_decay: per control period, the accumulated error's weight on its past
+      (``include_error_integral``).
     action_step: kPa, the change of a command per control period at action 1
       (``incremental_actions`` only).
     action_noise_std: kPa, Gaussian noise on the commanded pressures (before projection).
@@ -178,6 +185,7 @@ class EnvParams:
     obs_scale: jax.Array
     obs_noise_std: jax.Array
     error_scale: jax.Array
+    error_integral_decay: jax.Array
     action_step: jax.Array
     action_noise_std: jax.Array
     command_change_cost: jax.Array
@@ -195,13 +203,14 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         :func:`make_env_params` to fill the reset bank).
       include_last_action: append the last applied pressure (in ``[-1, 1]``) to the observation.
       include_error: append ``(goal - measured) / error_scale`` to the observation.
+      include_error_integral: append the accumulated error (``EnvState.error_integral``).
       incremental_actions: an action changes the last command (``params.action_step`` kPa at
         1) instead of setting it.
     """
 
     def __init__(self, plant: Plant, control_hz: float = 2.0, settle_seconds: float = 5.0,
                  include_last_action: bool = False, include_error: bool = False,
-                 incremental_actions: bool = False):
+                 incremental_actions: bool = False, include_error_integral: bool = False):
         super().__init__()
         ratio = plant.model_hz / control_hz
         if ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
@@ -214,6 +223,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         self.settle_steps = max(1, round(settle_seconds * plant.model_hz))
         self.include_last_action = bool(include_last_action)
         self.include_error = bool(include_error)
+        self.include_error_integral = bool(include_error_integral)
         self.incremental_actions = bool(incremental_actions)
 
     # -----------------------------------------------------------------------------------------
@@ -235,6 +245,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
     @property
     def obs_dim(self) -> int:
         return (2 * POSITION_DIM + (POSITION_DIM if self.include_error else 0)
+                + (POSITION_DIM if self.include_error_integral else 0)
                 + (NUM_VALVES if self.include_last_action else 0))
 
     def action_space(self, params: EnvParams | None = None) -> spaces.Box:
@@ -267,7 +278,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         ``key`` and the position shifted by its rest offset."""
         perturbation = self.draw_perturbation(key, params)
         return EnvState(plant_carry, position + perturbation.rest_offset, goal, params.preload,
-                        jnp.zeros((), jnp.int32), perturbation)
+                        jnp.zeros((), jnp.int32), perturbation, jnp.zeros(POSITION_DIM))
 
     def draw_perturbation(self, key: jax.Array, params: EnvParams) -> Perturbation:
         """One episode's :class:`Perturbation` drawn with ``params.randomization`` (one key per
@@ -306,23 +317,34 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         position = positions[-1] + (perturbation.rest_offset + perturbation.drift * seconds)
         distance = jnp.linalg.norm(state.goal - position)
         change = jnp.sum(jnp.abs(pressure - state.last_pressure))  # [] kPa, applied commands
+        measured = self.measure(obs_key, position, params)
+        integral = observation.update_error_integral(state.error_integral, measured, state.goal,
+                                                     params)
         state = EnvState(carry, position, state.goal, pressure, state.time + 1,
-                         perturbation.replace(received=received))
+                         perturbation.replace(received=received), integral)
         terminated = distance <= params.goal_tolerance
         reward = -MM_PER_M * distance - params.command_change_cost * change
-        obs = self.observe(obs_key, state, None, params)
+        obs = self._observation(measured, state, params)
         obs, state = self._apply_transition_gradient_policy(obs, state)
         return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
 
     def observe(self, key: jax.Array, state: EnvState, action: Any, params: EnvParams
                 ) -> jax.Array:
         """``[obs_dim]``: standardized noisy position, standardized goal (, scaled error)
-        (, last pressure); see :func:`pipeline.rl.envs.observation.observe`."""
-        measured = state.position + params.obs_noise_std * jax.random.normal(
-            key, (POSITION_DIM,))
-        return observation.observe(measured, state.goal, state.last_pressure, params,
-                                   include_error=self.include_error,
-                                   include_last_action=self.include_last_action)
+        (, accumulated error) (, last pressure); see
+        :func:`pipeline.rl.envs.observation.observe`."""
+        return self._observation(self.measure(key, state.position, params), state, params)
+
+    def measure(self, key: jax.Array, position: jax.Array, params: EnvParams) -> jax.Array:
+        """``[3]`` m: ``position`` as measured (plus ``N(0, obs_noise_std)`` per axis)."""
+        return position + params.obs_noise_std * jax.random.normal(key, (POSITION_DIM,))
+
+    def _observation(self, measured: jax.Array, state: EnvState, params: EnvParams
+                     ) -> jax.Array:
+        return observation.observe(
+            measured, state.goal, state.last_pressure, params, include_error=self.include_error,
+            include_last_action=self.include_last_action,
+            error_integral=state.error_integral if self.include_error_integral else None)
 
     def is_terminated(self, state: EnvState, params: EnvParams) -> jax.Array:
         return jnp.linalg.norm(state.goal - state.position) <= params.goal_tolerance
@@ -397,6 +419,7 @@ def make_env_params(
     goal_tolerance_m: float = 0.001,
     obs_noise_std_m: float = 0.0,
     error_scale_m: float = 0.005,
+    error_integral_decay: float = 0.8,
     action_step_kpa: float = 1.0,
     action_noise_std_kpa: float = 0.0,
     command_change_cost_mm_per_kpa: float = 0.0,
@@ -454,6 +477,7 @@ def make_env_params(
         obs_scale=f32(obs_scale),
         obs_noise_std=f32(obs_noise_std_m),
         error_scale=f32(error_scale_m),
+        error_integral_decay=f32(error_integral_decay),
         action_step=f32(action_step_kpa),
         command_change_cost=f32(command_change_cost_mm_per_kpa),
         action_noise_std=f32(action_noise_std_kpa),

@@ -19,10 +19,20 @@ def pressure_to_action(pressure: jax.Array, safe_set: Any) -> jax.Array:
     return 2.0 * (pressure - safe_set.p_min) / (safe_set.p_max - safe_set.p_min) - 1.0
 
 
+def update_error_integral(integral: jax.Array, measured: jax.Array, goal: jax.Array,
+                          params: Any) -> jax.Array:
+    """``[3]``: the accumulated error after a control period, ``decay * integral + (1 - decay) *
+    (goal - measured) / error_scale`` (``params.error_integral_decay``, ``params.error_scale``):
+    a leaky integral of the error on the scale of the observed error, 0 before the first period."""
+    decay = params.error_integral_decay
+    return decay * integral + (1.0 - decay) * (goal - measured) / params.error_scale
+
+
 def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, params: Any, *,
-            include_error: bool, include_last_action: bool) -> jax.Array:
+            include_error: bool, include_last_action: bool,
+            error_integral: jax.Array | None = None) -> jax.Array:
     """``[obs_dim]`` float32: standardized measured position, standardized goal (, scaled error)
-    (, last pressure in ``[-1, 1]``).
+    (, accumulated error) (, last pressure in ``[-1, 1]``).
 
     Args:
       measured: [3] m, the position as measured (the environment adds its observation noise).
@@ -32,11 +42,14 @@ def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, para
         ``safe_set`` (an ``EnvParams``).
       include_error: append ``(goal - measured) / error_scale`` [3].
       include_last_action: append the last pressure mapped to ``[-1, 1]`` [3].
+      error_integral: [3], appended where given (:func:`update_error_integral`).
     """
     parts = [(measured - params.obs_mean) / params.obs_scale,
              (goal - params.obs_mean) / params.obs_scale]
     if include_error:
         parts.append((goal - measured) / params.error_scale)
+    if error_integral is not None:
+        parts.append(error_integral)
     if include_last_action:
         parts.append(pressure_to_action(last_pressure, params.safe_set))
     return jnp.concatenate(parts).astype(jnp.float32)

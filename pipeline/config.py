@@ -437,7 +437,8 @@ class CalibrationConfig:
 # --------------------------------------------------------------------------------------------
 @dataclass
 class ModelConfig:
-    """The recurrent forward-dynamics model (``cell``: GRU or LSTM) and its training (see ``pipeline/dynamics/training.py``)."""
+    """The recurrent forward-dynamics model (``cell``: GRU or LSTM) and its training (see
+    ``pipeline/dynamics/training.py``)."""
 
     name: str = "recurrent"  # the model family (a recurrent network; which cell: ``cell``)
     hidden: int = 64
@@ -503,8 +504,8 @@ class RandomizationConfig:
 class EnvConfig:
     """The reaching environment (``pipeline/envs``). Reward: -distance in mm per control period.
 
-    ``name``: learned (the fitted recurrent model) | sim (the simulated arm itself) | gymnax (a standard
-    gymnax environment, ``gymnax_name``, to check the PPO against published returns).
+    ``name``: learned (the fitted recurrent model) | sim (the simulated arm itself) | gymnax (a
+    standard gymnax environment, ``gymnax_name``, to check the PPO against published returns).
 
     Robustness to model error (training only; evaluation stays in this config's own model):
     ``ensemble_seeds`` and ``models`` train in an ensemble of fitted models, one drawn per episode
@@ -521,8 +522,8 @@ class EnvConfig:
     include_last_action: bool = False
     include_error: bool = False  # also observe (goal - position) / error_scale_m
     error_scale_m: float = 0.005
-    # also observe the accumulated error: I_t = decay I_(t-1) + (1 - decay) (goal - measured_t) /
-    # error_scale_m after each control period (0 at the start; a leaky integral on the error's scale)
+    # also observe the accumulated error: I_t = decay I_(t-1) + (1 - decay) (goal - measured_t)
+    # / error_scale_m after each control period (0 at the start; a leaky integral of the error)
     include_error_integral: bool = False
     error_integral_decay: float = 0.8  # per control period, in [0, 1)
     # incremental: each action changes the last command by up to action_step_kpa per control

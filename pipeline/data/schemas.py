@@ -125,8 +125,8 @@ MODEL_METRICS = TableSchema(
      Column("fold", "int", "", "index of the fold (-1: the model later stages use)"),
      Column("held_out", "str", "", "the fold's held-out run (empty: no fold)"),
      Column("seed", "int", "", "model seed"),
-     Column("model", "str", "", "learned (the fitted model, GRU or LSTM) | mean_position | linear_lagged "
-            "(baselines fitted on the same training runs)"),
+     Column("model", "str", "", "learned (the fitted model, GRU or LSTM) | mean_position | "
+            "linear_lagged (baselines fitted on the same training runs)"),
      Column("steps", "int", "model steps", "length of the run at the model rate"),
      Column("mean_mm", "float", "mm", "mean open-loop Euclidean error over the entire run"),
      Column("p95_mm", "float", "mm", "95th percentile of that error"),

@@ -74,8 +74,8 @@ def _summary_section(cfg, model, summary: pd.DataFrame, order: list[str]) -> Sec
         for warning in model.manifest["summary"].get("warnings", []):
             section.add(f"**Warning:** {warning}.")
     if "plant" in set(summary["plant"]):
-        section.add("Every controller is run on the **learned model** (the fitted recurrent model the "
-                    "policies were trained in) and on the **simulated arm** (the plant: "
+        section.add("Every controller is run on the **learned model** (the fitted recurrent "
+                    "model the policies were trained in) and on the **simulated arm** (the plant: "
                     "`robot=sim`'s own physics, with hysteresis, creep and a rest pose that "
                     "differs between sessions, which the model only saw through recorded data).")
     wide = summary.pivot_table(index="controller", columns="plant",

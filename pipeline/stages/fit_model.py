@@ -109,8 +109,9 @@ def fit_model(cfg: Any) -> Artifact:
                  "training-run (no test run: dataset.train_fraction keeps every run)")
         writer.summary["error_on"] = "test" if len(held_out) else "train"
         log.info("fit_model: %s open-loop error %.2f mm mean, %.2f mm p95 (baselines: mean "
-                 "position %.2f mm, linear lagged %.2f mm)", which, writer.summary[f"{LEARNED}_mean_mm"],
-                 writer.summary[f"{LEARNED}_p95_mm"], writer.summary["mean_position_mean_mm"],
+                 "position %.2f mm, linear lagged %.2f mm)", which,
+                 writer.summary[f"{LEARNED}_mean_mm"], writer.summary[f"{LEARNED}_p95_mm"],
+                 writer.summary["mean_position_mean_mm"],
                  writer.summary["linear_lagged_mean_mm"])
 
     artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)

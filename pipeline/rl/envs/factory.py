@@ -2,8 +2,8 @@
 
 ``env.name``:
 
-- ``learned``: :class:`SoftArmReachEnv` on the fitted recurrent model (:func:`make_learned_env`; the model,
-  the rest pose and the goal sets come from the fit_model / align artifacts).
+- ``learned``: :class:`SoftArmReachEnv` on the fitted recurrent model (:func:`make_learned_env`;
+  the model, the rest pose and the goal sets come from the fit_model / align artifacts).
 - ``sim``: the same environment on the simulated arm (:func:`make_sim_env`), the ground-truth
   plant: goals are positions the simulated arm reaches holding random safe pressures.
 - ``gymnax``: a standard gymnax environment (``env.gymnax_name``), to check the PPO against

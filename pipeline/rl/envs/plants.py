@@ -14,7 +14,8 @@ before an episode starts.
 
 Three plants:
 
-- :func:`learned_plant` — the learned recurrent model (LSTM or GRU) of :mod:`pipeline.dynamics.model` (``DynamicsParams``).
+- :func:`learned_plant` — the learned recurrent model (GRU or LSTM) of
+  :mod:`pipeline.dynamics.model` (``DynamicsParams``).
 - :func:`sim_plant` — the simulated arm of :mod:`pipeline.arm.sim_arm` (the ground-truth plant).
 - :func:`linear_lag_plant` — a tiny linear first-order lag from pressures to position (tests).
 
@@ -77,7 +78,8 @@ def hold(plant: Plant, plant_params: Any, carry: Any, pressure: jax.Array, num_s
 # the learned model
 # ---------------------------------------------------------------------------------------------
 def learned_plant(model_hz: float) -> Plant:
-    """The recurrent model of :mod:`pipeline.dynamics.model`; ``plant_params`` is a ``DynamicsParams``."""
+    """The recurrent model of :mod:`pipeline.dynamics.model`; ``plant_params`` is a
+    ``DynamicsParams``."""
     return Plant(dynamics.init_carry, dynamics.step, float(model_hz), "learned")
 
 

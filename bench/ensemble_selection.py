@@ -3,7 +3,7 @@
     python -m bench.ensemble_selection [--members 2 4] [--envs 64] [--steps 64]
 
 A vmapped rollout (``--envs`` environments, ``--steps`` control periods, random actions) on an
-ensemble of ``--members`` LSTMs of the default architecture (``model.*``, ``dataset.model_hz``,
+ensemble of ``--members`` models of the default architecture (``model.*``, ``dataset.model_hz``,
 five model steps per 2 Hz action), with each selection of
 :func:`pipeline.rl.envs.plants.ensemble_plant`:
 

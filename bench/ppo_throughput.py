@@ -2,8 +2,8 @@
 
     python bench/ppo_throughput.py [--updates 20] [--seeds 1]
 
-- ``default``: this project's defaults — the default model architecture (an LSTM of
-  ``model.hidden`` units with the default input features) at ``dataset.model_hz``, stepped
+- ``default``: this project's defaults — the default model architecture (``model.cell``, a GRU,
+  of ``model.hidden`` units with the default input features) at ``dataset.model_hz``, stepped
   model_hz / 2 times per 2 Hz action (zero-order hold), ``agent.num_envs`` environments.
 - ``default, GRU policy``: the same environment, the recurrent policy of ``agent=ppo_rnn``.
 - ``paper``: the paper's environment — a 1024-unit LSTM (pressures in, no further features)
@@ -73,7 +73,7 @@ def measure(name: str, updates: int, seeds: int) -> dict:
     jax.block_until_ready(compiled(keys, params, params))
     run_s = time.perf_counter() - started
     steps = seeds * agent.num_updates * agent.steps_per_update
-    return {"name": name, "lstm": architecture.hidden,
+    return {"name": name, "cell": architecture.cell, "units": architecture.hidden,
             "model_steps_per_action": env.steps_per_action,
             "envs": num_envs, "compile_s": compile_s, "run_s": run_s,
             "steps_per_s": steps / run_s, "model_steps_per_s": steps * env.steps_per_action / run_s}
@@ -88,12 +88,13 @@ def main(argv: list[str] | None = None) -> None:
     paper = next(r for r in rows if r["name"] == "paper")
     print(f"PPO training throughput, {args.updates} updates x 32 steps, {args.seeds} seed(s), "
           f"{jax.devices()[0].platform}")
-    header = (f"{'setting':<21}{'LSTM':>6}{'steps/act':>10}{'envs':>6}{'compile s':>11}"
+    header = (f"{'setting':<21}{'model':>11}{'steps/act':>10}{'envs':>6}{'compile s':>11}"
               f"{'run s':>8}{'env steps/s':>13}{'x paper':>9}{'model steps/s':>15}")
     print(header)
     print("-" * len(header))
     for r in rows:
-        print(f"{r['name']:<21}{r['lstm']:>6}{r['model_steps_per_action']:>10}{r['envs']:>6}"
+        model = f"{r['cell']} {r['units']}"
+        print(f"{r['name']:<21}{model:>11}{r['model_steps_per_action']:>10}{r['envs']:>6}"
               f"{r['compile_s']:>11.1f}{r['run_s']:>8.2f}{r['steps_per_s']:>13.0f}"
               f"{r['steps_per_s'] / paper['steps_per_s']:>9.2f}{r['model_steps_per_s']:>15.0f}")
 

@@ -907,6 +907,10 @@ def _check_env(cfg: Any) -> None:
     if incremental_actions(env) and not (math.isfinite(step) and step > 0):
         raise ConfigError(f"env.action_step_kpa={step} must be finite and > 0 (the change of a "
                           f"command per control period at action 1, env.action_mode=incremental)")
+    decay = float(env.get("error_integral_decay", EnvConfig.error_integral_decay))
+    if not 0.0 <= decay < 1.0:
+        raise ConfigError(f"env.error_integral_decay={decay} must lie in [0, 1) (the accumulated "
+                          f"error's weight on its past per control period)")
     period = 1.0 / float(cfg.robot.control_hz)
     delay = float(randomization.get("max_delay_s", 0.0))
     if delay > period + 1e-9:

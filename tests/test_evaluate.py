@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
+import pytest
 
 from pipeline.__main__ import run
 from pipeline.evaluation import closed_loop, rollouts
@@ -116,7 +117,10 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
     other = f"model {model.key}"
     assert set(summary["plant"]) == {"learned", "plant", other}
     in_model = summary.set_index(["plant", "controller"])["median_final_mm"]
-    for controller in ("ppo_ff", "ppo_rnn"):
+    for controller in ("ppo_ff", "ppo_rnn", "preload", "mpc"):
         assert np.isfinite(in_model[(other, controller)])
-        # its own model from nearly the same starts: close to the learned env's figure
-        assert abs(in_model[(other, controller)] - in_model[("learned", controller)]) < 2.0
+        # its own model, settled from the same rest poses: exactly the learned env's figure
+        # (before, the other model settled again from the learned env's settled starts, which
+        # a model that drifts at the preload had already moved)
+        assert in_model[(other, controller)] == pytest.approx(in_model[("learned", controller)],
+                                                              rel=1e-4, abs=1e-4)

@@ -484,6 +484,12 @@ def test_a_negative_command_change_cost_is_refused(make_cfg):
         validate_config(make_cfg("env.command_change_cost=-1"))
 
 
+@pytest.mark.parametrize("decay", ["1.0", "-0.1"])
+def test_an_accumulated_error_decay_outside_0_1_is_refused(make_cfg, decay):
+    with pytest.raises(ConfigError, match=rf"env.error_integral_decay={float(decay)} must lie in"):
+        validate_config(make_cfg(f"env.error_integral_decay={decay}"))
+
+
 def test_training_evaluations_run_the_whole_horizon_and_score_its_end():
     """A random actor-critic on the toy (episodes of 5 steps): whatever the goal tolerance, every
     episode runs its 5 steps to the same end, and it succeeded exactly where that end is within

@@ -150,14 +150,15 @@ class _Programs:
 
 def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: Any,
                key: jax.Array, cfg: Any) -> EnvParams:
-    """Another fitted model as a plant of the same environment: its own settled starts from
-    the learned env's start poses, the same safe set, goals and observation normalization."""
-    starts = eval_params.reset_positions
+    """Another fitted model as a plant of the same environment: its own settled starts, settled
+    in it from the poses the learned env's starts settled from (the same rest poses of the
+    arm), the same safe set, goals and observation normalization."""
+    poses = eval_params.reset_initial_poses
     return make_env_params(
         env, dynamics_params, key=key, safe_set=eval_params.safe_set,
-        preload=eval_params.preload, rest_pose=starts.mean(axis=0),
-        rest_pose_std=starts.std(axis=0), goal_set=eval_params.goal_set,
-        obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale, **common_params(cfg))
+        preload=eval_params.preload, rest_pose=poses.mean(axis=0), initial_poses=poses,
+        goal_set=eval_params.goal_set, obs_mean=eval_params.obs_mean,
+        obs_scale=eval_params.obs_scale, **common_params(cfg))
 
 
 def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv,

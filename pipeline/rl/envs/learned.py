@@ -155,6 +155,7 @@ class EnvParams:
     preload: [3] kPa.
     reset_carries: bank of settled plant carries, every leaf with a leading [N] axis.
     reset_positions: [N, 3] m, the pose of each settled carry.
+    reset_initial_poses: [N, 3] m, the pose each of them settled from (before the preload hold).
     goal_set: [G, 3] m, the goals of ``goal_mode=data``.
     goal_from_data: bool scalar, True for ``goal_mode=data``, False for ``perturb``.
     goal_perturbation: [3] m, std of the ``perturb`` goals around the initial pose.
@@ -177,6 +178,7 @@ class EnvParams:
     preload: jax.Array
     reset_carries: Any
     reset_positions: jax.Array
+    reset_initial_poses: jax.Array
     goal_set: jax.Array
     goal_from_data: jax.Array
     goal_perturbation: jax.Array
@@ -428,6 +430,7 @@ def make_env_params(
     obs_mean: jax.Array | None = None,
     obs_scale: jax.Array | None = None,
     randomization_params: Randomization | None = None,
+    initial_poses: jax.Array | None = None,
 ) -> EnvParams:
     """Build :class:`EnvParams`, settling ``reset_bank_size`` start states on the plant.
 
@@ -438,6 +441,8 @@ def make_env_params(
       obs_mean, obs_scale: [3] m; default: the goal set's mean and per-axis std (at least 1 mm).
       randomization_params: per-episode randomization around the plant (:func:`randomization`);
         default: none.
+      initial_poses: [N, 3] m, the poses the bank settles from (``N`` replaces
+        ``reset_bank_size``); default: drawn around ``rest_pose``.
     """
     if goal_mode not in GOAL_MODES:
         raise ValueError(f"goal_mode must be one of {GOAL_MODES}, got {goal_mode!r}")
@@ -446,8 +451,13 @@ def make_env_params(
     rest_pose = jnp.asarray(rest_pose, jnp.float32)
     chex.assert_shape(rest_pose, (POSITION_DIM,))
     preload = jnp.broadcast_to(jnp.asarray(preload, jnp.float32), (NUM_VALVES,))
-    poses = rest_pose + jnp.asarray(rest_pose_std, jnp.float32) * jax.random.normal(
-        key, (reset_bank_size, POSITION_DIM))
+    if initial_poses is None:
+        poses = rest_pose + jnp.asarray(rest_pose_std, jnp.float32) * jax.random.normal(
+            key, (reset_bank_size, POSITION_DIM))
+    else:
+        poses = jnp.asarray(initial_poses, jnp.float32)
+        chex.assert_shape(poses, (None, POSITION_DIM))
+        reset_bank_size = poses.shape[0]
     bank_params, bank_axes = plant_params, None
     if env.plant.bank_params is not None:  # e.g. an ensemble: entry i settles in member i % K
         bank_params, bank_axes = env.plant.bank_params(plant_params, reset_bank_size)
@@ -469,6 +479,7 @@ def make_env_params(
         preload=preload,
         reset_carries=carries,
         reset_positions=positions,
+        reset_initial_poses=poses,
         goal_set=goal_set,
         goal_from_data=jnp.asarray(goal_mode == "data"),
         goal_perturbation=jnp.broadcast_to(f32(goal_perturbation_m), (POSITION_DIM,)),

@@ -153,10 +153,9 @@ def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: An
     """Another fitted model as a plant of the same environment: its own settled starts, settled
     in it from the poses the learned env's starts settled from (the same rest poses of the
     arm), the same safe set, goals and observation normalization."""
-    poses = eval_params.reset_initial_poses
     return make_env_params(
         env, dynamics_params, key=key, safe_set=eval_params.safe_set,
-        preload=eval_params.preload, rest_pose=poses.mean(axis=0), initial_poses=poses,
+        preload=eval_params.preload, initial_poses=eval_params.reset_initial_poses,
         goal_set=eval_params.goal_set, obs_mean=eval_params.obs_mean,
         obs_scale=eval_params.obs_scale, **common_params(cfg))
 

@@ -413,7 +413,7 @@ def make_env_params(
     key: jax.Array,
     safe_set: SafeSet,
     preload: float | jax.Array,
-    rest_pose: jax.Array,
+    rest_pose: jax.Array | None = None,
     rest_pose_std: float | jax.Array = 0.0,
     goal_set: jax.Array | None = None,
     goal_mode: str = "data",
@@ -437,6 +437,7 @@ def make_env_params(
     Args:
       rest_pose: [3] m, the pose observed at rest at the preload (e.g. the mean first pose of the
         recorded runs); each bank entry starts from ``rest_pose + rest_pose_std * N(0, 1)``.
+        Required unless ``initial_poses`` is given.
       goal_set: [G, 3] m goals of ``goal_mode=data``; required there, optional for ``perturb``.
       obs_mean, obs_scale: [3] m; default: the goal set's mean and per-axis std (at least 1 mm).
       randomization_params: per-episode randomization around the plant (:func:`randomization`);
@@ -448,10 +449,12 @@ def make_env_params(
         raise ValueError(f"goal_mode must be one of {GOAL_MODES}, got {goal_mode!r}")
     if goal_mode == "data" and goal_set is None:
         raise ValueError("goal_mode=data needs a goal_set [G, 3] (positions from the data)")
-    rest_pose = jnp.asarray(rest_pose, jnp.float32)
-    chex.assert_shape(rest_pose, (POSITION_DIM,))
+    if rest_pose is None and initial_poses is None:
+        raise ValueError("make_env_params needs a rest_pose [3] or initial_poses [N, 3]")
     preload = jnp.broadcast_to(jnp.asarray(preload, jnp.float32), (NUM_VALVES,))
     if initial_poses is None:
+        rest_pose = jnp.asarray(rest_pose, jnp.float32)
+        chex.assert_shape(rest_pose, (POSITION_DIM,))
         poses = rest_pose + jnp.asarray(rest_pose_std, jnp.float32) * jax.random.normal(
             key, (reset_bank_size, POSITION_DIM))
     else:

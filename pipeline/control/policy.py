@@ -18,7 +18,6 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import keys
@@ -29,7 +28,7 @@ from pipeline.rl.envs.factory import environment
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 from pipeline.rl.envs.observation import observe, update_error_integral
 from pipeline.rl.networks import initial_hidden
-from pipeline.rl.policy_io import load_policy
+from pipeline.rl.policy_io import best_seed, load_policy
 
 log = logging.getLogger(__name__)
 MM_PER_M = 1000.0
@@ -99,18 +98,6 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
                                "dataset": {"model_hz": dataset["model_hz"],
                                            "model_grid": dataset["model_grid"]}})
     return config, model, aligned
-
-
-def best_seed(artifact: Artifact) -> int:
-    """The seed with the lowest held-out median final distance in the artifact's last
-    evaluation during training (``evaluation.parquet``)."""
-    table = pd.read_parquet(artifact.file("evaluation.parquet"))
-    last = table.sort_values("evaluation").groupby("seed").last()
-    medians = last["median_final_distance_m"]
-    if not np.isfinite(medians).any():
-        raise ValueError(f"{artifact.file('evaluation.parquet')}: no finite held-out median per "
-                         f"seed; choose one with control.seed")
-    return int(medians.idxmin())
 
 
 def make_step(network: Any, env: SoftArmReachEnv) -> Any:

@@ -4,7 +4,7 @@ On a reaching environment (one whose parameters have a ``goal_tolerance``) every
 whole horizon, as in the evaluate stage: the goal tolerance does not end it, its
 ``final_distance_m`` is the distance at the last step and it succeeded if that is within the
 tolerance. A policy that passes through the goal and leaves it again is not counted as there; it
-is what ``pipeline.control.policy.best_seed`` reads to choose the seed that drives an arm. On any
+is what ``pipeline.rl.policy_io.best_seed`` reads to choose the seed that drives an arm. On any
 other environment an episode ends where the environment ends it (terminated or truncated).
 """
 

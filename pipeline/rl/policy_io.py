@@ -14,9 +14,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 from flax import serialization
 
 from pipeline.config import AgentConfig
+from pipeline.infra.artifacts import Artifact
 from pipeline.infra.parquet import atomic_write
 from pipeline.rl.networks import make_network
 
@@ -112,3 +114,15 @@ def warm_start_params(agent: Any, obs_dim: int, action_dim: int) -> Any:
             lambda key, x: jnp.full_like(x, config.init_policy_log_std)
             if jax.tree_util.keystr(key).endswith("['log_std']") else x, params)
     return params
+
+
+def best_seed(artifact: Artifact) -> int:
+    """The seed with the lowest held-out median final distance in the artifact's last
+    evaluation during training (``evaluation.parquet``)."""
+    table = pd.read_parquet(artifact.file("evaluation.parquet"))
+    last = table.sort_values("evaluation").groupby("seed").last()
+    medians = last["median_final_distance_m"]
+    if not np.isfinite(medians).any():
+        raise ValueError(f"{artifact.file('evaluation.parquet')}: no finite held-out median per "
+                         f"seed; choose one with control.seed")
+    return int(medians.idxmin())

@@ -2,8 +2,10 @@
 the model of another, disjoint group (both directions), per robustness variant.
 
     python -m experiments.cross_model [--variants plain ensemble randomized both incremental
-        incremental_randomized incremental_randomized_ensemble]
-        [--directions A->B B->A] [--seeds 4] [--ppo-steps N] [--ensemble-seeds 3] [--quick]
+        incremental_randomized incremental_randomized_ensemble
+        incremental_randomized_ensemble_agreed]
+        [--directions A->B B->A] [--seeds 4] [--ppo-steps N] [--ensemble-seeds 3]
+        [--goal-agreement-mm MM] [--quick]
         [--set KEY=VALUE ...]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
@@ -25,6 +27,8 @@ randomization of the plant, ``env.randomization``, and its price on command chan
 - ``incremental``: incremental actions (integral action), no randomization;
 - ``incremental_randomized``: incremental actions, randomized: ``experiment=real_arm`` as it is;
 - ``incremental_randomized_ensemble``: ``experiment=real_arm`` in the ensemble of model seeds.
+- ``incremental_randomized_ensemble_agreed``: that, trained on conservative goals only, those
+  where the ensemble's members agree within ``--goal-agreement-mm`` (``env.goal_agreement_mm``).
 
 Printed per variant and direction: median final distance, its 90th percentile and the success
 rates within 1 and 3 mm (all seeds' episodes together), own and cross; the share of seeds whose
@@ -49,7 +53,7 @@ import pandas as pd
 from experiments.paper_figures import run_stage
 
 VARIANTS = ("plain", "ensemble", "randomized", "both", "incremental", "incremental_randomized",
-            "incremental_randomized_ensemble")
+            "incremental_randomized_ensemble", "incremental_randomized_ensemble_agreed")
 QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
          "dataset.window=32", "agent.num_envs=16", "agent.num_steps=8", "agent.num_evals=1",
          "agent.eval_envs=4", "agent.progress=false", "env.goal_every=20",
@@ -57,6 +61,7 @@ QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10
          "evaluation.consecutive_episodes=1", "evaluation.num_consecutive_goals=2"]
 QUICK_PPO_STEPS = 1024  # --quick's budget per seed, unless --ppo-steps
 DIRECTIONS = ("A->B", "B->A")
+GOAL_AGREEMENT_MM = 1.0  # the agreed variant's default env.goal_agreement_mm
 METRICS = ("median_final_mm", "p90_final_mm", "success_1mm", "success_3mm")
 
 
@@ -73,7 +78,8 @@ def groups(data_dir: Path, group_a: list[str] | None) -> tuple[list[str], list[s
     return first, second
 
 
-def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
+def variant_overrides(variant: str, ensemble_seeds: int,
+                      goal_agreement_mm: float = GOAL_AGREEMENT_MM) -> list[str]:
     """The overrides of ``variant`` on top of ``experiment=real_arm`` (incremental, randomized,
     command changes priced): the variants before the price went without it."""
     from pipeline.config import no_randomization_overrides
@@ -86,40 +92,40 @@ def variant_overrides(variant: str, ensemble_seeds: int) -> list[str]:
             "ensemble": absolute + no_randomization + ensemble, "randomized": absolute,
             "both": absolute + ensemble,
             "incremental": unpriced + no_randomization,
-            "incremental_randomized": [], "incremental_randomized_ensemble": ensemble}[variant]
+            "incremental_randomized": [], "incremental_randomized_ensemble": ensemble,
+            "incremental_randomized_ensemble_agreed": [
+                *ensemble, f"env.goal_agreement_mm={goal_agreement_mm}"]}[variant]
 
 
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],
-            variant: str, ensemble_seeds: int, agent: str = "ppo_ff") -> dict[str, Any]:
+            variant: str, ensemble_seeds: int, agent: str = "ppo_ff",
+            goal_agreement_mm: float = GOAL_AGREEMENT_MM) -> dict[str, Any]:
     """``agent`` trained in ``train``'s model (``variant``), evaluated in its own and in
     ``test``'s model: one row of the results table. Beside the figures over every seed's
     episodes: the share of seeds whose median is within 1 mm (own and cross), and the figures
     of the seed that ``stage=control`` would deploy (the best in the training's last held-out
-    evaluation, ``pipeline.control.policy.best_seed``)."""
-    from pipeline.control.policy import best_seed
+    evaluation, ``pipeline.rl.policy_io.best_seed``)."""
+    from pipeline.evaluation.cross_model import across_models
+    from pipeline.rl.policy_io import best_seed
 
     files = lambda names: f"robot.files=[{','.join(names)}]"  # noqa: E731
     other = run_stage(output_dir, "fit_model", *base, files(test))["fit_model"]
     evaluated = run_stage(output_dir, "evaluate", *base, files(train),
-                          *variant_overrides(variant, ensemble_seeds),
+                          *variant_overrides(variant, ensemble_seeds, goal_agreement_mm),
                           f"evaluation.policies=[{agent}]", "evaluation.baselines=[preload]",
                           "evaluation.plant=false", f"evaluation.models=[{other.path}]")
-    summary = pd.read_parquet(evaluated["evaluate"].file("summary.parquet"))
-    policy = summary[summary["controller"] == agent].set_index("plant")
     episodes = pd.read_parquet(evaluated["evaluate"].file("episodes.parquet"))
-    episodes = episodes[episodes["controller"] == agent]
+    plants = {"learned": "own", f"model {other.path.name}": "cross"}
+    episodes = episodes[episodes["controller"] == agent].assign(
+        plant=lambda frame: frame["plant"].map(plants))
     seed = best_seed(evaluated["train_ppo"])  # the one stage=control drives the arm with
+    summary = across_models(episodes, {agent: seed}).set_index("plant")
     row: dict[str, Any] = {"agent": agent, "variant": variant, "train": "+".join(train),
                            "test": "+".join(test), "deployed_seed": seed}
-    for where, plant in (("own", "learned"), ("cross", f"model {other.path.name}")):
-        for metric in METRICS:
-            row[f"{where}_{metric}"] = float(policy.loc[plant, metric])
-        in_plant = episodes[episodes["plant"] == plant]
-        per_seed = in_plant.groupby("seed")["final_distance_mm"].median()
-        row[f"{where}_seeds_median_within_1mm"] = float((per_seed <= 1.0).mean())
-        deployed = in_plant[in_plant["seed"] == seed]
-        row[f"{where}_deployed_median_final_mm"] = float(deployed["final_distance_mm"].median())
-        row[f"{where}_deployed_success_1mm"] = float(deployed["success_1mm"].mean())
+    for where in ("own", "cross"):
+        for metric in (*METRICS, "seeds_median_within_1mm", "deployed_median_final_mm",
+                       "deployed_success_1mm"):
+            row[f"{where}_{metric}"] = float(summary.loc[where, metric])
     return row
 
 
@@ -158,6 +164,8 @@ def main(argv: list[str] | None = None) -> None:
                              "budget of the policy type)")
     parser.add_argument("--ensemble-seeds", type=int, default=3,
                         help="model seeds of the ensemble variants")
+    parser.add_argument("--goal-agreement-mm", type=float, default=GOAL_AGREEMENT_MM,
+                        help="the agreed variant's env.goal_agreement_mm")
     parser.add_argument("--set", dest="overrides", nargs="+", action="extend", default=[],
                         metavar="KEY=VALUE",
                         help="further pipeline overrides for every stage (agent.lr=3e-4 ...)")
@@ -177,7 +185,7 @@ def main(argv: list[str] | None = None) -> None:
         train, test = splits[direction]
         for variant in args.variants:
             row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds,
-                          args.agent)
+                          args.agent, args.goal_agreement_mm)
             rows.append({"direction": direction, **row, "overrides": " ".join(args.overrides)})
     table = pd.DataFrame(rows)
     out = args.output_dir / "cross_model"

@@ -3,7 +3,9 @@
 ``stage=all`` (the default) runs the chain collect -> align -> fit_model -> train_ppo -> evaluate,
 each stage reusing the artifacts of identical upstream settings. A single stage first produces
 what it needs upstream the same way (reused when present; fit_model upstream of train_ppo also
-fits the ensemble's further model seeds, ``env.ensemble_seeds``), except data from a real arm: with
+fits the ensemble's further model seeds, ``env.ensemble_seeds``; upstream of evaluate, the
+cross-model protocol's groups get their own data, models and policies, ``evaluation.cross_model``),
+except data from a real arm: with
 ``robot=ros2`` a stage of :data:`DRIVES_ARM` runs only when it is the stage asked for, never as
 another stage's upstream (nor in ``stage=all``).
 
@@ -134,6 +136,7 @@ def run(cfg: Any) -> dict[str, Any]:
         if name is Stage.train_ppo and stage in (Stage.all, Stage.evaluate):
             # upstream of evaluate: its own agent and every policy type evaluate compares
             results[name.value] = train_policies(stage_cfg, int(cfg.train_workers))
+            cross_model_upstream(stage_cfg, int(cfg.train_workers))
         elif name is Stage.fit_model and stage is not Stage.fit_model:
             results[name.value] = fit_models(stage_cfg)
         else:
@@ -173,6 +176,19 @@ def train_policies(cfg: Any, workers: int) -> Any:
         futures = {key: pool.submit(timed, *job) for key, job in by_key.items()}
         artifacts = {key: future.result() for key, future in futures.items()}
     return artifacts[keys.key("train_ppo", cfg)]
+
+
+def cross_model_upstream(cfg: Any, workers: int) -> None:
+    """What evaluate's cross-model protocol reads (``evaluation.cross_model``): for each group
+    of recordings its data, its model (and ensemble) and every policy type trained in it."""
+    for direction, (train, _) in keys.cross_model_folds(cfg).items():
+        started = time.perf_counter()
+        for stage in (Stage.collect, Stage.align):
+            stage_function(stage)(train)
+        fit_models(train)
+        train_policies(train, workers)
+        log.info("cross-model: the group %s trains in (%s) ready in %.1f s", direction[0],
+                 ", ".join(train.robot.files), time.perf_counter() - started)
 
 
 register_configs()

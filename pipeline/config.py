@@ -547,6 +547,10 @@ class EnvConfig:
     # env=learned: further ensemble members, fit_model artifact folders or keys of this store
     # (same model architecture); goals, rest pose and evaluation stay those of this config's model
     models: list[str] = field(default_factory=list)
+    # env=learned, in an ensemble: conservative goals, train only on the goals where every
+    # member's open-loop prediction along the recorded commands lies within this many mm of the
+    # model's own (the members agree the commands get there); null: every goal
+    goal_agreement_mm: float | None = None
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
 
 
@@ -660,6 +664,13 @@ class EvaluationConfig:
     # other fitted models to evaluate every controller in (cross-model): fit_model artifact
     # folders or keys of this artifact store; observed like the training env, same goals
     models: list[str] = field(default_factory=list)
+    # The cross-model protocol, for recorded data: the recordings split into two disjoint groups
+    # (A: cross_model_group_a, by name; empty: every other of the sorted names; B: the rest),
+    # each with its own fit_model; every policy type trained in each group's model (this
+    # config's env and agent) and rolled out on its held-out goals in its own model and in the
+    # other group's (A->B, B->A). null: on for recorded data of at least two runs a group.
+    cross_model: bool | None = None
+    cross_model_group_a: list[str] = field(default_factory=list)
     mpc_horizon: int = 2  # control periods a candidate command is held
     mpc_samples: int = 64
     mpc_iterations: int = 3
@@ -893,6 +904,14 @@ def _check_env(cfg: Any) -> None:
     if (seeds > 1 or models) and name is not EnvName.learned:
         raise ConfigError(f"env.ensemble_seeds={seeds}, env.models={models}: an ensemble of "
                           f"fitted models needs env=learned, not env={name}")
+    agreement = env.get("goal_agreement_mm")
+    if agreement is not None:
+        if not (math.isfinite(float(agreement)) and float(agreement) > 0):
+            raise ConfigError(f"env.goal_agreement_mm={agreement} must be finite and > 0 (null: "
+                              f"every goal)")
+        if seeds == 1 and not models:
+            raise ConfigError(f"env.goal_agreement_mm={agreement} keeps the goals an ensemble "
+                              f"agrees on: it needs one (env.ensemble_seeds > 1 or env.models)")
     randomization = env.get("randomization") or {}
     for field_name, value in randomization.items():
         if not (math.isfinite(float(value)) and float(value) >= 0):

@@ -16,6 +16,7 @@ from omegaconf import OmegaConf
 
 from pipeline.config import (
     PROJECT_ROOT,
+    ConfigError,
     EnvName,
     ModelProtocol,
     RobotKind,
@@ -45,7 +46,8 @@ _NON_DETERMINING_AGENT_KEYS = ("progress",)
 # of a spec while they have their default, so that configs that do not use them keep the
 # artifact keys they had
 _UNSET_LATER = {"session_std": {}, "replay": None, "loss": "mse", "command_change_cost": 0.0,
-                "include_error_integral": False, "error_integral_decay": 0.8}
+                "include_error_integral": False, "error_integral_decay": 0.8,
+                "goal_agreement_mm": None}
 
 
 def _container(node: Any) -> Any:
@@ -209,13 +211,81 @@ def policy_configs(cfg: Any) -> dict[str, Any]:
     return variants
 
 
+CROSS_MODEL_DIRECTIONS = ("A->B", "B->A")
+
+
+def cross_model_groups(cfg: Any) -> tuple[list[str], list[str]] | None:
+    """The two disjoint groups of recordings (names) of the cross-model protocol, or None where
+    it does not run. ``evaluation.cross_model``: true runs it (an error where it cannot), false
+    does not, null runs it for recorded data in the learned env with at least two recordings a
+    group (fit_model scores each group's model leave-one-run-out). Group A is
+    ``evaluation.cross_model_group_a`` (names), or every other of the sorted recordings; B the
+    rest."""
+    evaluation = cfg.get("evaluation")
+    setting = None if evaluation is None else evaluation.get("cross_model")
+    if setting is False or evaluation is None:
+        return None
+    recorded = RobotKind(cfg.robot.kind) in IMPORT_KINDS
+    if not recorded or EnvName(cfg.env.name) is not EnvName.learned:
+        if setting:
+            raise ConfigError(
+                f"evaluation.cross_model=true needs recorded data (robot.kind one of "
+                f"{[kind.value for kind in IMPORT_KINDS]}) and env=learned; this config has "
+                f"robot.kind={RobotKind(cfg.robot.kind).value}, env.name="
+                f"{EnvName(cfg.env.name).value}")
+        return None
+    names = [path.name for path in list_recordings(cfg.robot)]
+    chosen = [str(name) for name in evaluation.get("cross_model_group_a") or []]
+    unknown = [name for name in chosen if name not in names]
+    if unknown:
+        raise ConfigError(f"evaluation.cross_model_group_a: {unknown} are not among the "
+                          f"recordings {names}")
+    first = [name for name in names if name in chosen] if chosen else names[0::2]
+    second = [name for name in names if name not in first]
+    if min(len(first), len(second)) < 2:
+        if setting:
+            raise ConfigError(
+                f"evaluation.cross_model=true: each group needs at least two recordings (its "
+                f"model is scored leave-one-run-out); group A {first}, group B {second}")
+        return None
+    return first, second
+
+
+def cross_model_group_config(cfg: Any, names: list[str]) -> Any:
+    """``cfg`` restricted to the recordings ``names`` (its own data, model and policies), without
+    a cross-model protocol of its own."""
+    return OmegaConf.merge(cfg, {"robot": {"files": list(names), "num_runs": None},
+                                 "evaluation": {"cross_model": False, "models": []}})
+
+
+def cross_model_folds(cfg: Any) -> dict[str, tuple[Any, Any]]:
+    """The cross-model protocol by direction (``A->B``, ``B->A``): the config that trains in one
+    group's model and the config of the other group, whose model it is evaluated in. Empty
+    where the protocol does not run (:func:`cross_model_groups`)."""
+    groups = cross_model_groups(cfg)
+    if groups is None:
+        return {}
+    first, second = (cross_model_group_config(cfg, names) for names in groups)
+    return dict(zip(CROSS_MODEL_DIRECTIONS, ((first, second), (second, first)), strict=True))
+
+
 def evaluate_spec(cfg: Any) -> Spec:
+    """The evaluation settings and env; the policies, the other models (``evaluation.models``)
+    and, for the cross-model protocol, each group's policies and the model they meet."""
     spec = {"evaluation": _container(cfg.evaluation), "env": env_spec(cfg)}
     inputs = {f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
               for name, variant in policy_configs(cfg).items()}
     spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do
     for entry in cfg.evaluation.models:
         inputs[f"fit_model/{Path(str(entry)).name}"] = Path(str(entry)).name
+    # the groups' policies and models decide the cross-model results, not how they were chosen
+    for setting in ("cross_model", "cross_model_group_a"):
+        spec["evaluation"].pop(setting, None)
+    for direction, (train, test) in cross_model_folds(cfg).items():
+        for name, variant in policy_configs(train).items():
+            inputs[f"cross_model/{direction}/train_ppo/{name}"] = artifact_key(
+                *train_ppo_spec(variant))
+        inputs[f"cross_model/{direction}/fit_model"] = artifact_key(*fit_model_spec(test))
     return spec, inputs
 
 

@@ -515,3 +515,58 @@ def test_training_evaluations_run_the_whole_horizon_and_score_its_end():
     np.testing.assert_array_equal(np.asarray(out["episode_success"]), final <= tolerance)
     assert 0 < float(out["success_rate"]) < 1
     assert float(evaluate(1.0)["success_rate"]) == 1.0  # within a metre of every goal
+
+
+# ---------------------------------------------------------------------------------------------
+# conservative goals
+# ---------------------------------------------------------------------------------------------
+def test_conservative_goals_keep_the_agreed_ones_and_every_held_out_one():
+    """Spreads 0.5, 2, 0.9, 3, 0.1 mm at 1 mm: rows 0, 2 and 4 agree; row 3 is held out and
+    stays; row 1 goes."""
+    import pandas as pd
+
+    from pipeline.rl.envs.factory import conservative_goals
+
+    goals = pd.DataFrame({"run_id": list("aabbb"), "x": np.arange(5.0), "y": 0.0, "z": 0.0})
+    spread = np.array([0.5, 2.0, 0.9, 3.0, 0.1]) * 1e-3
+    held_out = np.array([False, False, False, True, False])
+    kept = conservative_goals(goals, spread, 1e-3, held_out)
+    assert kept["x"].tolist() == [0.0, 2.0, 3.0, 4.0]
+    assert conservative_goals(goals, spread, 1e-3)["x"].tolist() == [0.0, 2.0, 4.0]
+    with pytest.raises(ConfigError, match=r"goal_agreement_mm=0.05: .* none of the 4 training"):
+        conservative_goals(goals, spread, 5e-5, held_out)
+
+
+def test_prediction_spread_is_the_largest_distance_to_the_first_models_prediction():
+    from pipeline.dynamics.training import predict_run
+    from pipeline.rl.envs.factory import prediction_spread
+    from tests.test_dynamics import CONFIGS, make_params, make_runs
+
+    run = make_runs(num_runs=1)[0]
+    first, second, third = (make_params(CONFIGS[0], seed) for seed in (0, 1, 2))
+    np.testing.assert_array_equal(prediction_spread([first], run), 0.0)
+    np.testing.assert_array_equal(prediction_spread([first, first], run), 0.0)
+    reference = predict_run(first, run)
+    by_hand = np.maximum(np.linalg.norm(predict_run(second, run) - reference, axis=-1),
+                         np.linalg.norm(predict_run(third, run) - reference, axis=-1))
+    spread = prediction_spread([first, second, third], run)
+    assert spread.shape == (len(run["p"]),) and spread.max() > 0
+    np.testing.assert_allclose(spread, by_hand, rtol=1e-6)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["env.goal_agreement_mm=1.0"], "needs one"),
+    (["env.ensemble_seeds=3", "env.goal_agreement_mm=0"], "must be finite and > 0"),
+])
+def test_conservative_goals_need_an_ensemble_and_a_positive_agreement(make_cfg, overrides,
+                                                                      message):
+    with pytest.raises(ConfigError, match=message):
+        validate_config(make_cfg(*overrides))
+
+
+def test_conservative_goals_are_part_of_the_key_only_when_set(make_cfg):
+    base = make_cfg("experiment=quick", "env.ensemble_seeds=2")
+    agreed = make_cfg("experiment=quick", "env.ensemble_seeds=2", "env.goal_agreement_mm=1.0")
+    validate_config(agreed)
+    assert "goal_agreement_mm" not in keys.train_ppo_spec(base)[0]["env"]
+    assert keys.key("train_ppo", agreed) != keys.key("train_ppo", base)

@@ -261,6 +261,9 @@ def report_sections(cfg, policies, results, figures, collect: Artifact | None = 
                         "model only.")
     sections.append(gap_section)
 
+    if len(tables.get("cross_model", ())):
+        sections.append(cross_model_section(tables["cross_model"], order))
+
     upstream = {"collect": collect, "align": aligned, "fit_model": model}
     sections.append(Section("Time to a controller", [
         "Wall seconds of each artifact's build, when it was built (a reused artifact keeps the "
@@ -291,3 +294,36 @@ def consecutive_table(consecutive: pd.DataFrame, order: list[str] | None = None
     table["plant"] = table["plant"].map(_plant_label)
     table = table.rename(columns={"plant": "evaluated on"})
     return _ordered(table, order) if order else table
+
+
+CROSS_MODEL_COLUMNS = {
+    "direction": "direction", "controller": "controller", "plant": "evaluated in",
+    "median_final_mm": "median final [mm]", "p90_final_mm": "p90 final [mm]",
+    "success_1mm": "final ≤ 1 mm", "success_3mm": "final ≤ 3 mm",
+    "seeds_median_within_1mm": "seeds with median ≤ 1 mm", "deployed_seed": "deployed seed",
+    "deployed_median_final_mm": "deployed: median [mm]", "deployed_success_1mm": "deployed: ≤ 1 mm",
+}
+
+
+def cross_model_section(summary: pd.DataFrame, order: list[str]) -> Section:
+    """The cross-model protocol (``cross_model`` table of evaluate): each direction's policies
+    and preload in their own model and in the other group's."""
+    groups = summary.drop_duplicates("direction")
+    runs = "; ".join(f"{row.direction}: trained in the model of {row.train_runs}, evaluated "
+                     f"in that of {row.test_runs}" for row in groups.itertuples())
+    shown = pd.concat([_ordered(part, order) for _, part in summary.groupby(
+        ["direction", "plant"], sort=False)], ignore_index=True)
+    shown = shown.assign(plant=shown["plant"].map({"own": "own model", "cross": "other model"}),
+                         deployed_seed=shown["deployed_seed"].astype(object).where(
+                             shown["deployed_seed"].notna(), "–"))
+    return Section("Across models", [
+        "The recordings split into two disjoint groups, each with its own fitted model; every "
+        "policy type trained in each group's model, then rolled out on that group's held-out "
+        "goals (positions measured on the arm) in its own model and in the model of the other "
+        "group, fitted to runs it never saw: the nearest stand-in for the arm here. " + runs
+        + ".",
+        Table(shown[list(CROSS_MODEL_COLUMNS)].rename(columns=CROSS_MODEL_COLUMNS),
+              "every seed's episodes pooled; 'seeds with median ≤ 1 mm': the share of seeds "
+              "whose median final distance is within 1 mm; 'deployed': the seed "
+              "stage=control would drive the arm with (the best in its training's last "
+              "held-out evaluation)")])

@@ -9,7 +9,10 @@ nothing; ``random``: random safe actions; ``mpc``: sampling-based MPC on the lea
 - on the **plant**: the simulated arm for ``robot=sim`` (its own hysteresis, creep and rest-pose
   spread; the model never saw its equations), with the policies observing it through the same
   normalization they were trained with;
-- a **consecutive-goals** task: ``num_consecutive_goals`` targets one after another, no reset.
+- a **consecutive-goals** task: ``num_consecutive_goals`` targets one after another, no reset;
+- on recorded data, the **cross-model protocol** (``evaluation.cross_model``,
+  :mod:`pipeline.evaluation.cross_model`): each group of runs' policies in their own model and in
+  the model of the other, disjoint group (``cross_model.parquet``, ``cross_model_episodes.parquet``).
 
 Episodes last ``env.max_steps`` control periods and, unlike in training, do not end when the goal is
 first within ``env.goal_tolerance_m``: on an arm the controller has to get there and stay, so the
@@ -28,16 +31,20 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
+
 from pipeline import keys
 from pipeline.config import EnvName
 from pipeline.dynamics.training import load_dynamics
 from pipeline.evaluation.closed_loop import run_evaluation
+from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
 from pipeline.evaluation.figures import make_figures
 from pipeline.evaluation.report import write_report
 from pipeline.evaluation.sections import report_sections
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.rl.envs.factory import environment
+from pipeline.rl.policy_io import best_seed
 
 log = logging.getLogger(__name__)
 STAGE = "evaluate"
@@ -58,6 +65,7 @@ def evaluate(cfg: Any) -> Artifact:
 
     other_models = {f"model {Path(str(entry)).name}": store.resolve("fit_model", str(entry))
                     for entry in cfg.evaluation.models}
+    folds = _cross_model_inputs(cfg, store, inputs)
 
     def build(writer):
         started = time.perf_counter()
@@ -65,6 +73,8 @@ def evaluate(cfg: Any) -> Artifact:
         models = {name: load_dynamics(artifact.file("model.msgpack"))
                   for name, artifact in other_models.items()}
         results = run_evaluation(cfg, policies, env, eval_params, models)
+        if folds:
+            _cross_model(folds, results)
         config = {"evaluation": spec["evaluation"], "env": spec["env"]}
         for name, frame in results["tables"].items():
             write_parquet(frame, writer.file(f"{name}.parquet"),
@@ -79,3 +89,45 @@ def evaluate(cfg: Any) -> Artifact:
     artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)
     log.info("evaluate: report at %s", artifact.file("report.html"))
     return artifact
+
+
+def _cross_model_inputs(cfg: Any, store: ArtifactStore, inputs: dict[str, str]
+                        ) -> dict[str, dict[str, Any]]:
+    """The cross-model protocol's artifacts by direction (empty where it does not run): the
+    training group's config, policies, model and aligned data, and the other group's model."""
+    folds = {}
+    for direction, (train, test) in keys.cross_model_folds(cfg).items():
+        prefix = f"cross_model/{direction}"
+        hint = f" (the cross-model group {direction[0]}: robot.files={list(train.robot.files)})"
+        folds[direction] = {
+            "cfg": train, "test_runs": list(test.robot.files),
+            "policies": {name: store.require("train_ppo", inputs[f"{prefix}/train_ppo/{name}"],
+                                             hint=f" with agent={name}{hint}")
+                         for name in cfg.evaluation.policies},
+            "model": store.require("fit_model", keys.key("fit_model", train), hint=hint),
+            "aligned": store.require("align", keys.key("align", train), hint=hint),
+            "other": store.require("fit_model", inputs[f"{prefix}/fit_model"], hint=hint)}
+    return folds
+
+
+def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> None:
+    """Both directions of the cross-model protocol into ``results``: the tables
+    ``cross_model_episodes`` and ``cross_model`` (per direction, plant and controller) and the
+    headline's ``cross_model/<direction>/<controller>`` figures."""
+    episodes, summaries = [], []
+    for direction, fold in folds.items():
+        env, _, eval_params = environment(fold["cfg"], fold["model"], fold["aligned"])
+        other = load_dynamics(fold["other"].file("model.msgpack"))
+        rows = cross_model_episodes(fold["cfg"], fold["policies"], env, eval_params, other)
+        labels = {"direction": direction, "train_runs": "+".join(fold["cfg"].robot.files),
+                  "test_runs": "+".join(fold["test_runs"])}
+        deployed = {name: best_seed(artifact) for name, artifact in fold["policies"].items()}
+        episodes.append(rows.assign(**labels))
+        summaries.append(across_models(rows, deployed).assign(**labels))
+    summary = pd.concat(summaries, ignore_index=True)
+    results["tables"]["cross_model_episodes"] = pd.concat(episodes, ignore_index=True)
+    results["tables"]["cross_model"] = summary
+    for row in summary[summary["plant"] == CROSS].itertuples():
+        results["headline"][f"cross_model/{row.direction}/{row.controller}"] = {
+            "median_final_mm": float(row.median_final_mm),
+            "success_1mm": float(row.success_1mm), "success_3mm": float(row.success_3mm)}

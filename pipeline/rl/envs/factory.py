@@ -19,6 +19,7 @@ evaluation parameters hold that member alone, so a policy is always evaluated in
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Sequence
 from typing import Any
 
@@ -34,6 +35,7 @@ from pipeline.arm import sim_arm
 from pipeline.arm.limits import validate_limits
 from pipeline.arm.safety import SafeSet, project
 from pipeline.config import (
+    ConfigError,
     EnvConfig,
     EnvName,
     GoalSource,
@@ -65,6 +67,8 @@ from pipeline.rl.envs.plants import (
 # ensembles up to this size step every member and keep the episode's (shared weights); larger
 # ones gather the member's weights per environment (bench/ensemble_selection.py)
 ALL_MEMBERS_UP_TO = 4
+
+log = logging.getLogger(__name__)
 
 
 def common_params(cfg: Any) -> dict[str, Any]:
@@ -212,6 +216,37 @@ def data_goals_and_rest_pose(aligned: pd.DataFrame, test_run_ids: list[str], eve
     }
 
 
+def prediction_spread(models: Sequence[Any], run: dict) -> np.ndarray:
+    """``[T]`` m: at each step of ``run`` (at the model rate), the largest distance between the
+    first model's open-loop prediction along the run's commands and another's (zero for one
+    model)."""
+    reference = predict_run(models[0], run)
+    distances = [np.linalg.norm(predict_run(other, run) - reference, axis=-1)
+                 for other in models[1:]]
+    return np.max(distances, axis=0) if distances else np.zeros(len(reference))
+
+
+def conservative_goals(goals: pd.DataFrame, spread_m: np.ndarray, agreement_m: float,
+                       held_out: np.ndarray | None = None) -> pd.DataFrame:
+    """The rows of ``goals`` (one per step, columns run_id, x, y, z) where the ensemble agrees,
+    ``spread_m <= agreement_m`` (``[len(goals)]``, :func:`prediction_spread`), and every row of
+    ``held_out`` (a mask: evaluation goals, kept as they are). An error, naming
+    ``env.goal_agreement_mm``, when no training goal is left."""
+    spread_m = np.asarray(spread_m)
+    training = np.ones(len(goals), bool) if held_out is None else ~np.asarray(held_out, bool)
+    agreed = spread_m <= agreement_m
+    kept, total = int((agreed & training).sum()), int(training.sum())
+    if kept == 0:
+        raise ConfigError(
+            f"env.goal_agreement_mm={agreement_m * 1000:g}: the ensemble agrees on none of the "
+            f"{total} training goals (their spread: median "
+            f"{np.median(spread_m[training]) * 1000:.2f} mm, smallest "
+            f"{np.min(spread_m[training]) * 1000:.2f} mm)")
+    log.info("env: %d of %d training goals where the ensemble agrees within %g mm", kept, total,
+             agreement_m * 1000)
+    return goals[agreed | ~training].reset_index(drop=True)
+
+
 def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
                      held_out_goals: np.ndarray, rest_pose: np.ndarray,
                      rest_pose_std: np.ndarray | float = 0.0, members: Sequence[Any] = ()
@@ -344,6 +379,14 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
                        "y": goal_paths[run["run_id"]][:, 1],
                        "z": goal_paths[run["run_id"]][:, 2]}) for run in runs],
         ignore_index=True)
+    member_params = [load_dynamics(member.file("model.msgpack")) for member in members]
+    agreement_mm = cfg.env.get("goal_agreement_mm")
+    if agreement_mm is not None:
+        spread = np.concatenate([prediction_spread([dynamics_params, *member_params], run)
+                                 for run in runs])
+        held_out = at_model_rate["run_id"].isin(split.get("test") or [])
+        at_model_rate = conservative_goals(at_model_rate, spread, float(agreement_mm) / 1000.0,
+                                           held_out.to_numpy())
     first_poses = pd.DataFrame([{"run_id": run["run_id"], "x": run["pos"][0, 0],
                                  "y": run["pos"][0, 1], "z": run["pos"][0, 2]} for run in runs])
     every = int(cfg.env.goal_every)
@@ -365,6 +408,5 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
         if not split["test"]:
             data["train_goals"] = data["held_out_goals"]
     data["rest_pose"], data["rest_pose_std"] = rest["rest_pose"], rest["rest_pose_std"]
-    member_params = [load_dynamics(member.file("model.msgpack")) for member in members]
     return make_learned_env(cfg, dynamics_params, data["train_goals"], data["held_out_goals"],
                             data["rest_pose"], data["rest_pose_std"], members=member_params)

@@ -35,6 +35,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("overrides", nargs="*", help="Hydra overrides (model.*, dataset.*)")
     parser.add_argument("--tag", default="")
     parser.add_argument("--seeds", default="0", help="comma-separated model seeds")
+    parser.add_argument("--drop-runs", type=int, default=0,
+                        help="each member trains on its fold's runs less this many, drawn per "
+                             "(seed, fold): an ensemble over subsets of the runs (subbagging)")
     parser.add_argument("--out", default=DEFAULT_OUT)
     parser.add_argument("--report", action="store_true", help="print the table of --out")
     return parser.parse_args(argv)
@@ -61,6 +64,23 @@ def load_runs(overrides: list[str]):
                                    str(cfg.dataset.model_grid))
 
 
+def subsampled(members: list, drop: int) -> list:
+    """Each member without ``drop`` of its training runs, drawn from ``(seed, held-out run)``:
+    the members of one fold see different subsets of its runs, the held-out run never."""
+    from dataclasses import replace
+
+    out = []
+    for member in members:
+        if drop >= len(member.train_ids):
+            raise SystemExit(f"--drop-runs {drop}: a fold has only {len(member.train_ids)} "
+                             "training runs")
+        fold = sorted((*member.train_ids, member.held_out)).index(member.held_out)
+        rng = np.random.default_rng([member.seed, fold])
+        kept = rng.choice(len(member.train_ids), len(member.train_ids) - drop, replace=False)
+        out.append(replace(member, train_ids=tuple(member.train_ids[i] for i in sorted(kept))))
+    return out
+
+
 def study_row(args: argparse.Namespace) -> dict:
     from pipeline.dynamics import cv as model_cv
     from pipeline.dynamics.training import LEARNED, position_errors_mm
@@ -69,6 +89,8 @@ def study_row(args: argparse.Namespace) -> dict:
     seeds = [int(s) for s in args.seeds.split(",")]
     ids = [run["run_id"] for run in runs]
     members = model_cv.cv_members(ids, seeds, final=False)
+    if args.drop_runs:
+        members = subsampled(members, args.drop_runs)
     data = cfg.dataset
     started, started_cpu = time.perf_counter(), time.process_time()
     params, _ = model_cv.fit_members(runs, members, cfg.model, window=int(data.window),

@@ -217,3 +217,19 @@ def test_a_model_with_features_round_trips_through_its_file(tmp_path):
     assert loaded.config == config
     np.testing.assert_allclose(train_model.predict_run(loaded, runs[0]),
                                train_model.predict_run(params, runs[0]), rtol=1e-6)
+
+
+def test_subsampled_members_never_train_on_their_held_out_run():
+    from experiments.model_cv_study import subsampled
+
+    members = model_cv.cv_members(list("abcdefg"), seeds=[0, 1, 2], final=False)
+    drawn = subsampled(members, drop=2)
+    assert drawn == subsampled(members, drop=2)  # a pure function of (seed, fold)
+    for before, after in zip(members, drawn):
+        assert (after.held_out, after.seed) == (before.held_out, before.seed)
+        assert len(after.train_ids) == 4 and set(after.train_ids) < set(before.train_ids)
+        assert after.held_out not in after.train_ids
+    # the members of one fold see different subsets (seeds 0, 1, 2 of fold "a")
+    assert len({m.train_ids for m in drawn if m.held_out == "a"}) > 1
+    with pytest.raises(SystemExit, match="only 6 training runs"):
+        subsampled(members, drop=6)

@@ -113,7 +113,8 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
     evaluated = run_stage(output_dir, "evaluate", *base, files(train),
                           *variant_overrides(variant, ensemble_seeds, goal_agreement_mm),
                           f"evaluation.policies=[{agent}]", "evaluation.baselines=[preload]",
-                          "evaluation.plant=false", f"evaluation.models=[{other.path}]")
+                          "evaluation.plant=false", "evaluation.cross_model=false",
+                          f"evaluation.models=[{other.path}]")
     episodes = pd.read_parquet(evaluated["evaluate"].file("episodes.parquet"))
     plants = {"learned": "own", f"model {other.path.name}": "cross"}
     episodes = episodes[episodes["controller"] == agent].assign(

@@ -381,7 +381,9 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
         ignore_index=True)
     member_params = [load_dynamics(member.file("model.msgpack")) for member in members]
     agreement_mm = cfg.env.get("goal_agreement_mm")
-    if agreement_mm is not None:
+    # without members (evaluation builds the env on the model alone) there is nothing to agree
+    # on, and the training goals are not used
+    if agreement_mm is not None and member_params:
         spread = np.concatenate([prediction_spread([dynamics_params, *member_params], run)
                                  for run in runs])
         held_out = at_model_rate["run_id"].isin(split.get("test") or [])

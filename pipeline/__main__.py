@@ -125,6 +125,8 @@ def run(cfg: Any) -> dict[str, Any]:
     validate_config(cfg, choice, folders)
     stage = Stage(cfg.stage)
     cfg = apply_physics_from(cfg)
+    if stage in (Stage.all, Stage.evaluate):
+        keys.evaluation_twins(cfg)  # an unknown twin fails now, not after the training
     upstream_cfg = cfg
     if stage is not Stage.all:
         upstream_cfg = cfg.copy()

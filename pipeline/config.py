@@ -664,6 +664,11 @@ class EvaluationConfig:
     # other fitted models to evaluate every controller in (cross-model): fit_model artifact
     # folders or keys of this artifact store; observed like the training env, same goals
     models: list[str] = field(default_factory=list)
+    # calibrated twins to evaluate every controller on: the simulated arm with the physics of a
+    # simulated robot config (by name, e.g. sim_sorolex: calibrated to the paper's runs) or of a
+    # calibrate artifact (key or folder); observed like the training env, same goals, settled
+    # at the preload from the same rest poses
+    twins: list[str] = field(default_factory=list)
     # The cross-model protocol, for recorded data: the recordings split into two disjoint groups
     # (A: cross_model_group_a, by name; empty: every other of the sorted names; B: the rest),
     # each with its own fit_model; every policy type trained in each group's model (this

@@ -14,6 +14,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from pipeline.arm.twins import twin_physics
 from pipeline.config import (
     PROJECT_ROOT,
     ConfigError,
@@ -269,6 +270,18 @@ def cross_model_folds(cfg: Any) -> dict[str, tuple[Any, Any]]:
     return dict(zip(CROSS_MODEL_DIRECTIONS, ((first, second), (second, first)), strict=True))
 
 
+def evaluation_twins(cfg: Any) -> dict[str, dict[str, Any]]:
+    """The calibrated twins of ``evaluation.twins`` by name (a robot config's name, or the
+    calibrate artifact's folder name or key): their SimPhysics values."""
+    twins = {}
+    for entry in cfg.evaluation.get("twins") or []:
+        name = Path(str(entry)).name
+        if name in twins:
+            raise ConfigError(f"evaluation.twins: {name!r} is named twice")
+        twins[name] = twin_physics(str(entry), cfg.paths.artifact_dir)
+    return twins
+
+
 def evaluate_spec(cfg: Any) -> Spec:
     """The evaluation settings and env; the policies, the other models (``evaluation.models``)
     and, for the cross-model protocol, each group's policies and the model they meet."""
@@ -278,6 +291,10 @@ def evaluate_spec(cfg: Any) -> Spec:
     spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do
     for entry in cfg.evaluation.models:
         inputs[f"fit_model/{Path(str(entry)).name}"] = Path(str(entry)).name
+    # a twin is its physics, wherever they were read from
+    spec["evaluation"].pop("twins", None)
+    if cfg.evaluation.get("twins"):
+        spec["evaluation"]["twins"] = evaluation_twins(cfg)
     # the groups' policies and models decide the cross-model results, not how they were chosen
     for setting in ("cross_model", "cross_model_group_a"):
         spec["evaluation"].pop(setting, None)

@@ -14,6 +14,7 @@ from pipeline import keys
 from pipeline.__main__ import run, stages_to_run
 from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
+from pipeline.arm.twins import load_physics
 from pipeline.config import SimPhysics, Stage
 from pipeline.data.schemas import read_table
 from pipeline.stages.calibrate import (
@@ -21,7 +22,6 @@ from pipeline.stages.calibrate import (
     _template,
     apply_physics_from,
     fold_weights,
-    load_physics,
 )
 
 INIT = calib.sim_physics_values(SimPhysics())

@@ -191,7 +191,8 @@ def test_evaluate_reads_each_groups_policies_and_the_other_groups_model(make_cfg
 
 def test_evaluate_runs_the_cross_model_protocol_on_recorded_runs(make_cfg, sorolex_dir):
     """Four recorded runs, everything shrunk: each group gets its own model and policies, and
-    evaluate rolls them out in their own model and in the other group's."""
+    evaluate rolls them out in their own model and in the other group's; the policies of all
+    runs also run on the calibrated twin."""
     import pandas as pd
 
     from pipeline.__main__ import run
@@ -207,8 +208,13 @@ def test_evaluate_runs_the_cross_model_protocol_on_recorded_runs(make_cfg, sorol
                    "agent.num_steps=8", "agent.num_evals=1", "agent.eval_envs=4",
                    "model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
                    "dataset.window=32", "evaluation.num_episodes=4",
-                   "evaluation.consecutive_episodes=1")
+                   "evaluation.consecutive_episodes=1", "evaluation.twins=[sim_sorolex]")
     evaluated = run(cfg)["evaluate"]
+    summary = pd.read_parquet(evaluated.file("summary.parquet"))
+    on_twin = summary[summary["plant"] == "twin sim_sorolex"]
+    assert set(on_twin["controller"]) == {"ppo_ff", "preload"}
+    assert np.isfinite(on_twin["median_final_mm"]).all()
+    assert (on_twin["time_above_limits"] == 0).all()
     table = pd.read_parquet(evaluated.file("cross_model.parquet"))
     assert set(table["direction"]) == {"A->B", "B->A"}
     assert set(zip(table["plant"], table["controller"])) == {
@@ -231,4 +237,5 @@ def test_evaluate_runs_the_cross_model_protocol_on_recorded_runs(make_cfg, sorol
     assert sorted(aligned["run_id"].unique()) == [name.removesuffix(".csv")
                                                  for name in files[1::2]]
     assert "cross_model/B->A/ppo_ff" in evaluated.manifest["summary"]
-    assert "## Across models" in evaluated.file("report.md").read_text()
+    report = evaluated.file("report.md").read_text()
+    assert "## Across models" in report and "**Calibrated twins** (sim_sorolex)" in report

@@ -9,6 +9,7 @@ trained with) and on a **consecutive-goals** task (several targets in a row, no 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -17,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from pipeline.config import RobotKind
+from pipeline.arm.twins import twin_sim_params
+from pipeline.config import ConfigError, RobotKind
 from pipeline.evaluation import mpc, rollouts
 from pipeline.evaluation.metrics import MM_PER_M, episode_metrics, plant_gap, summarize
 from pipeline.infra.artifacts import Artifact
@@ -28,7 +30,7 @@ from pipeline.rl.envs.factory import (
     sim_rest_pose,
 )
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv, make_env_params
-from pipeline.rl.envs.plants import learned_plant, sim_plant
+from pipeline.rl.envs.plants import SimPlantParams, learned_plant, sim_plant
 from pipeline.rl.networks import initial_hidden
 from pipeline.rl.policy_io import load_policy
 
@@ -160,13 +162,35 @@ def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: An
         obs_scale=eval_params.obs_scale, **common_params(cfg))
 
 
+def _twin_env(cfg: Any, learned_env: SoftArmReachEnv, eval_params: EnvParams,
+              physics: dict[str, Any], key: jax.Array) -> tuple[SoftArmReachEnv, EnvParams]:
+    """A calibrated twin (the simulated arm with ``physics``, SimPhysics values) as a plant
+    observed like the learned env: the same goals, safe set and normalization, its starts
+    settled at the preload with the arm's rest offset put on the poses the learned env's starts
+    settled from."""
+    sim = twin_sim_params(physics)
+    frames = round(sim.mocap_hz / float(cfg.dataset.model_hz))
+    if frames < 1 or not math.isclose(sim.mocap_hz / frames, float(cfg.dataset.model_hz),
+                                      rel_tol=1e-6):
+        raise ConfigError(f"evaluation.twins: the twin integrates at {sim.mocap_hz:g} Hz, which "
+                          f"dataset.model_hz={cfg.dataset.model_hz} does not divide")
+    env = SoftArmReachEnv(sim_plant(sim.mocap_hz, frames), learned_env.control_hz,
+                          **observation_options(cfg.env))
+    plant = SimPlantParams(sim, eval_params.preload)
+    params = make_env_params(
+        env, plant, key=key, safe_set=eval_params.safe_set, preload=eval_params.preload,
+        initial_poses=eval_params.reset_initial_poses, goal_set=eval_params.goal_set,
+        obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale, **common_params(cfg))
+    return env, params
+
+
 def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv,
-                   eval_params: EnvParams, models: dict[str, Any] | None = None
-                   ) -> dict[str, Any]:
+                   eval_params: EnvParams, models: dict[str, Any] | None = None,
+                   twins: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
     """Roll out every controller of ``policies`` (train_ppo artifacts by policy type) and every
-    baseline on the learned env (``env`` with its evaluation parameters), on the plant and in
-    each of ``models`` (other fitted models' ``DynamicsParams`` by plant name); return tables
-    and arrays."""
+    baseline on the learned env (``env`` with its evaluation parameters), on the plant, in each
+    of ``models`` (other fitted models' ``DynamicsParams`` by plant name) and on each of
+    ``twins`` (calibrated twins' SimPhysics values by plant name); return tables and arrays."""
     evaluation = cfg.evaluation
     episodes, steps = int(evaluation.num_episodes), int(cfg.env.max_steps)
     key = jax.random.key(int(evaluation.seed))
@@ -182,6 +206,9 @@ def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv
     for number, (name, dynamics_params) in enumerate((models or {}).items()):
         plants[name] = (env, _model_env(env, eval_params, dynamics_params,
                                         jax.random.fold_in(plant_key, number + 1), cfg))
+    for number, (name, physics) in enumerate((twins or {}).items()):
+        plants[name] = _twin_env(cfg, env, eval_params, physics,
+                                 jax.random.fold_in(plant_key, len(models or {}) + number + 1))
 
     loaded = {}
     for name, artifact in policies.items():

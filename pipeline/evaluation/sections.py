@@ -78,6 +78,13 @@ def _summary_section(cfg, model, summary: pd.DataFrame, order: list[str]) -> Sec
                     "model the policies were trained in) and on the **simulated arm** (the plant: "
                     "`robot=sim`'s own physics, with hysteresis, creep and a rest pose that "
                     "differs between sessions, which the model only saw through recorded data).")
+    twins = sorted(p for p in set(summary["plant"]) if str(p).startswith("twin "))
+    if twins:
+        section.add(f"**Calibrated twins** ({', '.join(t.removeprefix('twin ') for t in twins)}): "
+                    "the simulated arm with physics fitted to the arm (`evaluation.twins`), "
+                    "observed like the learned model, started from the same rest poses: a plant "
+                    "built from other equations than the learned model, so it does not share the "
+                    "model's errors.")
     wide = summary.pivot_table(index="controller", columns="plant",
                                values="median_final_mm").reset_index()
     wide.columns.name = None

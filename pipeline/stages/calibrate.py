@@ -38,6 +38,7 @@ from omegaconf import OmegaConf
 from pipeline import keys
 from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
+from pipeline.arm.twins import load_physics
 from pipeline.config import ConfigError, SimPhysics
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, XYZ, Column, TableSchema, read_table, write_table
@@ -46,7 +47,7 @@ from pipeline.dynamics.training import (
     baseline_mean_position,
     position_errors_mm,
 )
-from pipeline.infra.artifacts import Artifact, ArtifactStore, MissingArtifactError, produce
+from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 
 log = logging.getLogger(__name__)
@@ -317,19 +318,6 @@ def plot_reconstruction(path: Path, runs: list[dict], folds: list, predicted: np
 # --------------------------------------------------------------------------------------------
 # robot.physics_from
 # --------------------------------------------------------------------------------------------
-def load_physics(source: str, artifact_dir: str | Path) -> dict[str, Any]:
-    """The fitted SimPhysics values of a calibrate artifact given by key or folder."""
-    path = Path(source)
-    if not (path / "physics.json").is_file():
-        found = ArtifactStore(artifact_dir).find(STAGE, str(source))
-        if found is None:
-            raise MissingArtifactError(
-                f"robot.physics_from={source!r}: neither a folder holding physics.json nor the "
-                f"key of a calibrate artifact under {Path(artifact_dir) / STAGE}")
-        path = found.path
-    return json.loads((path / "physics.json").read_text())["physics"]
-
-
 def apply_physics_from(cfg: Any) -> Any:
     """``cfg`` with ``robot.physics`` (robot=sim) or ``robot.twin.physics`` (robot=ros2)
     replaced by the calibrate artifact named in ``robot.physics_from`` (unchanged if unset)."""

@@ -9,6 +9,8 @@ nothing; ``random``: random safe actions; ``mpc``: sampling-based MPC on the lea
 - on the **plant**: the simulated arm for ``robot=sim`` (its own hysteresis, creep and rest-pose
   spread; the model never saw its equations), with the policies observing it through the same
   normalization they were trained with;
+- on **calibrated twins** (``evaluation.twins``: the simulated arm with the physics of a simulated
+  robot config or of a calibrate artifact, started from the learned env's rest poses);
 - a **consecutive-goals** task: ``num_consecutive_goals`` targets one after another, no reset;
 - on recorded data, the **cross-model protocol** (``evaluation.cross_model``,
   :mod:`pipeline.evaluation.cross_model`): each group of runs' policies in their own model and in
@@ -72,7 +74,9 @@ def evaluate(cfg: Any) -> Artifact:
         env, _, eval_params = environment(cfg, upstream["model"], upstream["aligned"])
         models = {name: load_dynamics(artifact.file("model.msgpack"))
                   for name, artifact in other_models.items()}
-        results = run_evaluation(cfg, policies, env, eval_params, models)
+        twins = {f"twin {name}": physics
+                 for name, physics in spec["evaluation"].get("twins", {}).items()}
+        results = run_evaluation(cfg, policies, env, eval_params, models, twins)
         if folds:
             _cross_model(folds, results)
         config = {"evaluation": spec["evaluation"], "env": spec["env"]}

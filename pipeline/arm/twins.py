@@ -1,0 +1,84 @@
+"""The calibrated twin: the simulated arm with physics fitted to an arm, as a plant.
+
+Where its physics come from (:func:`twin_physics`): a ``calibrate`` artifact (its key in the
+artifact store or its folder, holding ``physics.json``; what ``robot.physics_from`` reads), or a
+simulated robot config of the ``robot`` group by name (``conf/robot/<name>.yaml``, e.g.
+``sim_sorolex``: the physics calibrated to the paper's runs, kept in the config so that nothing
+needs the calibrate artifact at run time). :func:`twin_sim_params` makes the simulator's
+parameters of them: nominal physics (no per-session draw; a plant is one arm) integrated at the
+default motion-capture rate.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from pipeline.arm import sim_arm
+from pipeline.config import PROJECT_ROOT, ConfigError, MocapConfig, SimPhysics
+from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
+
+CALIBRATE_STAGE = "calibrate"
+ROBOT_CONFIGS = PROJECT_ROOT / "conf" / "robot"
+
+
+def load_physics(source: str, artifact_dir: str | Path, setting: str = "robot.physics_from"
+                 ) -> dict[str, Any]:
+    """The fitted SimPhysics values of a calibrate artifact given by key or folder; an error
+    naming ``setting`` where there is none."""
+    path = Path(source)
+    if not (path / "physics.json").is_file():
+        found = ArtifactStore(artifact_dir).find(CALIBRATE_STAGE, str(source))
+        if found is None:
+            raise MissingArtifactError(
+                f"{setting}={source!r}: neither a folder holding physics.json nor the key of a "
+                f"calibrate artifact under {Path(artifact_dir) / CALIBRATE_STAGE}")
+        path = found.path
+    return json.loads((path / "physics.json").read_text())["physics"]
+
+
+def robot_config_physics(name: str) -> dict[str, Any] | None:
+    """The physics of the simulated robot config ``conf/robot/<name>.yaml`` over the
+    :class:`~pipeline.config.SimPhysics` defaults, without its per-session spread; None where
+    there is no such config. An error where the config has no physics (not a simulated arm)."""
+    path = ROBOT_CONFIGS / f"{name}.yaml"
+    if "/" in name or not path.is_file():
+        return None
+    physics = OmegaConf.load(path).get("physics")
+    if physics is None:
+        raise ConfigError(f"conf/robot/{name}.yaml has no physics: a twin needs a simulated "
+                          f"robot config (e.g. sim, sim_sorolex) or a calibrate artifact")
+    merged = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(SimPhysics), physics),
+                                    resolve=True)
+    merged["session_std"] = {}
+    return merged
+
+
+def twin_physics(entry: str, artifact_dir: str | Path, setting: str = "evaluation.twins"
+                 ) -> dict[str, Any]:
+    """SimPhysics values of a twin: a simulated robot config's name, or a calibrate artifact's
+    key or folder (the fitted values over the SimPhysics defaults)."""
+    from_config = robot_config_physics(str(entry))
+    if from_config is not None:
+        return from_config
+    fitted = load_physics(str(entry), artifact_dir, setting=setting)
+    known = set(OmegaConf.structured(SimPhysics).keys())
+    unknown = sorted(set(fitted) - known)
+    if unknown:
+        raise ConfigError(f"{setting}: {entry!r} has parameters {unknown} that are not "
+                          f"SimPhysics fields of this version")
+    merged = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(SimPhysics), fitted),
+                                    resolve=True)
+    merged["session_std"] = {}
+    return merged
+
+
+def twin_sim_params(physics: dict[str, Any]) -> sim_arm.SimParams:
+    """The simulator's parameters of ``physics`` (SimPhysics values), integrated at the default
+    motion-capture rate (:class:`~pipeline.config.MocapConfig`)."""
+    robot = OmegaConf.create({"physics": physics,
+                              "mocap": OmegaConf.structured(MocapConfig)})
+    return sim_arm.SimParams.from_config(robot)

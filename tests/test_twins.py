@@ -1,0 +1,81 @@
+"""Calibrated twins as evaluation plants: where their physics come from, how they start."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from pipeline.arm.safety import SafeSet
+from pipeline.arm.twins import twin_physics, twin_sim_params
+from pipeline.config import PROJECT_ROOT, ConfigError, SimPhysics
+from pipeline.dynamics import model as dynamics
+from pipeline.infra.artifacts import MissingArtifactError
+from pipeline.rl.envs import SoftArmReachEnv, learned_plant, make_env_params
+
+LIMITS = OmegaConf.create({"p_min": -1.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
+
+
+def test_a_robot_configs_twin_has_its_nominal_physics(tmp_path):
+    physics = twin_physics("sim_sorolex", tmp_path)
+    written = OmegaConf.load(PROJECT_ROOT / "conf/robot/sim_sorolex.yaml").physics
+    assert physics["bend_gain"] == pytest.approx(float(written.bend_gain))
+    assert physics["chamber_angles_deg"] == pytest.approx(list(written.chamber_angles_deg))
+    assert physics["substeps"] == SimPhysics().substeps  # not in the yaml: the schema's default
+    assert physics["session_std"] == {}  # one arm: no draw per session
+    with pytest.raises(ConfigError, match=r"sorolex_csv\.yaml has no physics"):
+        twin_physics("sorolex_csv", tmp_path)
+
+
+def test_a_calibrate_artifacts_twin_is_its_fitted_physics_over_the_defaults(tmp_path):
+    folder = tmp_path / "fitted"
+    folder.mkdir()
+    (folder / "physics.json").write_text(json.dumps({"physics": {"bend_gain": 0.123}}))
+    physics = twin_physics(str(folder), tmp_path / "artifacts")
+    assert physics["bend_gain"] == pytest.approx(0.123)
+    assert physics["natural_freq_hz"] == pytest.approx(SimPhysics().natural_freq_hz)
+    with pytest.raises(MissingArtifactError, match=r"evaluation.twins='nokey': neither a folder"):
+        twin_physics("nokey", tmp_path / "artifacts")
+    (folder / "physics.json").write_text(json.dumps({"physics": {"bend_gian": 0.1}}))
+    with pytest.raises(ConfigError, match=r"\['bend_gian'\] that are not SimPhysics fields"):
+        twin_physics(str(folder), tmp_path / "artifacts")
+
+
+def test_a_twin_starts_where_the_learned_env_starts_observed_like_it(make_cfg):
+    """The twin plant settles at the preload from the poses the learned env's starts settled
+    from, and keeps the learned env's goals, safe set and observation normalization."""
+    from pipeline.evaluation.closed_loop import _twin_env
+
+    cfg = make_cfg()
+    physics = twin_physics("sim_sorolex", cfg.paths.artifact_dir)
+    sim = twin_sim_params(physics)
+    config = dynamics.DynamicsConfig(hidden=8)
+    ones, zeros = jnp.ones(3), jnp.zeros(3)
+    rest = jnp.array([0.030, 0.353, 0.201])
+    model = dynamics.DynamicsParams(
+        dynamics.init_network(jax.random.PRNGKey(0), config),
+        dynamics.Normalizer(2.0 * ones, ones, rest, 0.01 * ones, zeros, 0.01 * ones), config)
+    env = SoftArmReachEnv(learned_plant(float(cfg.dataset.model_hz)), 2.0, settle_seconds=1.0)
+    goals = rest + jnp.array([[0.004, 0.0, 0.0], [0.0, -0.001, 0.003]])
+    learned = make_env_params(env, model, key=jax.random.PRNGKey(0),
+                              safe_set=SafeSet.from_limits(LIMITS), preload=2.0, rest_pose=rest,
+                              rest_pose_std=0.002, goal_set=goals, reset_bank_size=5)
+
+    twin_env, twin = _twin_env(cfg, env, learned, physics, jax.random.PRNGKey(1))
+    assert sim.mocap_hz / twin_env.plant.model_hz == 10  # 100 Hz frames, 10 a model step
+    # settled at the preload from those poses: within a tenth of a millimetre of them (the
+    # preload hold lets the arm's slow creep move it a little)
+    np.testing.assert_allclose(twin.reset_positions, learned.reset_initial_poses, atol=1e-4)
+    for field in ("goal_set", "obs_mean", "obs_scale", "preload", "reset_initial_poses"):
+        np.testing.assert_array_equal(getattr(twin, field), getattr(learned, field))
+    # the twin moves: inflating one chamber carries the tip off its rest pose by millimetres
+    _, state = twin_env.reset(jax.random.PRNGKey(2), twin)
+    start = state.position
+    for _ in range(6):
+        _, state, *_ = twin_env.step(jax.random.PRNGKey(3), state, jnp.array([1.0, -1.0, -1.0]),
+                                     twin)
+    assert 0.002 < float(jnp.linalg.norm(state.position - start)) < 0.05

@@ -5,7 +5,7 @@ the model of another, disjoint group (both directions), per robustness variant.
         incremental_randomized incremental_randomized_ensemble
         incremental_randomized_ensemble_agreed]
         [--directions A->B B->A] [--seeds 4] [--ppo-steps N] [--ensemble-seeds 3]
-        [--goal-agreement-mm MM] [--quick]
+        [--goal-agreement-mm MM] [--twin sim_sorolex] [--quick]
         [--set KEY=VALUE ...]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
@@ -99,9 +99,11 @@ def variant_overrides(variant: str, ensemble_seeds: int,
 
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],
             variant: str, ensemble_seeds: int, agent: str = "ppo_ff",
-            goal_agreement_mm: float = GOAL_AGREEMENT_MM) -> dict[str, Any]:
+            goal_agreement_mm: float = GOAL_AGREEMENT_MM, twin: str | None = None
+            ) -> dict[str, Any]:
     """``agent`` trained in ``train``'s model (``variant``), evaluated in its own and in
-    ``test``'s model: one row of the results table. Beside the figures over every seed's
+    ``test``'s model (and on the calibrated ``twin``, ``evaluation.twins``, where given: the
+    ``twin_*`` figures): one row of the results table. Beside the figures over every seed's
     episodes: the share of seeds whose median is within 1 mm (own and cross), and the figures
     of the seed that ``stage=control`` would deploy (the best in the training's last held-out
     evaluation, ``pipeline.rl.policy_io.best_seed``)."""
@@ -114,16 +116,19 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
                           *variant_overrides(variant, ensemble_seeds, goal_agreement_mm),
                           f"evaluation.policies=[{agent}]", "evaluation.baselines=[preload]",
                           "evaluation.plant=false", "evaluation.cross_model=false",
-                          f"evaluation.models=[{other.path}]")
+                          f"evaluation.models=[{other.path}]",
+                          *([f"evaluation.twins=[{twin}]"] if twin else []))
     episodes = pd.read_parquet(evaluated["evaluate"].file("episodes.parquet"))
     plants = {"learned": "own", f"model {other.path.name}": "cross"}
+    if twin:
+        plants[f"twin {Path(twin).name}"] = "twin"
     episodes = episodes[episodes["controller"] == agent].assign(
         plant=lambda frame: frame["plant"].map(plants))
     seed = best_seed(evaluated["train_ppo"])  # the one stage=control drives the arm with
     summary = across_models(episodes, {agent: seed}).set_index("plant")
     row: dict[str, Any] = {"agent": agent, "variant": variant, "train": "+".join(train),
                            "test": "+".join(test), "deployed_seed": seed}
-    for where in ("own", "cross"):
+    for where in ("own", "cross", *(["twin"] if twin else [])):
         for metric in (*METRICS, "seeds_median_within_1mm", "deployed_median_final_mm",
                        "deployed_success_1mm"):
             row[f"{where}_{metric}"] = float(summary.loc[where, metric])
@@ -144,6 +149,13 @@ def print_table(table: pd.DataFrame) -> None:
               f"{row.cross_success_3mm:>7.2f}{row.cross_seeds_median_within_1mm:>11.2f}"
               f"{row.deployed_seed:>14d}{row.own_deployed_median_final_mm:>6.2f}"
               f"{row.cross_deployed_median_final_mm:>7.2f}{row.cross_deployed_success_1mm:>7.2f}")
+    if "twin_median_final_mm" in table:
+        print("\non the calibrated twin: median / p90 [mm], within 1 / 3 mm, deployed seed's "
+              "median")
+        for row in table.itertuples():
+            print(f"{row.variant:<32}{row.direction:<7}{row.twin_median_final_mm:>7.2f}"
+                  f"{row.twin_p90_final_mm:>7.2f}{row.twin_success_1mm:>7.2f}"
+                  f"{row.twin_success_3mm:>7.2f}{row.twin_deployed_median_final_mm:>7.2f}")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -167,6 +179,10 @@ def main(argv: list[str] | None = None) -> None:
                         help="model seeds of the ensemble variants")
     parser.add_argument("--goal-agreement-mm", type=float, default=GOAL_AGREEMENT_MM,
                         help="the agreed variant's env.goal_agreement_mm")
+    parser.add_argument("--twin", default=None,
+                        help="also evaluate on this calibrated twin (evaluation.twins: a "
+                             "simulated robot config's name, e.g. sim_sorolex, or a calibrate "
+                             "artifact's key or folder)")
     parser.add_argument("--set", dest="overrides", nargs="+", action="extend", default=[],
                         metavar="KEY=VALUE",
                         help="further pipeline overrides for every stage (agent.lr=3e-4 ...)")
@@ -186,7 +202,7 @@ def main(argv: list[str] | None = None) -> None:
         train, test = splits[direction]
         for variant in args.variants:
             row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds,
-                          args.agent, args.goal_agreement_mm)
+                          args.agent, args.goal_agreement_mm, args.twin)
             rows.append({"direction": direction, **row, "overrides": " ".join(args.overrides)})
     table = pd.DataFrame(rows)
     out = args.output_dir / "cross_model"

@@ -117,7 +117,7 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
                           f"evaluation.policies=[{agent}]", "evaluation.baselines=[preload]",
                           "evaluation.plant=false", "evaluation.cross_model=false",
                           f"evaluation.models=[{other.path}]",
-                          *([f"evaluation.twins=[{twin}]"] if twin else []))
+                          f"evaluation.twins=[{twin or ''}]")
     episodes = pd.read_parquet(evaluated["evaluate"].file("episodes.parquet"))
     plants = {"learned": "own", f"model {other.path.name}": "cross"}
     if twin:

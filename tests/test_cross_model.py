@@ -13,9 +13,10 @@ PRICE = 10.0  # experiment=real_arm's env.command_change_cost
 
 
 def test_experiment_real_arm_trains_incremental_and_randomized(make_cfg):
-    env = make_cfg("experiment=real_arm").env
-    assert env.action_mode == "incremental"
-    assert dict(env.randomization) == pytest.approx(RANDOMIZED)
+    cfg = make_cfg("experiment=real_arm")
+    assert cfg.env.action_mode == "incremental"
+    assert dict(cfg.env.randomization) == pytest.approx(RANDOMIZED)
+    assert list(cfg.evaluation.twins) == ["sim_sorolex"]  # evaluated on the calibrated twin too
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

@@ -51,7 +51,12 @@ def robot_config_physics(name: str) -> dict[str, Any] | None:
     if physics is None:
         raise ConfigError(f"conf/robot/{name}.yaml has no physics: a twin needs a simulated "
                           f"robot config (e.g. sim, sim_sorolex) or a calibrate artifact")
-    merged = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(SimPhysics), physics),
+    return _nominal(physics)
+
+
+def _nominal(values: Any) -> dict[str, Any]:
+    """``values`` (SimPhysics fields) over the schema's defaults, without a per-session spread."""
+    merged = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(SimPhysics), values),
                                     resolve=True)
     merged["session_std"] = {}
     return merged
@@ -70,10 +75,7 @@ def twin_physics(entry: str, artifact_dir: str | Path, setting: str = "evaluatio
     if unknown:
         raise ConfigError(f"{setting}: {entry!r} has parameters {unknown} that are not "
                           f"SimPhysics fields of this version")
-    merged = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(SimPhysics), fitted),
-                                    resolve=True)
-    merged["session_std"] = {}
-    return merged
+    return _nominal(fitted)
 
 
 def twin_sim_params(physics: dict[str, Any]) -> sim_arm.SimParams:

@@ -10,7 +10,11 @@ position minus that prediction, and the fold's prediction of the held-out run is
 the residual model's, both fed the run's commands alone. All fold residual models train in one
 vmapped program (``pipeline.dynamics.cv.fit_members``, each fold on its own copies of the runs).
 
-    python -m experiments.model_hybrid [--seed 0] [--tag hybrid] [overrides: model.* ...]
+    python -m experiments.model_hybrid [--seeds 0] [--with-plain] [--tag hybrid] [overrides ...]
+
+With several ``--seeds`` the fold's prediction is the average of its residual models (an
+ensemble); ``--with-plain`` adds the learned model alone (trained on the measured positions,
+same seeds) to that average: an ensemble of the hybrid and the plain model.
 
 Appends a row in ``experiments.model_cv_study``'s format to ``--out`` (``--report`` there prints
 it beside the other rows); the twin's fold predictions are kept in ``<out folder>/twin_folds.npz``
@@ -104,27 +108,40 @@ def hybrid_row(args: argparse.Namespace) -> dict:
     copies = [{**run, "run_id": f"{run['run_id']}@{held}",
                "pos": (run["pos"] - twin[held][run["run_id"]]).astype(run["pos"].dtype)}
               for held in ids for run in runs]
-    members = [model_cv.Member(tuple(f"{r}@{held}" for r in ids if r != held), f"{held}@{held}",
-                               int(args.seed)) for held in ids]
+    seeds = [int(seed) for seed in args.seeds.split(",")]
+    # (fold, kind, member): the residual models on the fold's copies, the plain ones on the runs
+    members = [(held, "hybrid", model_cv.Member(tuple(f"{r}@{held}" for r in ids if r != held),
+                                                f"{held}@{held}", seed))
+               for seed in seeds for held in ids]
+    if args.with_plain:
+        members += [(held, "plain", model_cv.Member(tuple(r for r in ids if r != held), held,
+                                                    seed)) for seed in seeds for held in ids]
     data = cfg.dataset
     started, started_cpu = time.perf_counter(), time.process_time()
-    params, _ = model_cv.fit_members(copies, members, cfg.model, window=int(data.window),
-                                     stride=int(data.stride), order=str(data.order))
+    params, _ = model_cv.fit_members([*runs, *copies], [m for _, _, m in members], cfg.model,
+                                     window=int(data.window), stride=int(data.stride),
+                                     order=str(data.order))
     train_s, train_cpu_s = time.perf_counter() - started, time.process_time() - started_cpu
     by_copy = {run["run_id"]: run for run in copies}
     by_id = {run["run_id"]: run for run in runs}
     per_run = {}
-    for held, member_params in zip(ids, params, strict=True):
-        def hybrid(run_id, held=held, member_params=member_params):
-            residual = predict_run(member_params, by_copy[f"{run_id}@{held}"])
-            return residual + twin[held][run_id]
+    for held in ids:
+        fold = [(kind, p) for (h, kind, _), p in zip(members, params, strict=True) if h == held]
 
-        errors = position_errors_mm(hybrid(held), by_id[held]["pos"])
-        twin_errors = position_errors_mm(twin[held][held], by_id[held]["pos"])
-        train = [position_errors_mm(hybrid(r), by_id[r]["pos"]) for r in ids if r != held]
+        def predictions(run_id, fold=fold, held=held):
+            return [predict_run(p, by_copy[f"{run_id}@{held}"]) + twin[held][run_id]
+                    if kind == "hybrid" else predict_run(p, by_id[run_id]) for kind, p in fold]
+
+        pos = by_id[held]["pos"]
+        single = [position_errors_mm(one, pos) for one in predictions(held)]
+        errors = position_errors_mm(np.mean(predictions(held), axis=0), pos)
+        twin_errors = position_errors_mm(twin[held][held], pos)
+        train = [position_errors_mm(np.mean(predictions(r), axis=0), by_id[r]["pos"])
+                 for r in ids if r != held]
         per_run[held] = {
             "model_mean_mm": errors["mean_mm"], "model_p95_mm": errors["p95_mm"],
-            "member_mean_mm": errors["mean_mm"], "member_p95_mm": errors["p95_mm"],
+            "member_mean_mm": float(np.mean([e["mean_mm"] for e in single])),
+            "member_p95_mm": float(np.mean([e["p95_mm"] for e in single])),
             "twin_mean_mm": twin_errors["mean_mm"], "twin_p95_mm": twin_errors["p95_mm"],
             "train_runs_mean_mm": float(np.mean([e["mean_mm"] for e in train])),
             "train_runs_p95_mm": float(np.mean([e["p95_mm"] for e in train])),
@@ -132,7 +149,7 @@ def hybrid_row(args: argparse.Namespace) -> dict:
             "coverage_2sigma": float("nan")}
     average = pd.DataFrame(per_run).T.mean().to_dict()
     return {"tag": args.tag, "command": "python -m experiments.model_hybrid " + shlex.join(
-        sys.argv[1:]), "seeds": [int(args.seed)], "train_s": train_s,
+        sys.argv[1:]), "seeds": seeds, "train_s": train_s,
         "train_cpu_s": train_cpu_s, "per_run": per_run, "average": average}
 
 
@@ -140,7 +157,9 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("overrides", nargs="*", help="Hydra overrides (model.*, calibration.*)")
     parser.add_argument("--tag", default="hybrid")
-    parser.add_argument("--seed", type=int, default=0, help="the residual models' seed")
+    parser.add_argument("--seeds", default="0", help="comma-separated model seeds")
+    parser.add_argument("--with-plain", action="store_true",
+                        help="average the hybrid with the learned model alone (same seeds)")
     parser.add_argument("--out", default=DEFAULT_OUT)
     args = parser.parse_args(argv)
     row = hybrid_row(args)

@@ -25,10 +25,13 @@ randomization of the plant, ``env.randomization``, and its price on command chan
 - ``randomized``: absolute actions, the plant randomized;
 - ``both``: the ensemble, randomized;
 - ``incremental``: incremental actions (integral action), no randomization;
-- ``incremental_randomized``: incremental actions, randomized: ``experiment=real_arm`` as it is;
-- ``incremental_randomized_ensemble``: ``experiment=real_arm`` in the ensemble of model seeds.
+- ``incremental_randomized``: incremental actions, randomized, in one model;
+- ``incremental_randomized_ensemble``: that in the ensemble of model seeds: ``experiment=real_arm``
+  as it is (with ``--ensemble-seeds`` seeds);
 - ``incremental_randomized_ensemble_agreed``: that, trained on conservative goals only, those
   where the ensemble's members agree within ``--goal-agreement-mm`` (``env.goal_agreement_mm``).
+
+The variants without ``ensemble`` in their name train in one model (``env.ensemble_seeds=1``).
 
 Printed per variant and direction: median final distance, its 90th percentile and the success
 rates within 1 and 3 mm (all seeds' episodes together), own and cross; the share of seeds whose
@@ -87,12 +90,12 @@ def variant_overrides(variant: str, ensemble_seeds: int,
     unpriced = ["env.command_change_cost=0"]
     absolute = ["env.action_mode=absolute", *unpriced]
     no_randomization = no_randomization_overrides()
-    ensemble = [f"env.ensemble_seeds={ensemble_seeds}"]
-    return {"plain": absolute + no_randomization,
-            "ensemble": absolute + no_randomization + ensemble, "randomized": absolute,
+    ensemble, single = [f"env.ensemble_seeds={ensemble_seeds}"], ["env.ensemble_seeds=1"]
+    return {"plain": absolute + no_randomization + single,
+            "ensemble": absolute + no_randomization + ensemble, "randomized": absolute + single,
             "both": absolute + ensemble,
-            "incremental": unpriced + no_randomization,
-            "incremental_randomized": [], "incremental_randomized_ensemble": ensemble,
+            "incremental": unpriced + no_randomization + single,
+            "incremental_randomized": single, "incremental_randomized_ensemble": ensemble,
             "incremental_randomized_ensemble_agreed": [
                 *ensemble, f"env.goal_agreement_mm={goal_agreement_mm}"]}[variant]
 

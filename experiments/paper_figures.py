@@ -260,7 +260,7 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
     fig, ax = plt.subplots(figsize=(8, 4.2))
     finals, durations, cfg = {}, {}, None
     # the paper's task: absolute pressures, the model as it is (no robustness settings)
-    paper_task = ("env.action_mode=absolute", *no_randomization_overrides())
+    paper_task = ("env.action_mode=absolute", "env.ensemble_seeds=1", *no_randomization_overrides())
     for i, agent in enumerate(("ppo_ff", "ppo_rnn")):
         overrides = ("experiment=real_arm", *paper_task, f"agent={agent}",
                      f"agent.num_seeds={seeds}", *budget_overrides(steps))

@@ -17,6 +17,7 @@ def test_experiment_real_arm_trains_incremental_and_randomized(make_cfg):
     assert cfg.env.action_mode == "incremental"
     assert dict(cfg.env.randomization) == pytest.approx(RANDOMIZED)
     assert list(cfg.evaluation.twins) == ["sim_sorolex"]  # evaluated on the calibrated twin too
+    assert cfg.env.ensemble_seeds == 3  # in an ensemble of model seeds
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

@@ -273,8 +273,9 @@ def cross_model_folds(cfg: Any) -> dict[str, tuple[Any, Any]]:
 def evaluation_twins(cfg: Any) -> dict[str, dict[str, Any]]:
     """The calibrated twins of ``evaluation.twins`` by name (a robot config's name, or the
     calibrate artifact's folder name or key): their SimPhysics values."""
+    evaluation = cfg.get("evaluation")
     twins = {}
-    for entry in cfg.evaluation.get("twins") or []:
+    for entry in (evaluation.get("twins") if evaluation is not None else None) or []:
         name = Path(str(entry)).name
         if name in twins:
             raise ConfigError(f"evaluation.twins: {name!r} is named twice")

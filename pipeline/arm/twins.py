@@ -17,7 +17,6 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from pipeline.arm import sim_arm
 from pipeline.config import PROJECT_ROOT, ConfigError, MocapConfig, SimPhysics
 from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
 
@@ -78,9 +77,12 @@ def twin_physics(entry: str, artifact_dir: str | Path, setting: str = "evaluatio
     return _nominal(fitted)
 
 
-def twin_sim_params(physics: dict[str, Any]) -> sim_arm.SimParams:
-    """The simulator's parameters of ``physics`` (SimPhysics values), integrated at the default
-    motion-capture rate (:class:`~pipeline.config.MocapConfig`)."""
+def twin_sim_params(physics: dict[str, Any]) -> Any:
+    """The simulator's :class:`~pipeline.arm.sim_arm.SimParams` of ``physics`` (SimPhysics
+    values), integrated at the default motion-capture rate
+    (:class:`~pipeline.config.MocapConfig`)."""
+    from pipeline.arm import sim_arm  # JAX only where a twin is simulated, not to find one
+
     robot = OmegaConf.create({"physics": physics,
                               "mocap": OmegaConf.structured(MocapConfig)})
     return sim_arm.SimParams.from_config(robot)

@@ -157,16 +157,21 @@ def report(path: str) -> str:
     return "\n".join(lines)
 
 
+def append_row(path: str, row: dict) -> None:
+    """One JSON line more in the study file ``path`` (the folders made where missing)."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "a") as file:
+        file.write(json.dumps(row) + "\n")
+
+
 def main(argv=None) -> None:
     args = parse_args(argv)
     if args.report:
         print(report(args.out))
         return
     row = study_row(args)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "a") as file:
-        file.write(json.dumps(row) + "\n")
+    append_row(args.out, row)
     a = row["average"]
     print(f"{row['tag']}: LORO {a['model_mean_mm']:.2f} / {a['model_p95_mm']:.2f} mm "
           f"(linear {a['linear_mean_mm']:.2f} / {a['linear_p95_mm']:.2f}, training runs "

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from experiments.model_cv_study import DEFAULT_OUT, load_runs
+from experiments.model_cv_study import DEFAULT_OUT, append_row, load_runs
 
 
 def twin_folds(cfg, runs: list[dict], cache: Path) -> dict[str, dict[str, np.ndarray]]:
@@ -163,10 +163,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=DEFAULT_OUT)
     args = parser.parse_args(argv)
     row = hybrid_row(args)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "a") as file:
-        file.write(json.dumps(row) + "\n")
+    append_row(args.out, row)
     for held, figures in row["per_run"].items():
         print(f"{held}: hybrid {figures['model_mean_mm']:.2f} / {figures['model_p95_mm']:.2f} mm,"
               f" twin alone {figures['twin_mean_mm']:.2f} / {figures['twin_p95_mm']:.2f}, "

@@ -132,9 +132,9 @@ def hybrid_row(args: argparse.Namespace) -> dict:
             return [predict_run(p, by_copy[f"{run_id}@{held}"]) + twin[held][run_id]
                     if kind == "hybrid" else predict_run(p, by_id[run_id]) for kind, p in fold]
 
-        pos = by_id[held]["pos"]
-        single = [position_errors_mm(one, pos) for one in predictions(held)]
-        errors = position_errors_mm(np.mean(predictions(held), axis=0), pos)
+        pos, held_out = by_id[held]["pos"], predictions(held)
+        single = [position_errors_mm(one, pos) for one in held_out]
+        errors = position_errors_mm(np.mean(held_out, axis=0), pos)
         twin_errors = position_errors_mm(twin[held][held], pos)
         train = [position_errors_mm(np.mean(predictions(r), axis=0), by_id[r]["pos"])
                  for r in ids if r != held]

@@ -35,17 +35,25 @@ from pipeline.rl.networks import initial_hidden
 from pipeline.rl.policy_io import load_policy
 
 
+def _sim_env(cfg: Any, learned_env: SoftArmReachEnv, mocap_hz: float) -> SoftArmReachEnv:
+    """The simulated arm at ``mocap_hz`` frames, stepped a model step at a time, observed exactly
+    like the learned env (which make_learned_env built from the same options)."""
+    frames = round(mocap_hz / float(cfg.dataset.model_hz))
+    if frames < 1 or not math.isclose(mocap_hz / frames, float(cfg.dataset.model_hz),
+                                      rel_tol=1e-6):
+        raise ConfigError(f"the simulated arm integrates at {mocap_hz:g} Hz, which "
+                          f"dataset.model_hz={cfg.dataset.model_hz} does not divide")
+    return SoftArmReachEnv(sim_plant(mocap_hz, frames), learned_env.control_hz,
+                           **observation_options(cfg.env))
+
+
 def _plant_env(cfg: Any, learned_env: SoftArmReachEnv, learned_params: EnvParams,
                key: jax.Array) -> tuple[SoftArmReachEnv, EnvParams] | None:
     """The ground-truth plant as an environment observed like the learned one (same goals and
     normalization), or None when this robot has no simulator."""
     if RobotKind(cfg.robot.kind) is not RobotKind.sim or not cfg.evaluation.plant:
         return None
-    mocap_hz = float(cfg.robot.mocap.rate_hz)
-    frames = round(mocap_hz / float(cfg.dataset.model_hz))
-    # observed exactly like the learned env, which make_learned_env built from the same options
-    env = SoftArmReachEnv(sim_plant(mocap_hz, frames), learned_env.control_hz,
-                          **observation_options(cfg.env))
+    env = _sim_env(cfg, learned_env, float(cfg.robot.mocap.rate_hz))
     plant = sim_plant_params(cfg)
     params = make_env_params(
         env, plant, key=key, safe_set=learned_params.safe_set, preload=plant.preload,
@@ -169,13 +177,7 @@ def _twin_env(cfg: Any, learned_env: SoftArmReachEnv, eval_params: EnvParams,
     settled at the preload with the arm's rest offset put on the poses the learned env's starts
     settled from."""
     sim = twin_sim_params(physics)
-    frames = round(sim.mocap_hz / float(cfg.dataset.model_hz))
-    if frames < 1 or not math.isclose(sim.mocap_hz / frames, float(cfg.dataset.model_hz),
-                                      rel_tol=1e-6):
-        raise ConfigError(f"evaluation.twins: the twin integrates at {sim.mocap_hz:g} Hz, which "
-                          f"dataset.model_hz={cfg.dataset.model_hz} does not divide")
-    env = SoftArmReachEnv(sim_plant(sim.mocap_hz, frames), learned_env.control_hz,
-                          **observation_options(cfg.env))
+    env = _sim_env(cfg, learned_env, sim.mocap_hz)
     plant = SimPlantParams(sim, eval_params.preload)
     params = make_env_params(
         env, plant, key=key, safe_set=eval_params.safe_set, preload=eval_params.preload,

@@ -43,6 +43,7 @@ from pipeline.data.raw import CollectionInterrupted
 from pipeline.data.schemas import DataError
 from pipeline.infra.artifacts import MissingArtifactError
 from pipeline.infra.compile_cache import use_compilation_cache
+from pipeline.infra.devices import configure_cpu_devices
 from pipeline.ros2.node import RosUnavailableError
 
 log = logging.getLogger("pipeline")
@@ -123,6 +124,7 @@ def run(cfg: Any) -> dict[str, Any]:
     result by name. ``force=true`` recomputes the requested stage only (every stage for ``all``)."""
     choice, folders = robot_choice()
     validate_config(cfg, choice, folders)
+    configure_cpu_devices(cfg.get("cpu_devices"))  # before JAX starts, where it has not
     stage = Stage(cfg.stage)
     cfg = apply_physics_from(cfg)
     if stage in (Stage.all, Stage.evaluate):

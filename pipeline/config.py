@@ -729,8 +729,12 @@ class Config:
     seed: int = 0
     force: bool = False  # recompute artifacts even when one with the same key exists
     # policy types the chain trains at once (threads; each training is one compiled program).
-    # 1: on 2 cores two trainings side by side took longer than one after the other
+    # 1: each training already runs on every core (cpu_devices); 2 was not faster on 2 cores
     train_workers: int = 1
+    # JAX's CPU devices (null: JAX_NUM_CPU_DEVICES where set, else one per core this process
+    # may use; 1: JAX's own default). PPO's seeds and the evaluation's episodes are split over
+    # them and the parts run in parallel (pipeline/infra/devices.py); on a GPU the GPUs
+    cpu_devices: int | None = None
     robot: Any = MISSING  # one of the RobotConfig subclasses, chosen by the robot group
     exploration: ExplorationConfig = MISSING
     dataset: DatasetConfig = MISSING

@@ -12,6 +12,9 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # as the entry point (pipeli
 # programs and results to float rounding; the pipeline itself compiles at XLA's default). A
 # caller's own XLA_FLAGS are kept as they are.
 os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
+# One CPU device per test worker and pipeline process (the workers already use every core); the
+# split over several devices has its own tests (test_devices.py), in processes of their own.
+os.environ.setdefault("JAX_NUM_CPU_DEVICES", "1")
 
 import pytest
 from hydra import compose, initialize_config_dir

@@ -23,6 +23,7 @@ from pipeline.config import ConfigError, RobotKind
 from pipeline.evaluation import mpc, rollouts
 from pipeline.evaluation.metrics import MM_PER_M, episode_metrics, plant_gap, summarize
 from pipeline.infra.artifacts import Artifact
+from pipeline.infra.devices import batch_split
 from pipeline.rl.envs.factory import (
     common_params,
     observation_options,
@@ -152,9 +153,14 @@ class _Programs:
         if program not in self._programs:
             self._programs[program] = rollout_program(env, controllers.make)
         start_carries, start_positions = starts
-        positions, commands = self._programs[program](
-            env_params, controllers.params, controllers.carries, keys, start_carries,
-            start_positions, goals)
+        arguments = (env_params, controllers.params, controllers.carries, keys, start_carries,
+                     start_positions, goals)
+        # the episodes split over the devices (the CPU's cores), each part in parallel
+        split = batch_split(int(np.shape(keys)[0]))
+        if split is not None:
+            arguments = (*split.put(arguments[:2], axis=None), split.put(arguments[2], axis=1),
+                         *split.put(arguments[3:]))
+        positions, commands = self._programs[program](*arguments)
         return np.asarray(positions), np.asarray(commands)
 
 

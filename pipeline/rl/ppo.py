@@ -42,6 +42,7 @@ import optax
 from flax.training.train_state import TrainState
 
 from pipeline.config import AgentConfig
+from pipeline.infra.devices import batch_split
 from pipeline.rl.evaluation import evaluate_policy
 from pipeline.rl.losses import compute_gae, ppo_loss
 from pipeline.rl.minibatches import sequence_minibatches, step_minibatches
@@ -367,6 +368,8 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
     Two compiled programs, the same for every run of this configuration and so kept by the
     persistent compilation cache: ``init``, and one evaluation chunk, called ``agent.num_evals``
     times from here with the chunk index as an argument; the progress bar advances after each.
+    Where there are several local devices (the CPU's cores, :mod:`pipeline.infra.devices`), the
+    seeds are split over as many as divide ``num_seeds``, each part run in parallel.
     The result is :func:`make_train`'s."""
     from tqdm.auto import tqdm
 
@@ -380,13 +383,20 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
         if sizes != {config.num_seeds}:
             raise ValueError(f"init_params must be stacked over agent.num_seeds="
                              f"{config.num_seeds} seeds; leading sizes {sorted(sizes)}")
+    # the seeds split over the devices (the CPU's cores: pipeline.infra.devices), each part in
+    # parallel; every seed computes what it computes in one batch
+    split = batch_split(config.num_seeds)
+    by_seed = {}
+    if split is not None:
+        keys, init_params = split.put(keys), split.put(init_params)
+        env_params, eval_env_params = split.put((env_params, eval_env_params), axis=None)
+        by_seed = {"out_shardings": split.sharding()}
     started = time.perf_counter()
-    init = jax.jit(jax.vmap(program.init, in_axes=(0, None, 0))).lower(
+    init = jax.jit(jax.vmap(program.init, in_axes=(0, None, 0)), **by_seed).lower(
         keys, env_params, init_params).compile()
     runner = init(keys, env_params, init_params)
-    chunk = jax.jit(jax.vmap(program.chunk, in_axes=(0, None, None, None)),
-                    donate_argnums=0).lower(runner, jnp.int32(0), env_params,
-                                            eval_env_params).compile()
+    chunk = jax.jit(jax.vmap(program.chunk, in_axes=(0, None, None, None)), donate_argnums=0,
+                    **by_seed).lower(runner, jnp.int32(0), env_params, eval_env_params).compile()
     compiled_at = time.perf_counter()
     chunks = []
     with tqdm(total=config.num_updates, desc=desc, unit="update", disable=not show) as bar:

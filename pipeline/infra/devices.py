@@ -1,0 +1,97 @@
+"""The CPU's cores as JAX devices, and batches split over them.
+
+XLA runs a program on one CPU device in one thread for the small operations this project is
+made of (PPO's networks, the learned model): a 2-core machine trained at the speed of one core.
+Asked for one CPU device per core (``cpu_devices``, JAX's ``jax_num_cpu_devices``), XLA runs a
+program whose batch axis is split over the devices as one part per device, in parallel: the
+PPO seeds (``pipeline.rl.ppo.train_seeds``) and the evaluation's episodes
+(``pipeline.evaluation.closed_loop``). Each part computes what it computed in the whole batch,
+to float rounding: XLA may order a sum differently for a smaller batch, and over a long PPO
+training such last-bit differences grow into a different draw of the same seeds' noise
+(``tests/test_devices.py``; ``experiments/PPO_RESULTS.md``). On a GPU machine the devices are the
+GPUs, and a batch is split over several only where there are several.
+
+JAX is not imported at module import: the entry point sets the device count before JAX starts.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from typing import Any, NamedTuple
+
+from pipeline.config import ConfigError
+
+log = logging.getLogger(__name__)
+
+AXIS = "batch"
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS tells it)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def configure_cpu_devices(count: int | None) -> int:
+    """Ask JAX for ``count`` CPU devices (None: the caller's ``JAX_NUM_CPU_DEVICES`` where set,
+    else one per usable core) before it starts its backends; returns the count asked for. Where
+    JAX has already started them (a library use inside a running program), the count stays what
+    it is, and that is logged."""
+    if count is None:
+        count = int(os.environ.get("JAX_NUM_CPU_DEVICES") or usable_cores())
+    count = int(count)
+    if count < 1:
+        raise ConfigError(f"cpu_devices must be at least 1 (or null: one per core), got {count}")
+    if "jax" not in sys.modules:
+        os.environ["JAX_NUM_CPU_DEVICES"] = str(count)
+        return count
+    import jax
+
+    try:
+        jax.config.update("jax_num_cpu_devices", count)
+    except RuntimeError:
+        log.debug("JAX's backends are running: the CPU device count stays %d",
+                  jax.local_device_count("cpu"))
+    return count
+
+
+class BatchSplit(NamedTuple):
+    """A batch axis of ``size`` split evenly over ``mesh``'s devices."""
+
+    mesh: Any  # jax.sharding.Mesh, one axis named AXIS
+    size: int
+
+    def sharding(self, axis: int = 0) -> Any:
+        """Arrays split along ``axis`` (the batch axis), whole along the others."""
+        from jax.sharding import NamedSharding, PartitionSpec
+
+        return NamedSharding(self.mesh, PartitionSpec(*([None] * axis), AXIS))
+
+    def replicated(self) -> Any:
+        from jax.sharding import NamedSharding, PartitionSpec
+
+        return NamedSharding(self.mesh, PartitionSpec())
+
+    def put(self, tree: Any, axis: int | None = 0) -> Any:
+        """``tree``'s arrays on the mesh: split along ``axis``, or whole on every device
+        (``axis=None``)."""
+        import jax
+
+        return jax.device_put(tree, self.replicated() if axis is None else self.sharding(axis))
+
+
+def batch_split(size: int) -> BatchSplit | None:
+    """The split of a batch of ``size`` over the most local devices that divide it evenly;
+    None where that is one device (nothing to split)."""
+    import jax
+    import numpy as np
+    from jax.sharding import Mesh
+
+    devices = jax.local_devices()
+    count = max(n for n in range(1, len(devices) + 1) if size % n == 0)
+    if count == 1:
+        return None
+    return BatchSplit(Mesh(np.asarray(devices[:count]), (AXIS,)), int(size))

@@ -1,0 +1,102 @@
+"""The CPU's cores as JAX devices: PPO's seeds and the evaluation's episodes split over them.
+
+JAX fixes its CPU device count when it starts, so each check runs in a process of its own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from pipeline.config import PROJECT_ROOT, ConfigError
+from pipeline.infra.devices import configure_cpu_devices, usable_cores
+
+
+def run_python(code: str, **env: str) -> dict:
+    """Run ``code`` in a fresh interpreter (tests/ importable); it prints one JSON line."""
+    environment = {k: v for k, v in os.environ.items() if k != "JAX_NUM_CPU_DEVICES"}
+    environment.update(env, PYTHONPATH=str(PROJECT_ROOT))
+    result = subprocess.run([sys.executable, "-c", textwrap.dedent(code)],
+                            cwd=PROJECT_ROOT / "tests", env=environment, capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def test_one_cpu_device_per_core_unless_told_otherwise():
+    report = run_python("""
+        import json
+        from pipeline.infra.devices import configure_cpu_devices
+        asked = configure_cpu_devices(None)
+        import jax
+        started = jax.local_device_count()
+        again = configure_cpu_devices(started + 1)  # JAX is running: the count stays
+        print(json.dumps({"asked": asked, "started": started, "after": jax.local_device_count()}))
+    """)
+    assert report["asked"] == report["started"] == report["after"] == usable_cores()
+    assert run_python("""
+        import json
+        from pipeline.infra.devices import configure_cpu_devices
+        configure_cpu_devices(None)
+        import jax
+        print(json.dumps({"devices": jax.local_device_count()}))
+    """, JAX_NUM_CPU_DEVICES="3") == {"devices": 3}  # the caller's setting is kept
+
+
+def test_a_device_count_below_one_is_refused_naming_the_key():
+    with pytest.raises(ConfigError, match="cpu_devices"):
+        configure_cpu_devices(0)
+
+
+def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
+    report = run_python("""
+        import json
+        import jax, jax.numpy as jnp, numpy as np
+        import pipeline.evaluation.closed_loop as closed_loop
+        import pipeline.rl.ppo as ppo
+        from pipeline.config import AgentConfig
+        from pipeline.evaluation import rollouts
+        from pipeline.infra.devices import batch_split
+        from test_ppo import toy_reaching
+
+        env, params = toy_reaching()
+        agent = AgentConfig(num_seeds=4, num_envs=8, num_steps=5, total_timesteps=8 * 5 * 4,
+                            num_evals=2, eval_envs=0, hidden=8, lr=1e-3, progress=False)
+        split = ppo.train_seeds(agent, env, params)
+        devices = {len(leaf.sharding.device_set) for leaf in jax.tree.leaves(split.params)}
+
+        starts = closed_loop._starts(params, 6)
+        goals = jnp.broadcast_to(params.goal_set[:6, None], (6, 10, 3))
+        keys = jax.random.split(jax.random.key(0), 6)
+        network = ppo.make_network(agent, 3)
+        controllers = closed_loop.Controllers(
+            lambda p, env_params: rollouts.policy_controller(network, p), split.params,
+            (jnp.zeros((4, 6, 1, 1)), jnp.ones((4, 6), bool)))
+        runs = [closed_loop._Programs().run("ppo_ff", env, params, controllers, keys, starts,
+                                            goals)]
+        ppo.batch_split = closed_loop.batch_split = lambda size: None  # one device
+        whole = ppo.train_seeds(agent, env, params)
+        runs.append(closed_loop._Programs().run("ppo_ff", env, params, controllers, keys,
+                                                starts, goals))
+        print(json.dumps({
+            "parts": [batch_split(n) and batch_split(n).mesh.size for n in (3, 4, 6)],
+            "devices": sorted(devices),
+            "params": max(float(np.max(np.abs(a - b))) for a, b in zip(
+                jax.tree.leaves(split.params), jax.tree.leaves(whole.params))),
+            "loss": float(np.max(np.abs(split.metrics["total_loss"]
+                                        - whole.metrics["total_loss"]))),
+            "positions": float(np.max(np.abs(runs[0][0] - runs[1][0]))),
+            "commands": float(np.max(np.abs(runs[0][1] - runs[1][1]))),
+            "moved": float(np.max(np.abs(runs[0][0][:, :, -1] - runs[0][0][:, :, 0])))}))
+    """, JAX_NUM_CPU_DEVICES="2")
+    assert report["parts"] == [None, 2, 2]  # 3 seeds stay on one device
+    assert report["devices"] == [2]  # the trained seeds live on both devices
+    # the same training and rollouts, to float rounding
+    assert report["params"] < 1e-5 and report["loss"] < 1e-4
+    assert report["positions"] < 1e-7 and report["commands"] < 1e-5
+    assert report["moved"] > 1e-4  # the rollouts did move the arm

@@ -67,7 +67,8 @@ def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
         env, params = toy_reaching()
         agent = AgentConfig(num_seeds=4, num_envs=8, num_steps=5, total_timesteps=8 * 5 * 4,
                             num_evals=2, eval_envs=0, hidden=8, lr=1e-3, progress=False)
-        split = ppo.train_seeds(agent, env, params)
+        timings = {}
+        split = ppo.train_seeds(agent, env, params, timings=timings)
         devices = {len(leaf.sharding.device_set) for leaf in jax.tree.leaves(split.params)}
 
         starts = closed_loop._starts(params, 6)
@@ -85,7 +86,7 @@ def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
                                                 starts, goals))
         print(json.dumps({
             "parts": [batch_split(n) and batch_split(n).mesh.size for n in (3, 4, 6)],
-            "devices": sorted(devices),
+            "devices": sorted(devices), "timed_devices": timings["devices"],
             "params": max(float(np.max(np.abs(a - b))) for a, b in zip(
                 jax.tree.leaves(split.params), jax.tree.leaves(whole.params))),
             "loss": float(np.max(np.abs(split.metrics["total_loss"]
@@ -96,6 +97,7 @@ def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
     """, JAX_NUM_CPU_DEVICES="2")
     assert report["parts"] == [None, 2, 2]  # 3 seeds stay on one device
     assert report["devices"] == [2]  # the trained seeds live on both devices
+    assert report["timed_devices"] == 2  # and train_ppo's summary says so
     # the same training and rollouts, to float rounding
     assert report["params"] < 1e-5 and report["loss"] < 1e-4
     assert report["positions"] < 1e-7 and report["commands"] < 1e-5

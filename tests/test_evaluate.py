@@ -84,6 +84,7 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
     for stage in ("collect", "align", "fit_model", "train_ppo (ppo_ff)", "train_ppo (ppo_rnn)",
                   "evaluate (until this report)"):
         assert f"| {stage} |" in timing, stage
+    assert "| devices |" in timing  # the cores the seeds were split over (one in the tests)
     page = artifact.file("report.html").read_text()
     assert page.count("<img") >= 6  # upstream figures linked, and this stage's own
     for image in ("returns.png", "distance.png", "trajectories.png"):

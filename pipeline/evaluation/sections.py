@@ -167,7 +167,8 @@ def timing_table(upstream: dict[str, Artifact | None], policies: dict[str, Artif
                  evaluate_seconds: float | None = None) -> pd.DataFrame:
     """One row per artifact of the chain: the wall seconds its build took when it was built
     (``build_seconds`` of its manifest; empty for artifacts written before it was recorded), and
-    for the policies their compile and training seconds and env steps per second."""
+    for the policies their compile and training seconds, the devices (cores) their seeds were
+    split over and env steps per second."""
     rows = []
     for stage, artifact in upstream.items():
         if artifact is not None:
@@ -179,6 +180,7 @@ def timing_table(upstream: dict[str, Artifact | None], policies: dict[str, Artif
                      "built in [s]": artifact.manifest.get("build_seconds"),
                      "compile [s]": summary.get("compile_seconds"),
                      "training [s]": summary.get("train_seconds"),
+                     "devices": summary.get("devices"),
                      "env steps/s": summary.get("env_steps_per_second")})
     if evaluate_seconds is not None:
         rows.append({"stage": "evaluate (until this report)", "artifact": "this one",
@@ -275,7 +277,7 @@ def report_sections(cfg, policies, results, figures, collect: Artifact | None = 
     sections.append(Section("Time to a controller", [
         "Wall seconds of each artifact's build, when it was built (a reused artifact keeps the "
         "time of the run that built it); for the policies, the compilation and the training "
-        "apart.",
+        "apart, and the devices (CPU cores or GPUs) their seeds were split over.",
         Table(timing_table(upstream, policies, evaluate_seconds))]))
 
     consecutive = tables["consecutive"]

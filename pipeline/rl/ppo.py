@@ -361,7 +361,8 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
                 timings: dict[str, float] | None = None, init_params: Any = None
                 ) -> TrainOutput:
     """Train ``agent.num_seeds`` seeds at once (vmap over seeds); arrays come back with a leading
-    [num_seeds] axis. ``timings`` (if given) receives ``compile_s`` and ``run_s``.
+    [num_seeds] axis. ``timings`` (if given) receives ``compile_s``, ``run_s`` and
+    ``devices`` (how many devices the seeds were split over).
     ``init_params`` (optional): starting network variables, stacked over seeds
     (``[num_seeds, ...]`` leaves, as :func:`load_policy` returns them).
 
@@ -410,7 +411,8 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
             bar.update(config.updates_per_eval)
     params = jax.block_until_ready(runner.train_state.params)
     if timings is not None:
-        timings.update(compile_s=compiled_at - started, run_s=time.perf_counter() - compiled_at)
+        timings.update(compile_s=compiled_at - started, run_s=time.perf_counter() - compiled_at,
+                       devices=1 if split is None else int(split.mesh.size))
     metrics = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *[m for m, _ in chunks])
     evaluation = jax.tree.map(lambda *xs: np.stack(xs, axis=1), *[e for _, e in chunks])
     return TrainOutput(params, metrics, evaluation)

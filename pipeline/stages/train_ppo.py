@@ -100,6 +100,7 @@ def train_ppo(cfg: Any) -> Artifact:
             "timesteps_per_seed": agent.num_updates * agent.steps_per_update,
             "compile_seconds": round(timings["compile_s"], 1),
             "train_seconds": round(timings["run_s"], 1),
+            "devices": timings["devices"],
             "env_steps_per_second": round(steps / timings["run_s"], 1),
             "final_eval_mean_return": float(summary.groupby("seed")["mean_return"].last().mean()),
             "final_eval_success_rate": (float(episodes["success"].mean())

@@ -733,7 +733,8 @@ class Config:
     train_workers: int = 1
     # JAX's CPU devices (null: JAX_NUM_CPU_DEVICES where set, else one per core this process
     # may use; 1: JAX's own default). PPO's seeds and the evaluation's episodes are split over
-    # them and the parts run in parallel (pipeline/infra/devices.py); on a GPU the GPUs
+    # them and the parts run in parallel (pipeline/infra/devices.py); a GPU machine splits
+    # them over its GPUs where it has several
     cpu_devices: int | None = None
     robot: Any = MISSING  # one of the RobotConfig subclasses, chosen by the robot group
     exploration: ExplorationConfig = MISSING

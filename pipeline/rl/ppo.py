@@ -385,7 +385,7 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
             raise ValueError(f"init_params must be stacked over agent.num_seeds="
                              f"{config.num_seeds} seeds; leading sizes {sorted(sizes)}")
     # the seeds split over the devices (the CPU's cores: pipeline.infra.devices), each part in
-    # parallel; every seed computes what it computes in one batch
+    # parallel; every seed computes what it computes in one batch, to float rounding
     split = batch_split(config.num_seeds)
     by_seed = {}
     if split is not None:

@@ -152,15 +152,15 @@ class _Programs:
         program = (env, name)  # environments compare by identity
         if program not in self._programs:
             self._programs[program] = rollout_program(env, controllers.make)
-        start_carries, start_positions = starts
-        arguments = (env_params, controllers.params, controllers.carries, keys, start_carries,
-                     start_positions, goals)
+        params, carries = controllers.params, controllers.carries
         # the episodes split over the devices (the CPU's cores), each part in parallel
         split = batch_split(int(np.shape(keys)[0]))
         if split is not None:
-            arguments = (*split.put(arguments[:2], axis=None), split.put(arguments[2], axis=1),
-                         *split.put(arguments[3:]))
-        positions, commands = self._programs[program](*arguments)
+            env_params, params = split.put((env_params, params), axis=None)
+            carries = split.put(carries, axis=1)  # [S, E, ...]
+            keys, starts, goals = split.put((keys, starts, goals))
+        positions, commands = self._programs[program](env_params, params, carries, keys,
+                                                      *starts, goals)
         return np.asarray(positions), np.asarray(commands)
 
 

@@ -59,10 +59,9 @@ def configure_cpu_devices(count: int | None) -> int:
 
 
 class BatchSplit(NamedTuple):
-    """A batch axis of ``size`` split evenly over ``mesh``'s devices."""
+    """A batch axis split evenly over ``mesh``'s devices."""
 
     mesh: Any  # jax.sharding.Mesh, one axis named AXIS
-    size: int
 
     def sharding(self, axis: int = 0) -> Any:
         """Arrays split along ``axis`` (the batch axis), whole along the others."""
@@ -94,4 +93,4 @@ def batch_split(size: int) -> BatchSplit | None:
     count = max(n for n in range(1, len(devices) + 1) if size % n == 0)
     if count == 1:
         return None
-    return BatchSplit(Mesh(np.asarray(devices[:count]), (AXIS,)), int(size))
+    return BatchSplit(Mesh(np.asarray(devices[:count]), (AXIS,)))

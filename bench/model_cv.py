@@ -26,7 +26,8 @@ from bench.model_budget import load_runs
 from pipeline.config import ModelConfig
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.dynamics.cv import cv_members, fit_members
-from pipeline.dynamics.training import evaluate_open_loop, fit
+from pipeline.dynamics.scoring import evaluate_open_loop
+from pipeline.dynamics.training import fit
 
 
 def held_out_error(runs: list[dict], members, params) -> float:

@@ -83,7 +83,7 @@ def subsampled(members: list, drop: int) -> list:
 
 def study_row(args: argparse.Namespace) -> dict:
     from pipeline.dynamics import cv as model_cv
-    from pipeline.dynamics.training import LEARNED, position_errors_mm
+    from pipeline.dynamics.scoring import LEARNED, position_errors_mm
 
     cfg, runs = load_runs(args.overrides)
     seeds = [int(s) for s in args.seeds.split(",")]

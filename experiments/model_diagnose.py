@@ -17,6 +17,7 @@ import numpy as np
 
 from experiments.model_data import load_runs
 from experiments.model_search import model_config, parse_args, split_fold
+from pipeline.dynamics import scoring
 from pipeline.dynamics import training as train_model
 
 
@@ -27,7 +28,7 @@ def main() -> None:
     train_runs, test_run = split_fold(runs, held_out)
     params, _, _ = train_model.fit(train_runs, model_config(args), window=args.window,
                                    stride=args.stride, order=args.order, progress=False)
-    predicted = train_model.predict_run(params, test_run)
+    predicted = scoring.predict_run(params, test_run)
     error = 1000.0 * (predicted - test_run["pos"])
     kernel = np.ones(int(30 * args.hz)) / int(30 * args.hz)
     slow = np.stack([np.convolve(error[:, j], kernel, "same") for j in range(3)], axis=1)
@@ -42,7 +43,7 @@ def main() -> None:
     for value in np.unique(since)[:8]:
         print(f"  steps since change {value}: {norm(error[since == value], axis=1).mean():.2f} mm")
     for name, train_run in zip(["in-sample " + r["run_id"] for r in train_runs], train_runs):
-        print(f"  {name}: {train_model.evaluate_open_loop(params, train_run)['mean_mm']:.2f} mm")
+        print(f"  {name}: {scoring.evaluate_open_loop(params, train_run)['mean_mm']:.2f} mm")
     figure, axes = plt.subplots(3, 1, figsize=(14, 8), sharex=True)
     for j, axis in enumerate(axes):
         axis.plot(test_run["t"], 1000 * test_run["pos"][:, j], lw=0.7, label="measured")

@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from experiments.model_search import load_folds, model_config, parse_args, split_fold
+from pipeline.dynamics import scoring
 from pipeline.dynamics import training as train_model
 
 
@@ -36,14 +37,14 @@ def main(argv=None) -> None:
             config = {**model_config(args), "seed": args.seed + member}
             params, _, _ = train_model.fit(train_runs, config, window=args.window,
                                            stride=args.stride, order=args.order, progress=False)
-            predictions.append(train_model.predict_run(params, test_run))
+            predictions.append(scoring.predict_run(params, test_run))
         cpu_seconds = time.process_time() - started
         truth = test_run["pos"]
-        errors = [train_model.position_errors_mm(p, truth) for p in predictions]
+        errors = [scoring.position_errors_mm(p, truth) for p in predictions]
         average = np.mean(predictions, axis=0)
-        ensemble = train_model.position_errors_mm(average, truth)
-        linear = train_model.predict_linear_lagged(train_runs, test_run, args.lags)
-        blend = train_model.position_errors_mm(0.5 * average + 0.5 * linear, truth)
+        ensemble = scoring.position_errors_mm(average, truth)
+        linear = scoring.predict_linear_lagged(train_runs, test_run, args.lags)
+        blend = scoring.position_errors_mm(0.5 * average + 0.5 * linear, truth)
         row = {
             "tag": args.tag, "held_out": test_run["run_id"], "members": members,
             "member_mean_mm": float(np.mean([e["mean_mm"] for e in errors])),

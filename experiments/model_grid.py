@@ -78,13 +78,13 @@ def fold_id(run_id: str) -> str:
 
 def run_variant(variant: str, folds: list[str] | None, seed: int | None = None) -> None:
     from pipeline.data.alignment import runs_at_model_rate
-    from pipeline.dynamics.training import (
+    from pipeline.dynamics.scoring import (
         baseline_linear_lagged,
         evaluate_open_loop,
-        fit,
         position_errors_mm,
         predict_run,
     )
+    from pipeline.dynamics.training import fit
 
     grid, hz, window, overrides = VARIANTS[variant]
     model_cfg = {**DEFAULT_MODEL, **overrides}

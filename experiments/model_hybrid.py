@@ -95,7 +95,7 @@ def twin_folds(cfg, runs: list[dict], cache: Path) -> dict[str, dict[str, np.nda
 
 def hybrid_row(args: argparse.Namespace) -> dict:
     from pipeline.dynamics import cv as model_cv
-    from pipeline.dynamics.training import position_errors_mm, predict_run
+    from pipeline.dynamics.scoring import position_errors_mm, predict_run
 
     cfg, runs = load_runs(args.overrides)
     ids = [run["run_id"] for run in runs]

@@ -24,6 +24,7 @@ import pandas as pd
 
 from experiments.model_data import load_runs
 from pipeline.config import sorolex_dir
+from pipeline.dynamics import scoring
 from pipeline.dynamics import training as train_model
 
 
@@ -106,9 +107,9 @@ def run_fold(runs: list, held_out: int, args: argparse.Namespace) -> dict:
     )
     train_seconds = time.perf_counter() - started
     train_cpu_seconds = time.process_time() - started_cpu
-    model = train_model.evaluate_open_loop(params, test_run)
-    mean_baseline = train_model.baseline_mean_position(train_runs, test_run)
-    linear_baseline = train_model.baseline_linear_lagged(train_runs, test_run, args.lags)
+    model = scoring.evaluate_open_loop(params, test_run)
+    mean_baseline = scoring.baseline_mean_position(train_runs, test_run)
+    linear_baseline = scoring.baseline_linear_lagged(train_runs, test_run, args.lags)
     return {
         "tag": args.tag,
         "held_out": test_run["run_id"],

@@ -171,8 +171,9 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
 
     from pipeline.data.alignment import runs_at_model_rate
     from pipeline.data.schemas import ALIGNED, read_table
+    from pipeline.dynamics.checkpoints import load_dynamics
     from pipeline.dynamics.figures import plot_reconstruction
-    from pipeline.dynamics.training import LEARNED, load_dynamics
+    from pipeline.dynamics.scoring import LEARNED
 
     fits, durations = {}, {}
     for order in ("permuted", "sequential"):

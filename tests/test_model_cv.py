@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.dynamics import checkpoints, scoring
 from pipeline.dynamics import cv as model_cv
 from pipeline.dynamics import features as model_features
 from pipeline.dynamics import model as dynamics
@@ -72,27 +73,27 @@ def test_vmapped_members_equal_single_fits():
         np.testing.assert_allclose(member_params.normalizer.pressure_mean,
                                    normalizer.pressure_mean, rtol=1e-6)
         run = runs[0]
-        np.testing.assert_allclose(train_model.predict_run(member_params, run),
-                                   train_model.predict_run(alone, run), rtol=1e-3, atol=1e-6)
+        np.testing.assert_allclose(scoring.predict_run(member_params, run),
+                                   scoring.predict_run(alone, run), rtol=1e-3, atol=1e-6)
 
 
 def test_members_resume_equals_uninterrupted(tmp_path):
     runs = lag_runs((30, 30))
     members = model_cv.cv_members(["run0", "run1"], final=False)
     full, full_losses = model_cv.fit_members(runs, members, TINY, window=8, progress=False)
-    checkpoints = tmp_path / "ckpt"
+    folder = tmp_path / "ckpt"
     model_cv.fit_members(runs, members, TINY, window=8, progress=False,
-                         checkpoint_dir=checkpoints, stop_after_steps=10)
-    assert train_model.latest_checkpoint(checkpoints).name == "step_00000010.msgpack"
+                         checkpoint_dir=folder, stop_after_steps=10)
+    assert checkpoints.latest_checkpoint(folder).name == "step_00000010.msgpack"
     resumed, resumed_losses = model_cv.fit_members(runs, members, TINY, window=8,
-                                                   progress=False, checkpoint_dir=checkpoints)
+                                                   progress=False, checkpoint_dir=folder)
     np.testing.assert_allclose(resumed_losses, full_losses, rtol=1e-6)
     for a, b in zip(jax.tree.leaves([p.network for p in full]),
                     jax.tree.leaves([p.network for p in resumed])):
         np.testing.assert_allclose(a, b, rtol=1e-6)
     with pytest.raises(ValueError, match="different training setup"):
         model_cv.fit_members(runs, members[:1], TINY, window=8, progress=False,
-                             checkpoint_dir=checkpoints)
+                             checkpoint_dir=folder)
 
 
 def test_warning_fires_when_the_model_loses_to_the_linear_baseline(caplog):
@@ -212,11 +213,11 @@ def test_a_model_with_features_round_trips_through_its_file(tmp_path):
                                           step_decays=(2.0,), step_size=True).architecture()
     params = dynamics.DynamicsParams(dynamics.init_network(jax.random.PRNGKey(1), config),
                                      dynamics.fit_normalizer(runs, False), config)
-    train_model.save_dynamics(tmp_path / "model.msgpack", params)
-    loaded = train_model.load_dynamics(tmp_path / "model.msgpack")
+    checkpoints.save_dynamics(tmp_path / "model.msgpack", params)
+    loaded = checkpoints.load_dynamics(tmp_path / "model.msgpack")
     assert loaded.config == config
-    np.testing.assert_allclose(train_model.predict_run(loaded, runs[0]),
-                               train_model.predict_run(params, runs[0]), rtol=1e-6)
+    np.testing.assert_allclose(scoring.predict_run(loaded, runs[0]),
+                               scoring.predict_run(params, runs[0]), rtol=1e-6)
 
 
 def test_subsampled_members_never_train_on_their_held_out_run():

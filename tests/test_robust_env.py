@@ -538,7 +538,7 @@ def test_conservative_goals_keep_the_agreed_ones_and_every_held_out_one():
 
 
 def test_prediction_spread_is_the_largest_distance_to_the_first_models_prediction():
-    from pipeline.dynamics.training import predict_run
+    from pipeline.dynamics.scoring import predict_run
     from pipeline.rl.envs.factory import prediction_spread
     from tests.test_dynamics import CONFIGS, make_params, make_runs
 

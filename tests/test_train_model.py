@@ -2,6 +2,7 @@ import jax
 import numpy as np
 import pytest
 
+from pipeline.dynamics import checkpoints, scoring
 from pipeline.dynamics import training as train_model
 from pipeline.dynamics.training import ModelTrainConfig
 
@@ -43,7 +44,7 @@ def test_tiny_training_loss_falls():
     assert list(val.step) == [20, 40, 60]
     assert val.val_mean_mm.iloc[-1] < val.val_mean_mm.iloc[0]
     assert params.normalizer is normalizer
-    assert train_model.evaluate_open_loop(params, runs[2])["mean_mm"] == pytest.approx(
+    assert scoring.evaluate_open_loop(params, runs[2])["mean_mm"] == pytest.approx(
         val.val_mean_mm.iloc[-1], rel=1e-4
     )
 
@@ -53,44 +54,44 @@ def test_resume_equals_uninterrupted(tmp_path):
     config = dict(TINY, num_steps=40, lr_schedule="cosine", warmup_steps=5)
     full, _, full_table = train_model.fit(runs, config, window=12, progress=False)
 
-    checkpoints = tmp_path / "ckpt"
-    train_model.fit(runs, config, window=12, checkpoint_dir=checkpoints, progress=False,
+    folder = tmp_path / "ckpt"
+    train_model.fit(runs, config, window=12, checkpoint_dir=folder, progress=False,
                     stop_after_steps=20)
-    assert train_model.latest_checkpoint(checkpoints).name == "step_00000020.msgpack"
+    assert checkpoints.latest_checkpoint(folder).name == "step_00000020.msgpack"
     resumed, _, resumed_table = train_model.fit(
-        runs, config, window=12, checkpoint_dir=checkpoints, progress=False
+        runs, config, window=12, checkpoint_dir=folder, progress=False
     )
-    assert train_model.latest_checkpoint(checkpoints).name == "step_00000040.msgpack"
+    assert checkpoints.latest_checkpoint(folder).name == "step_00000040.msgpack"
     for a, b in zip(jax.tree.leaves(full.network), jax.tree.leaves(resumed.network)):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(full_table.train_loss, resumed_table.train_loss)
 
     with pytest.raises(ValueError, match="different training setup"):
         train_model.fit(runs, dict(config, learning_rate=0.5), window=12,
-                        checkpoint_dir=checkpoints, progress=False)
+                        checkpoint_dir=folder, progress=False)
 
 
 def test_time_budget_stops_after_the_chunk_that_spends_it(tmp_path):
     runs = first_order_runs(2, 40)
-    checkpoints = tmp_path / "ckpt"
+    folder = tmp_path / "ckpt"
     _, _, table = train_model.fit(runs, TINY, window=12, progress=False, time_budget_s=0.0,
-                                  checkpoint_dir=checkpoints)
+                                  checkpoint_dir=folder)
     assert len(table) == 20  # one chunk of gcd(eval_every, checkpoint_every) steps, then stop
-    assert train_model.latest_checkpoint(checkpoints).name == "step_00000020.msgpack"
+    assert checkpoints.latest_checkpoint(folder).name == "step_00000020.msgpack"
 
 
 def test_checkpoint_round_trip(tmp_path):
     runs = first_order_runs(2, 30)
     params, _, _ = train_model.fit(runs, dict(TINY, num_steps=5), window=10, progress=False,
                                    checkpoint_dir=tmp_path)
-    for path in (tmp_path / "model.msgpack", train_model.latest_checkpoint(tmp_path)):
+    for path in (tmp_path / "model.msgpack", checkpoints.latest_checkpoint(tmp_path)):
         if path.name == "model.msgpack":
-            train_model.save_dynamics(path, params)
-        loaded = train_model.load_dynamics(path)
+            checkpoints.save_dynamics(path, params)
+        loaded = checkpoints.load_dynamics(path)
         assert loaded.config == params.config
         run = runs[0]
         np.testing.assert_array_equal(
-            train_model.predict_run(loaded, run), train_model.predict_run(params, run)
+            scoring.predict_run(loaded, run), scoring.predict_run(params, run)
         )
     assert not list(tmp_path.glob("*.tmp"))
 
@@ -110,7 +111,7 @@ def test_config_from_any_rejects_unknown_keys():
 def test_position_errors_known_answer():
     observed = np.zeros((4, 3))
     predicted = np.array([[0.003, 0.004, 0.0]] * 3 + [[0.0, 0.0, 0.001]])  # 5, 5, 5, 1 mm
-    errors = train_model.position_errors_mm(predicted, observed)
+    errors = scoring.position_errors_mm(predicted, observed)
     assert errors["mean_mm"] == pytest.approx(4.0)
     assert errors["p95_mm"] == pytest.approx(5.0)
 
@@ -118,13 +119,13 @@ def test_position_errors_known_answer():
 def test_baseline_mean_position_known_answer():
     train = [{"pos": np.array([[0.0, 0.0, 0.0], [0.002, 0.0, 0.0]])}]
     test = {"pos": np.array([[0.001, 0.0, 0.0], [0.001, 0.003, 0.0]])}
-    errors = train_model.baseline_mean_position(train, test)
+    errors = scoring.baseline_mean_position(train, test)
     assert errors["mean_mm"] == pytest.approx(1.5)
 
 
 def test_lagged_features_and_linear_baseline_known_answer():
     pressure = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]])
-    features = train_model.lagged_features(pressure, num_lags=2)
+    features = scoring.lagged_features(pressure, num_lags=2)
     assert features.shape == (3, 13)
     # Row 0: bias, p_0, p_{-1} (= p_0, the preload), then squares.
     np.testing.assert_array_equal(features[0], [1, 1, 2, 3, 1, 2, 3, 1, 4, 9, 1, 4, 9])
@@ -136,7 +137,7 @@ def test_lagged_features_and_linear_baseline_known_answer():
     previous = np.concatenate([p[:1], p[:-1]])
     pos = 0.01 + 1e-3 * (p[:, [0, 1, 2]] - 0.5 * previous + 0.1 * p**2)
     run = {"p": p, "pos": pos}
-    errors = train_model.baseline_linear_lagged([run], run, num_lags=2)
+    errors = scoring.baseline_linear_lagged([run], run, num_lags=2)
     assert errors["mean_mm"] < 1e-6
 
 
@@ -144,17 +145,17 @@ def test_a_corrupt_checkpoint_is_named_and_set_aside(tmp_path, caplog):
     """The newest checkpoint was cut off; the one before it is resumed from."""
     runs = first_order_runs(2, 40)
     config = dict(TINY, num_steps=40)
-    checkpoints = tmp_path / "ckpt"
-    train_model.fit(runs, config, window=12, checkpoint_dir=checkpoints, progress=False,
+    folder = tmp_path / "ckpt"
+    train_model.fit(runs, config, window=12, checkpoint_dir=folder, progress=False,
                     stop_after_steps=20)
-    corrupt = checkpoints / "step_00000030.msgpack"
+    corrupt = folder / "step_00000030.msgpack"
     corrupt.write_bytes(b"\x85\xa5model\x00cut off")
     with caplog.at_level("WARNING"):
-        _, _, table = train_model.fit(runs, config, window=12, checkpoint_dir=checkpoints,
+        _, _, table = train_model.fit(runs, config, window=12, checkpoint_dir=folder,
                                       progress=False)
     assert f"checkpoint {corrupt} cannot be read" in caplog.text
     assert f"moved it to {corrupt}.corrupt and trying the one before" in caplog.text
-    assert (checkpoints / "step_00000030.msgpack.corrupt").is_file() and not corrupt.exists()
+    assert (folder / "step_00000030.msgpack.corrupt").is_file() and not corrupt.exists()
     assert list(table.step) == list(range(1, 41))  # 20 restored + 20 trained
 
 

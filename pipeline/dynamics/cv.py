@@ -35,34 +35,33 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from flax import serialization
 from tqdm.auto import tqdm
 
 from pipeline.data.windows import make_windows
+from pipeline.dynamics import checkpoints
 from pipeline.dynamics import model as dynamics
+from pipeline.dynamics.checkpoints import TrainState
 from pipeline.dynamics.model import DynamicsParams
-from pipeline.dynamics.training import (
+from pipeline.dynamics.scoring import (
     LEARNED,
+    LINEAR_LAGS,
     MODELS,
-    ModelTrainConfig,
-    TrainData,
-    TrainState,
-    _reference_poses,
-    _write_atomically,
     baseline_mean_position,
-    checkpoint_path,
     fit_linear_lagged,
     lagged_features,
-    latest_checkpoint,
-    make_optimizer,
     position_errors_mm,
     predict_run,
+)
+from pipeline.dynamics.training import (
+    ModelTrainConfig,
+    TrainData,
+    make_optimizer,
+    reference_poses,
     run_inputs,
     train_chunk_unjitted,
 )
 
 log = logging.getLogger(__name__)
-LINEAR_LAGS = 30  # lags of the linear baseline (model steps), as train_model's default
 
 
 @dataclass(frozen=True)
@@ -153,58 +152,27 @@ def fit_members(
     if not members:
         raise ValueError("fit_members needs at least one member")
     runs = sorted(runs, key=lambda run: str(run["run_id"]))
-    index_of = {str(run["run_id"]): i for i, run in enumerate(runs)}
-    for member in members:
-        unknown = [i for i in (*member.train_ids, *([member.held_out] if member.held_out else []))
-                   if i not in index_of]
-        if unknown or not member.train_ids:
-            raise ValueError(f"member {member}: unknown run ids {unknown} (runs: "
-                             f"{sorted(index_of)}) or no training run")
-    windows = make_windows([len(run["p"]) for run in runs], window, stride)
-    member_starts = []
-    for member in members:
-        chosen = np.isin(windows.run_index, [index_of[i] for i in member.train_ids])
-        if not chosen.any():
-            raise ValueError(f"no training window of length {window} fits in the training runs "
-                             f"of {member}")
-        member_starts.append(windows.starts[chosen])
+    member_starts = _member_windows(runs, members, window, stride)
+    templates, state, sample_keys = _initial_members(runs, members, config)
     capacity = max(len(starts) for starts in member_starts)
-
-    optimizer = make_optimizer(config)
-    architecture = config.architecture()
-    templates, states, inputs, sample_keys = [], [], [], []
-    for member in members:
-        train_runs = [runs[index_of[i]] for i in member.train_ids]
-        normalizer = dynamics.fit_normalizer(train_runs, config.predict_displacement)
-        init_key, sample_key = jax.random.split(jax.random.PRNGKey(member.seed))
-        template = DynamicsParams(network=dynamics.init_network(init_key, architecture),
-                                  normalizer=normalizer, config=architecture)
-        templates.append(template)
-        states.append(TrainState(network=template.network,
-                                 opt_state=optimizer.init(template.network),
-                                 step=jnp.asarray(0, jnp.int32)))
-        inputs.append(np.concatenate(run_inputs(template, runs)))
-        sample_keys.append(sample_key)
-    state = _stack(states)
-    normalizers = _stack([t.normalizer for t in templates])
     data = TrainData(
-        inputs=jnp.asarray(np.stack(inputs)),
+        inputs=jnp.asarray(np.stack([np.concatenate(run_inputs(t, runs)) for t in templates])),
         position=jnp.asarray(np.concatenate([r["pos"] for r in runs]), jnp.float32),
-        reference_pose=jnp.asarray(_reference_poses(runs, config.reference_pose)),
+        reference_pose=jnp.asarray(reference_poses(runs, config.reference_pose)),
         window_starts=jnp.asarray(np.stack(
             [np.pad(s, (0, capacity - len(s))) for s in member_starts]), jnp.int32),
         num_windows=jnp.asarray([len(s) for s in member_starts], jnp.int32),
     )
-    sample_keys = jnp.stack(sample_keys)
+    normalizers = _stack([t.normalizer for t in templates])
 
     spec = _member_spec(config, members, window, stride, order)
     losses: list[np.ndarray] = []
     if checkpoint_dir is not None:
         checkpoint_dir = Path(checkpoint_dir)
         checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        last = latest_checkpoint(checkpoint_dir) if resume else None
+        last = checkpoints.latest_checkpoint(checkpoint_dir) if resume else None
         if last is not None:
-            state, losses = _restore(last, state, spec)
+            state, losses = checkpoints.restore_members(last, state, spec)
 
     last_step = config.num_steps if stop_after_steps is None else min(config.num_steps,
                                                                       stop_after_steps)
@@ -222,7 +190,7 @@ def fit_members(
         bar.update(num)
         if checkpoint_dir is not None and (step % config.checkpoint_every == 0
                                            or step == last_step):
-            _save(checkpoint_dir, state, losses, spec)
+            checkpoints.save_members(checkpoint_dir, state, losses, spec)
     bar.close()
     params = [t.replace(network=_unstack(state.network, m)) for m, t in enumerate(templates)]
     history = (np.concatenate(losses, axis=1) if losses
@@ -230,37 +198,48 @@ def fit_members(
     return params, history
 
 
-def _save(checkpoint_dir: Path, state: TrainState, losses: list[np.ndarray], spec: dict,
-          keep: int = 2) -> None:
-    step = int(state.step[0])
-    payload = {
-        "network": serialization.to_state_dict(jax.device_get(state.network)),
-        "opt_state": serialization.to_state_dict(jax.device_get(state.opt_state)),
-        "step": np.asarray(state.step),
-        "train_loss": np.concatenate(losses, axis=1).astype(np.float32),
-        "spec": json.dumps(spec, sort_keys=True),
-    }
-    _write_atomically(checkpoint_path(checkpoint_dir, step),
-                      serialization.msgpack_serialize(payload))
-    for old in sorted(checkpoint_dir.glob("step_*.msgpack"))[:-keep]:
-        old.unlink()
+def _member_windows(runs: Sequence[dict], members: Sequence[Member], window: int, stride: int
+                    ) -> list[np.ndarray]:
+    """Per member, the starts of its training windows in the concatenation of ``runs`` (sorted
+    by id); ``ValueError`` naming the member for unknown ids or no window."""
+    index_of = {str(run["run_id"]): i for i, run in enumerate(runs)}
+    for member in members:
+        unknown = [i for i in (*member.train_ids, *([member.held_out] if member.held_out else []))
+                   if i not in index_of]
+        if unknown or not member.train_ids:
+            raise ValueError(f"member {member}: unknown run ids {unknown} (runs: "
+                             f"{sorted(index_of)}) or no training run")
+    windows = make_windows([len(run["p"]) for run in runs], window, stride)
+    member_starts = []
+    for member in members:
+        chosen = np.isin(windows.run_index, [index_of[i] for i in member.train_ids])
+        if not chosen.any():
+            raise ValueError(f"no training window of length {window} fits in the training runs "
+                             f"of {member}")
+        member_starts.append(windows.starts[chosen])
+    return member_starts
 
 
-def _restore(path: Path, template: TrainState, spec: dict) -> tuple[TrainState, list]:
-    raw = serialization.msgpack_restore(path.read_bytes())
-    stored = json.loads(raw["spec"])
-    if stored != spec:
-        differing = sorted(k for k in set(spec) | set(stored) if spec.get(k) != stored.get(k))
-        raise ValueError(f"checkpoint {path} was written by a different training setup "
-                         f"(differs in {differing}); use another checkpoint_dir or resume=False")
-    state = TrainState(
-        network=jax.tree.map(jnp.asarray,
-                             serialization.from_state_dict(template.network, raw["network"])),
-        opt_state=jax.tree.map(jnp.asarray, serialization.from_state_dict(
-            template.opt_state, raw["opt_state"])),
-        step=jnp.asarray(raw["step"], jnp.int32),
-    )
-    return state, [np.asarray(raw["train_loss"], np.float32)]
+def _initial_members(runs: Sequence[dict], members: Sequence[Member], config: ModelTrainConfig
+                     ) -> tuple[list[DynamicsParams], TrainState, jax.Array]:
+    """Per member its template (normalizer of its training runs, initial network of its seed),
+    the stacked initial training state and the stacked batch keys [M, 2]."""
+    by_id = {str(run["run_id"]): run for run in runs}
+    optimizer = make_optimizer(config)
+    architecture = config.architecture()
+    templates, states, sample_keys = [], [], []
+    for member in members:
+        train_runs = [by_id[i] for i in member.train_ids]
+        normalizer = dynamics.fit_normalizer(train_runs, config.predict_displacement)
+        init_key, sample_key = jax.random.split(jax.random.PRNGKey(member.seed))
+        template = DynamicsParams(network=dynamics.init_network(init_key, architecture),
+                                  normalizer=normalizer, config=architecture)
+        templates.append(template)
+        states.append(TrainState(network=template.network,
+                                 opt_state=optimizer.init(template.network),
+                                 step=jnp.asarray(0, jnp.int32)))
+        sample_keys.append(sample_key)
+    return templates, _stack(states), jnp.stack(sample_keys)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.data.schemas import XYZ
-from pipeline.dynamics.training import predict_run
+from pipeline.dynamics.scoring import predict_run
 
 
 def plot_losses(path: Path, losses: pd.DataFrame, ema: float = 0.98) -> Path:

@@ -1,4 +1,5 @@
-"""Training, checkpointing and open-loop evaluation of the learned dynamics (``dynamics.py``).
+"""Training of the learned dynamics (``model.py``); its files are ``checkpoints.py``, its
+open-loop scores and baselines ``scoring.py``.
 
 Runs are dicts on a regular grid at the model rate::
 
@@ -9,21 +10,15 @@ Each window starts from the zero/conditioned carry and is given as initial pose 
 started from (the rest pose an environment observes at reset), so a window in the middle of a
 run is trained to predict its positions from that run's rest pose and the pressures. The
 jitted train step runs ``lax.scan`` over a chunk of steps between evaluations/checkpoints, so the
-Python loop only sees chunk boundaries.
-
-Checkpoints are ``flax.serialization`` msgpack files written atomically (temporary file, fsync,
-``os.replace``): the network, the optimizer state, the step, the loss history, the normalizer and
-the configuration. Batches are a pure function of ``(seed, step)``, so resuming from the last
-checkpoint reproduces the uninterrupted training.
+Python loop only sees chunk boundaries. Batches are a pure function of ``(seed, step)``, so
+resuming from the last checkpoint reproduces the uninterrupted training.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -36,24 +31,17 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pandas as pd
-from flax import serialization
 from tqdm.auto import tqdm
 
 from pipeline.config import ModelConfig, ModelLoss, dataclass_values, frozen_twin
 from pipeline.data.windows import gather_windows, make_windows, sample_batch
+from pipeline.dynamics import checkpoints
 from pipeline.dynamics import model as dynamics
+from pipeline.dynamics.checkpoints import TrainState
 from pipeline.dynamics.model import DynamicsConfig, DynamicsParams, Normalizer
-from pipeline.infra.parquet import atomic_write
+from pipeline.dynamics.scoring import validation_errors
 
-log = logging.getLogger(__name__)
-
-CHECKPOINT_PREFIX = "step_"
-CHECKPOINT_SUFFIX = ".msgpack"
 LOSS_TABLE_COLUMNS = ["step", "train_loss", "val_loss", "val_mean_mm", "val_p95_mm"]
-# the ``model`` column of the model_metrics table: the learned model (whatever its cell) and the
-# two baselines fitted on the same training runs
-LEARNED = "learned"
-MODELS = (LEARNED, "mean_position", "linear_lagged")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -138,12 +126,6 @@ def make_optimizer(config: ModelTrainConfig) -> optax.GradientTransformation:
 # ---------------------------------------------------------------------------------------------
 # training step
 # ---------------------------------------------------------------------------------------------
-class TrainState(NamedTuple):
-    network: Any  # flax variables
-    opt_state: optax.OptState
-    step: jax.Array  # int32 scalar: steps taken so far
-
-
 class TrainData(NamedTuple):
     """Concatenated training runs and their windows (device arrays).
 
@@ -285,227 +267,8 @@ train_chunk = jax.jit(train_chunk_unjitted,
 
 
 # ---------------------------------------------------------------------------------------------
-# evaluation and baselines
-# ---------------------------------------------------------------------------------------------
-_predict_sequence = jax.jit(dynamics.predict_sequence)
-
-
-def position_errors_mm(predicted: np.ndarray, observed: np.ndarray) -> dict:
-    """Mean and 95th percentile of the Euclidean error (mm) between [T, 3] position arrays (m)."""
-    error_mm = 1000.0 * np.linalg.norm(np.asarray(predicted) - np.asarray(observed), axis=-1)
-    return {"mean_mm": float(error_mm.mean()), "p95_mm": float(np.percentile(error_mm, 95))}
-
-
-def predict_run(params: DynamicsParams, run: dict) -> np.ndarray:
-    """Open-loop [T, 3] positions (m) over the whole run, from its first observed pose."""
-    pressure = jnp.asarray(run["p"], jnp.float32)
-    initial_pose = jnp.asarray(run["pos"][0], jnp.float32)
-    return np.asarray(_predict_sequence(params, pressure, initial_pose))
-
-
-def evaluate_open_loop(params: DynamicsParams, run: dict) -> dict:
-    """Open-loop error over the ENTIRE run: ``{"mean_mm", "p95_mm"}``.
-
-    The model is fed the run's whole pressure sequence from ``t = 0`` and conditioned only on the
-    observed pose at ``t = 0``.
-    """
-    return position_errors_mm(predict_run(params, run), run["pos"])
-
-
-def baseline_mean_position(train_runs: Sequence[dict], run: dict) -> dict:
-    """Errors of the constant prediction "mean training position" over ``run``."""
-    mean_position = np.concatenate([r["pos"] for r in train_runs]).astype(np.float64).mean(0)
-    return position_errors_mm(np.broadcast_to(mean_position, run["pos"].shape), run["pos"])
-
-
-def lagged_features(pressure: np.ndarray, num_lags: int) -> np.ndarray:
-    """[T, 3] -> [T, 1 + 6 * num_lags]: bias, ``p_{t-k}`` and ``p_{t-k}**2`` for k < num_lags.
-
-    Before the run starts the pressure is taken as its first value (the preload).
-    """
-    pressure = np.asarray(pressure, np.float64)
-    padded = np.concatenate([np.repeat(pressure[:1], num_lags - 1, axis=0), pressure])
-    num_steps = pressure.shape[0]
-    lags = [padded[num_lags - 1 - k : num_lags - 1 - k + num_steps] for k in range(num_lags)]
-    lagged = np.concatenate(lags, axis=1)
-    return np.concatenate([np.ones((num_steps, 1)), lagged, lagged**2], axis=1)
-
-
-def fit_linear_lagged(train_runs: Sequence[dict], num_lags: int) -> np.ndarray:
-    """Least-squares coefficients [1 + 6 * num_lags, 3] from lagged pressures to position (m)."""
-    features = np.concatenate([lagged_features(r["p"], num_lags) for r in train_runs])
-    targets = np.concatenate([np.asarray(r["pos"], np.float64) for r in train_runs])
-    coefficients, *_ = np.linalg.lstsq(features, targets, rcond=None)
-    return coefficients
-
-
-def predict_linear_lagged(train_runs: Sequence[dict], run: dict, num_lags: int = 30
-                          ) -> np.ndarray:
-    """[T, 3] positions (m) over ``run`` of the linear model fitted on ``train_runs``."""
-    return lagged_features(run["p"], num_lags) @ fit_linear_lagged(train_runs, num_lags)
-
-
-def baseline_linear_lagged(train_runs: Sequence[dict], run: dict, num_lags: int = 30) -> dict:
-    """Errors over ``run`` of the linear model on lagged pressures and their squares."""
-    return position_errors_mm(predict_linear_lagged(train_runs, run, num_lags), run["pos"])
-
-
-# ---------------------------------------------------------------------------------------------
-# checkpoints
-# ---------------------------------------------------------------------------------------------
-def _model_state_dict(params: DynamicsParams) -> dict:
-    return {
-        "config": json.dumps(dataclasses.asdict(params.config)),
-        "normalizer": serialization.to_state_dict(jax.device_get(params.normalizer)),
-        "network": serialization.to_state_dict(jax.device_get(params.network)),
-    }
-
-
-def _model_from_state_dict(state: dict) -> DynamicsParams:
-    config = DynamicsConfig(**json.loads(state["config"]))
-    template_network = jax.eval_shape(
-        lambda key: dynamics.init_network(key, config), jax.random.PRNGKey(0)
-    )
-    template_normalizer = Normalizer(*(jnp.zeros(3) for _ in range(6)))
-    to_device = lambda tree: jax.tree.map(jnp.asarray, tree)  # noqa: E731
-    return DynamicsParams(
-        network=to_device(serialization.from_state_dict(template_network, state["network"])),
-        normalizer=to_device(
-            serialization.from_state_dict(template_normalizer, state["normalizer"])
-        ),
-        config=config,
-    )
-
-
-def _write_atomically(path: Path, payload: bytes) -> None:
-    with atomic_write(path) as tmp:
-        tmp.write_bytes(payload)
-
-
-def save_dynamics(path: str | Path, params: DynamicsParams) -> None:
-    """Writes the model (network, normalizer, architecture) to one msgpack file, atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _write_atomically(path, serialization.msgpack_serialize({"model": _model_state_dict(params)}))
-
-
-def load_dynamics(path: str | Path) -> DynamicsParams:
-    """Reads a model written by :func:`save_dynamics` or a training checkpoint."""
-    state = serialization.msgpack_restore(Path(path).read_bytes())
-    return _model_from_state_dict(state["model"])
-
-
-def checkpoint_path(checkpoint_dir: Path, step: int) -> Path:
-    return checkpoint_dir / f"{CHECKPOINT_PREFIX}{step:08d}{CHECKPOINT_SUFFIX}"
-
-
-def latest_checkpoint(checkpoint_dir: str | Path) -> Path | None:
-    """The complete checkpoint with the highest step (temporary files are ignored)."""
-    paths = sorted(Path(checkpoint_dir).glob(f"{CHECKPOINT_PREFIX}*{CHECKPOINT_SUFFIX}"))
-    return paths[-1] if paths else None
-
-
-def _save_checkpoint(checkpoint_dir, params, state, history, spec, keep=2) -> None:
-    step = int(state.step)
-    payload = {
-        "model": _model_state_dict(params.replace(network=state.network)),
-        "opt_state": serialization.to_state_dict(jax.device_get(state.opt_state)),
-        "step": step,
-        "train_loss": np.asarray(history["train_loss"], np.float32),
-        "val_rows": np.asarray(history["val_rows"], np.float64).reshape(-1, 4),
-        "spec": json.dumps(spec, sort_keys=True),
-    }
-    _write_atomically(
-        checkpoint_path(checkpoint_dir, step), serialization.msgpack_serialize(payload)
-    )
-    for old in sorted(checkpoint_dir.glob(f"{CHECKPOINT_PREFIX}*{CHECKPOINT_SUFFIX}"))[:-keep]:
-        old.unlink()
-
-
-class CorruptCheckpointError(ValueError):
-    """A checkpoint file that cannot be read back (cut off, overwritten, not a checkpoint)."""
-
-
-def _restore_checkpoint(path: Path, template: TrainState, spec: dict):
-    try:
-        raw = serialization.msgpack_restore(path.read_bytes())
-        stored_spec = json.loads(raw["spec"])
-        model = _model_from_state_dict(raw["model"])
-        opt_state = serialization.from_state_dict(template.opt_state, raw["opt_state"])
-        step, train_loss, val_rows = raw["step"], raw["train_loss"], raw["val_rows"]
-    except Exception as err:  # msgpack, KeyError, shape errors: all mean "not a checkpoint"
-        raise CorruptCheckpointError(f"checkpoint {path} cannot be read "
-                                     f"({type(err).__name__}: {err})") from err
-    if stored_spec != spec:
-        differing = sorted(k for k in set(spec) | set(stored_spec)
-                           if spec.get(k) != stored_spec.get(k))
-        raise ValueError(
-            f"checkpoint {path} was written by a different training setup (differs in "
-            f"{differing}); use another checkpoint_dir or resume=False"
-        )
-    state = TrainState(
-        network=model.network,
-        opt_state=jax.tree.map(jnp.asarray, opt_state),
-        step=jnp.asarray(step, jnp.int32),
-    )
-    history = {
-        "train_loss": list(np.asarray(train_loss, np.float32)),
-        "val_rows": [tuple(row) for row in np.asarray(val_rows).reshape(-1, 4)],
-    }
-    return state, history
-
-
-def _resume(checkpoint_dir: Path, state: TrainState, history: dict, spec: dict):
-    """The newest readable checkpoint's state and history (else the given ones); a corrupt
-    checkpoint is logged by name and set aside as ``<name>.corrupt``, and the next one tried."""
-    paths = sorted(checkpoint_dir.glob(f"{CHECKPOINT_PREFIX}*{CHECKPOINT_SUFFIX}"))
-    for path in reversed(paths):
-        try:
-            restored = _restore_checkpoint(path, state, spec)
-        except CorruptCheckpointError as err:
-            aside = path.with_name(path.name + ".corrupt")
-            os.replace(path, aside)
-            log.warning("%s; moved it to %s and %s", err, aside,
-                        "trying the one before" if path != paths[0] else "training afresh")
-            continue
-        log.info("resuming from checkpoint %s (step %d)", path, int(restored[0].step))
-        return restored
-    return state, history
-
-
-# ---------------------------------------------------------------------------------------------
 # fit
 # ---------------------------------------------------------------------------------------------
-def _validate(params: DynamicsParams, val_runs: Sequence[dict]) -> tuple[float, float, float]:
-    """(standardized MSE, mean mm, p95 mm) of the open-loop prediction, pooled over val runs."""
-    losses, errors = [], []
-    for run in val_runs:
-        predicted = predict_run(params, run)
-        initial_pose = jnp.asarray(run["pos"][0])
-        predicted_normalized = dynamics.normalize_target(params, predicted, initial_pose)
-        observed_normalized = dynamics.normalize_target(params, run["pos"], initial_pose)
-        losses.append(np.square(np.asarray(predicted_normalized - observed_normalized)).ravel())
-        errors.append(1000.0 * np.linalg.norm(predicted - run["pos"], axis=-1))
-    errors = np.concatenate(errors)
-    return (
-        float(np.concatenate(losses).mean()),
-        float(errors.mean()),
-        float(np.percentile(errors, 95)),
-    )
-
-
-def _loss_table(history: dict) -> pd.DataFrame:
-    train_loss = np.asarray(history["train_loss"], np.float64)
-    table = pd.DataFrame({"step": np.arange(1, len(train_loss) + 1), "train_loss": train_loss})
-    val = pd.DataFrame(history["val_rows"], columns=["step", "val_loss", "val_mean_mm",
-                                                     "val_p95_mm"])
-    val["step"] = val["step"].astype(np.int64)
-    return table.merge(val, on="step", how="left")[LOSS_TABLE_COLUMNS]
-
-
-_batched_network_inputs = jax.jit(jax.vmap(dynamics.network_inputs, in_axes=(None, 0)))
-
-
 def run_inputs(params: DynamicsParams, runs: Sequence[dict]) -> list[np.ndarray]:
     """Per run, the [T_i, D] float32 standardized network inputs over the whole run.
 
@@ -522,13 +285,50 @@ def run_inputs(params: DynamicsParams, runs: Sequence[dict]) -> list[np.ndarray]
     return [inputs[i, :length] for i, length in enumerate(lengths)]
 
 
-def _reference_poses(runs: Sequence[dict], source: str) -> np.ndarray:
+def reference_poses(runs: Sequence[dict], source: str) -> np.ndarray:
     """[N, 3] float32: per row of the concatenated runs, the initial pose of a window there."""
     if source == "window_start":
         return np.concatenate([r["pos"] for r in runs]).astype(np.float32)
     return np.concatenate(
         [np.broadcast_to(r["pos"][0], r["pos"].shape) for r in runs]
     ).astype(np.float32)
+
+
+def _loss_table(history: dict) -> pd.DataFrame:
+    train_loss = np.asarray(history["train_loss"], np.float64)
+    table = pd.DataFrame({"step": np.arange(1, len(train_loss) + 1), "train_loss": train_loss})
+    val = pd.DataFrame(history["val_rows"], columns=["step", "val_loss", "val_mean_mm",
+                                                     "val_p95_mm"])
+    val["step"] = val["step"].astype(np.int64)
+    return table.merge(val, on="step", how="left")[LOSS_TABLE_COLUMNS]
+
+
+_batched_network_inputs = jax.jit(jax.vmap(dynamics.network_inputs, in_axes=(None, 0)))
+
+
+def _fit_spec(config: ModelTrainConfig, window: int, stride: int, order: str,
+              train_runs: Sequence[dict]) -> dict:
+    """What a checkpoint of this fit must match to be resumed from."""
+    spec = {
+        "model": dataclasses.asdict(config),
+        "window": window,
+        "stride": stride,
+        "order": order,
+        "train_run_ids": [str(run["run_id"]) for run in train_runs],
+    }
+    return json.loads(json.dumps(spec))  # tuples -> lists, as they come back from the file
+
+
+def train_data(template: DynamicsParams, runs: Sequence[dict], window_starts: np.ndarray,
+               reference_pose: str) -> TrainData:
+    """The :class:`TrainData` of ``runs`` (their inputs standardized by ``template``)."""
+    return TrainData(
+        inputs=jnp.asarray(np.concatenate(run_inputs(template, runs))),
+        position=jnp.asarray(np.concatenate([r["pos"] for r in runs]), jnp.float32),
+        reference_pose=jnp.asarray(reference_poses(runs, reference_pose)),
+        window_starts=jnp.asarray(window_starts, jnp.int32),
+        num_windows=jnp.asarray(len(window_starts), jnp.int32),
+    )
 
 
 def fit(
@@ -572,14 +372,7 @@ def fit(
     windows = make_windows([len(run["p"]) for run in train_runs], window, stride)
     if len(windows.starts) == 0:
         raise ValueError(f"no training window of length {window} fits in any training run")
-    spec = {
-        "model": dataclasses.asdict(config),
-        "window": window,
-        "stride": stride,
-        "order": order,
-        "train_run_ids": [str(run["run_id"]) for run in train_runs],
-    }
-    spec = json.loads(json.dumps(spec))  # tuples -> lists, as they come back from the file
+    spec = _fit_spec(config, window, stride, order, train_runs)
 
     normalizer = dynamics.fit_normalizer(train_runs, config.predict_displacement)
     init_key, sample_key = jax.random.split(jax.random.PRNGKey(config.seed))
@@ -588,79 +381,61 @@ def fit(
         normalizer=normalizer,
         config=config.architecture(),
     )
-    optimizer = make_optimizer(config)
     state = TrainState(
         network=template.network,
-        opt_state=optimizer.init(template.network),
+        opt_state=make_optimizer(config).init(template.network),
         step=jnp.asarray(0, jnp.int32),
     )
     history = {"train_loss": [], "val_rows": []}
-
     if checkpoint_dir is not None:
         checkpoint_dir = Path(checkpoint_dir)
         checkpoint_dir.mkdir(parents=True, exist_ok=True)
         if resume:
-            state, history = _resume(checkpoint_dir, state, history, spec)
+            state, history = checkpoints.resume(checkpoint_dir, state, history, spec)
 
-    data = TrainData(
-        inputs=jnp.asarray(np.concatenate(run_inputs(template, train_runs))),
-        position=jnp.asarray(np.concatenate([r["pos"] for r in train_runs]), jnp.float32),
-        reference_pose=jnp.asarray(_reference_poses(train_runs, config.reference_pose)),
-        window_starts=jnp.asarray(windows.starts, jnp.int32),
-        num_windows=jnp.asarray(len(windows.starts), jnp.int32),
-    )
-    chunk = math.gcd(config.eval_every, config.checkpoint_every)
+    data = train_data(template, train_runs, windows.starts, config.reference_pose)
     last_step = config.num_steps
     if stop_after_steps is not None:
         last_step = min(last_step, stop_after_steps)
+    run_chunk = lambda state, num: train_chunk(  # noqa: E731
+        state, data, normalizer, sample_key, config=config, window=window, order=order,
+        num_steps=num)
+    deadline = None if time_budget_s is None else started + time_budget_s
+    state = _training_loop(run_chunk, state, history, template, config, val_runs, last_step,
+                           checkpoint_dir, spec, deadline, progress)
+    params = template.replace(network=state.network)
+    return params, normalizer, _loss_table(history)
 
+
+def _training_loop(run_chunk, state: TrainState, history: dict, template: DynamicsParams,
+                   config: ModelTrainConfig, val_runs: Sequence[dict], last_step: int,
+                   checkpoint_dir: Path | None, spec: dict, deadline: float | None,
+                   progress: bool) -> TrainState:
+    """Chunks of ``run_chunk(state, num_steps) -> (state, losses)`` up to ``last_step``, with
+    validation (appended to ``history``) and checkpoints at their steps; stops early after the
+    chunk that passes ``deadline`` (``time.perf_counter`` seconds)."""
+    chunk = math.gcd(config.eval_every, config.checkpoint_every)
     step = int(state.step)
     bar = tqdm(total=config.num_steps, initial=step, disable=not progress, desc="fit dynamics",
                dynamic_ncols=True)
     while step < last_step:
         num = min(chunk - step % chunk, last_step - step)
-        state, losses = train_chunk(
-            state, data, normalizer, sample_key, config=config, window=window, order=order,
-            num_steps=num,
-        )
+        state, losses = run_chunk(state, num)
         losses = np.asarray(losses)
         history["train_loss"].extend(losses.tolist())
         step = int(state.step)
         postfix = {"loss": f"{losses[-1]:.4f}"}
         if val_runs and (step % config.eval_every == 0 or step == config.num_steps):
-            val = _validate(template.replace(network=state.network), val_runs)
+            val = validation_errors(template.replace(network=state.network), val_runs)
             history["val_rows"].append((step, *val))
             postfix["val_mm"] = f"{val[1]:.2f}"
         bar.set_postfix(postfix)
         bar.update(num)
         at_checkpoint = step % config.checkpoint_every == 0 or step == last_step
-        out_of_time = (time_budget_s is not None
-                       and time.perf_counter() - started >= time_budget_s)
+        out_of_time = deadline is not None and time.perf_counter() >= deadline
         if checkpoint_dir is not None and (at_checkpoint or out_of_time):
-            _save_checkpoint(checkpoint_dir, template, state, history, spec)
+            checkpoints.save_checkpoint(checkpoint_dir, template, state, history, spec)
         if out_of_time:
             break
     bar.close()
-    params = template.replace(network=state.network)
-    return params, normalizer, _loss_table(history)
-
-
-def evaluation_table(params, train_runs: list[dict], test_runs: list[dict]) -> pd.DataFrame:
-    """Open-loop errors over entire runs for the model and the baselines, per run and split
-    (the ``model_metrics`` table of the split protocol: ``fold`` -1, no ``held_out``)."""
-    rows = []
-    for split, runs in (("train", train_runs), ("test", test_runs)):
-        for run in runs:
-            errors = {
-                LEARNED: evaluate_open_loop(params, run),
-                "mean_position": baseline_mean_position(train_runs, run),
-                "linear_lagged": baseline_linear_lagged(train_runs, run),
-            }
-            loses = split == "test" and errors[LEARNED]["mean_mm"] >= errors["linear_lagged"][
-                "mean_mm"]
-            for model, values in errors.items():
-                rows.append({"run_id": run["run_id"], "split": split, "fold": -1,
-                             "held_out": "", "seed": 0, "model": model,
-                             "steps": len(run["p"]), **values,
-                             "loses_to_linear": bool(loses and model == LEARNED)})
-    return pd.DataFrame(rows)
+    return state

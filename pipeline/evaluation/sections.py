@@ -11,7 +11,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline.dynamics.cv import cv_summary
-from pipeline.dynamics.training import LEARNED
+from pipeline.dynamics.scoring import LEARNED
 from pipeline.evaluation.metrics import seed_spread
 from pipeline.evaluation.report import Figure, Section, Table, format_number
 from pipeline.infra.artifacts import Artifact

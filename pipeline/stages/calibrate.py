@@ -42,7 +42,7 @@ from pipeline.arm.twins import load_physics
 from pipeline.config import ConfigError, SimPhysics
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, XYZ, Column, TableSchema, read_table, write_table
-from pipeline.dynamics.training import (
+from pipeline.dynamics.scoring import (
     baseline_linear_lagged,
     baseline_mean_position,
     position_errors_mm,

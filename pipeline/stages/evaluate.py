@@ -37,7 +37,7 @@ import pandas as pd
 
 from pipeline import keys
 from pipeline.config import EnvName
-from pipeline.dynamics.training import load_dynamics
+from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
 from pipeline.evaluation.figures import make_figures

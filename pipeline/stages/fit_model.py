@@ -40,8 +40,10 @@ from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, MODEL_METRICS, read_table, write_table
 from pipeline.data.windows import split_runs
 from pipeline.dynamics import cv as model_cv
+from pipeline.dynamics.checkpoints import save_dynamics
 from pipeline.dynamics.figures import plot_losses, plot_reconstruction
-from pipeline.dynamics.training import LEARNED, MODELS, evaluation_table, fit, save_dynamics
+from pipeline.dynamics.scoring import LEARNED, MODELS, evaluation_table
+from pipeline.dynamics.training import fit
 from pipeline.infra.artifacts import Artifact, ArtifactStore, artifact_key, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.infra.tracking import tracking

@@ -45,7 +45,8 @@ from pipeline.config import (
 )
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, read_table
-from pipeline.dynamics.training import load_dynamics, predict_run
+from pipeline.dynamics.checkpoints import load_dynamics
+from pipeline.dynamics.scoring import predict_run
 from pipeline.infra.artifacts import Artifact
 from pipeline.rl.envs.learned import (
     Randomization,

@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.calibration_data import load_runs
 from pipeline.arm import calibration as calib
-from pipeline.stages.calibrate import _template
+from pipeline.arm.sim_arm import SimParams
 
 
 def main(folder: str) -> None:
@@ -29,7 +29,7 @@ def main(folder: str) -> None:
     physics.pop("substeps")
     runs = load_runs()
     batch = calib.RunBatch.from_runs(runs)
-    predicted = calib.open_loop_template(_template(physics, 20.0, 2), batch)
+    predicted = calib.open_loop_template(SimParams.noise_free(physics, 20.0, 2), batch)
     print("run    error mm  |error| x, y, z mm   bias x, y, z mm     lateral distance from rest "
           "mm: simulated / measured")
     for i, run in enumerate(runs):

@@ -44,11 +44,12 @@ def twin_folds(cfg, runs: list[dict], cache: Path) -> dict[str, dict[str, np.nda
     from omegaconf import OmegaConf
 
     from pipeline.arm import calibration as calib
+    from pipeline.arm.sim_arm import SimParams
     from pipeline.data.alignment import runs_at_model_rate
     from pipeline.data.schemas import ALIGNED, read_table
+    from pipeline.dynamics.calibration_report import fold_weights
     from pipeline.infra.artifacts import ArtifactStore
     from pipeline.keys import key
-    from pipeline.stages.calibrate import _template, fold_weights
 
     settings = cfg.calibration
     ids = [run["run_id"] for run in runs]
@@ -71,7 +72,7 @@ def twin_folds(cfg, runs: list[dict], cache: Path) -> dict[str, dict[str, np.nda
     init = calib.sim_physics_values(settings.init)
     init.pop("substeps", None)
     init.pop("session_std", None)
-    template = _template(init, rate_hz, int(settings.substeps))
+    template = SimParams.noise_free(init, rate_hz, int(settings.substeps))
     param = calib.Parameterization.create(list(settings.fitted), init)
     _, weights = fold_weights(len(fine), leave_one_run_out=True)
     weights = weights[:-1]  # the leave-one-run-out folds only, fold i holds out run i

@@ -111,12 +111,23 @@ def robot_choice() -> tuple[str | None, list]:
 
 
 def apply_physics_from(cfg: Any) -> Any:
-    """``robot.physics_from`` resolved into the robot's physics (see pipeline.stages.calibrate)."""
-    if not (hasattr(cfg.robot, "get") and cfg.robot.get("physics_from")):
+    """``cfg`` with ``robot.physics`` (robot=sim) or ``robot.twin.physics`` (robot=ros2)
+    replaced by the calibrate artifact named in ``robot.physics_from`` (unchanged if unset)."""
+    source = cfg.robot.get("physics_from") if hasattr(cfg.robot, "get") else None
+    if not source:
         return cfg
-    from pipeline.stages.calibrate import apply_physics_from as apply
+    from pipeline.arm.twins import load_physics
 
-    return apply(cfg)
+    physics = load_physics(str(source), cfg.paths.artifact_dir)
+    target = cfg.robot.twin if "twin" in cfg.robot else cfg.robot
+    unknown = sorted(set(physics) - set(target.physics.keys()))
+    if unknown:
+        raise ConfigError(f"robot.physics_from={source!r}: parameters {unknown} are not "
+                          f"SimPhysics fields of this version")
+    for name, value in physics.items():
+        target.physics[name] = value
+    log.info("robot physics from calibrate artifact %s", source)
+    return cfg
 
 
 def run(cfg: Any) -> dict[str, Any]:

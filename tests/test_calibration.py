@@ -11,18 +11,13 @@ import pytest
 from omegaconf import OmegaConf
 
 from pipeline import keys
-from pipeline.__main__ import run, stages_to_run
+from pipeline.__main__ import apply_physics_from, run, stages_to_run
 from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
 from pipeline.arm.twins import load_physics
 from pipeline.config import SimPhysics, Stage
 from pipeline.data.schemas import read_table
-from pipeline.stages.calibrate import (
-    PARAMETERS,
-    _template,
-    apply_physics_from,
-    fold_weights,
-)
+from pipeline.dynamics.calibration_report import PARAMETERS, fold_weights
 
 INIT = calib.sim_physics_values(SimPhysics())
 INIT.pop("substeps")
@@ -58,7 +53,7 @@ def test_unknown_or_repeated_parameters_are_refused():
 
 def _tiny_runs(physics: dict, num_frames: int, noise_m: float, seed: int) -> list[dict]:
     """Two runs the simulator itself generates at 10 Hz (1 substep), with position noise."""
-    template = _template(physics, 10.0, 1)
+    template = sim_arm.SimParams.noise_free(physics, 10.0, 1)
     rng = np.random.default_rng(seed)
     runs = []
     for i in range(2):
@@ -79,7 +74,7 @@ def test_recovers_known_physics_from_the_simulators_own_noisy_data():
              "creep_gain": 0.0}
     runs = _tiny_runs(truth, 60, noise_m=1e-4, seed=0)
     start = {**truth, "bend_gain": 0.04, "pressure_tau_s": 0.1}
-    template = _template(start, 10.0, 1)
+    template = sim_arm.SimParams.noise_free(start, 10.0, 1)
     param = calib.Parameterization.create(["bend_gain", "pressure_tau_s"], start)
     batch = calib.RunBatch.from_runs(runs)
     result = calib.calibrate(template, param, start, batch, np.ones((1, 2)), num_steps=150,

@@ -108,6 +108,25 @@ class SimParams:
             burst_len=int(mocap.burst_len),
         )
 
+    @classmethod
+    def noise_free(cls, physics: Mapping[str, Any], rate_hz: float, substeps: int) -> SimParams:
+        """Parameters with ``physics`` (SimPhysics values by field name; its ``session_std``, if
+        any, ignored: one physics for every session), frames at ``rate_hz`` of ``substeps``
+        integrator steps each, and a perfect motion capture (no noise, jitter or drops)."""
+        f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        values = {k: _plain(physics[k]) for k in PHYSICS_VALUES}
+        return cls(
+            **physics_fields(values),
+            session_std=session_spread(values, {}),
+            noise_std=f32(0.0),
+            jitter_std=f32(0.0),
+            drop_prob=f32(0.0),
+            burst_prob=f32(0.0),
+            mocap_hz=float(rate_hz),
+            substeps=int(substeps),
+            burst_len=1,
+        )
+
     def with_physics(self, values: Mapping[str, Any]) -> SimParams:
         """These parameters with the physics ``values`` (SimPhysics field names, SI units and
         kPa; arrays may be traced, so a fit can differentiate through them) replaced."""

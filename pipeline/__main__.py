@@ -37,35 +37,18 @@ from omegaconf import DictConfig
 
 from pipeline import cli, keys
 from pipeline.arm.limits import UnsafeCommandError
-from pipeline.config import ConfigError, RobotKind, Stage, register_configs, validate_config
+from pipeline.chain import STAGES, Job, plan
+from pipeline.config import ConfigError, Stage, register_configs, validate_config
 from pipeline.data.importers import RecordingNotFoundError
 from pipeline.data.raw import CollectionInterrupted
 from pipeline.data.schemas import DataError
-from pipeline.infra.artifacts import MissingArtifactError
+from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
 from pipeline.infra.compile_cache import use_compilation_cache
 from pipeline.infra.devices import configure_cpu_devices
 from pipeline.ros2.node import RosUnavailableError
 
 log = logging.getLogger("pipeline")
 
-# stage -> "module:function"
-STAGES: dict[Stage, str] = {
-    Stage.collect: "pipeline.stages.collect:collect",
-    Stage.align: "pipeline.stages.align:align",
-    Stage.fit_model: "pipeline.stages.fit_model:fit_model",
-    Stage.train_ppo: "pipeline.stages.train_ppo:train_ppo",
-    Stage.evaluate: "pipeline.stages.evaluate:evaluate",
-    Stage.twin: "pipeline.stages.twin:twin",
-    Stage.guard: "pipeline.stages.guard:guard",
-    Stage.control: "pipeline.stages.control:control",
-    Stage.calibrate: "pipeline.stages.calibrate:calibrate",
-}
-# what `stage=all` runs, in order (the digital twin and the guard are servers, started on their own)
-CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
-# stages outside the chain that read its data: the part of the chain they need first
-UPSTREAM: dict[Stage, tuple[Stage, ...]] = {Stage.calibrate: (Stage.collect, Stage.align)}
-# Stages that publish to a real arm's valves (robot=ros2): each runs only when asked for by name.
-DRIVES_ARM = frozenset({Stage.collect, Stage.guard, Stage.control})
 # Errors that are the user's to fix: one message, exit status 1, no traceback.
 KNOWN_ERRORS: tuple[type[BaseException], ...] = (
     ConfigError, DataError, RecordingNotFoundError, UnsafeCommandError, MissingArtifactError,
@@ -74,28 +57,8 @@ KNOWN_ERRORS: tuple[type[BaseException], ...] = (
 
 def stage_function(stage: Stage) -> Callable[[Any], Any]:
     """The function that runs ``stage``."""
-    module_name, function_name = STAGES[stage].split(":")
+    module_name, function_name = STAGES[stage].runs.split(":")
     return getattr(importlib.import_module(module_name), function_name)
-
-
-def stages_to_run(cfg: Any) -> list[Stage]:
-    """``cfg.stage`` preceded by the upstream stages it needs (the whole chain for ``all``); a
-    real arm's collection is never started by another stage."""
-    stage = Stage(cfg.stage)
-    if stage is Stage.all:
-        chain = list(CHAIN)
-    elif stage not in CHAIN:
-        chain = [*UPSTREAM.get(stage, ()), stage]
-    else:
-        chain = list(CHAIN[: CHAIN.index(stage) + 1])
-        env = getattr(cfg.env.name, "value", cfg.env.name)
-        # only the learned environment trains on data; evaluate also reads it, except on gymnax
-        needs_data = env == "learned" or (stage is Stage.evaluate and env != "gymnax")
-        if not needs_data:
-            chain = [s for s in chain if s not in (Stage.collect, Stage.align, Stage.fit_model)]
-    if RobotKind(cfg.robot.kind) is RobotKind.ros2:
-        chain = [s for s in chain if s is stage or s not in DRIVES_ARM]
-    return chain
 
 
 def robot_choice() -> tuple[str | None, list]:
@@ -131,8 +94,9 @@ def apply_physics_from(cfg: Any) -> Any:
 
 
 def run(cfg: Any) -> dict[str, Any]:
-    """Run ``cfg.stage`` after its upstream stages (or the whole chain); return each stage's
-    result by name. ``force=true`` recomputes the requested stage only (every stage for ``all``)."""
+    """Run ``cfg.stage`` after its upstream stages (or the whole chain): the jobs of
+    :func:`pipeline.chain.plan`; return each stage's result (its own config's artifact) by
+    name. ``dry_run=true`` logs the plan instead and runs nothing."""
     choice, folders = robot_choice()
     validate_config(cfg, choice, folders)
     configure_cpu_devices(cfg.get("cpu_devices"))  # before JAX starts, where it has not
@@ -140,74 +104,54 @@ def run(cfg: Any) -> dict[str, Any]:
     cfg = apply_physics_from(cfg)
     if stage in (Stage.all, Stage.evaluate):
         keys.evaluation_twins(cfg)  # an unknown twin fails now, not after the training
-    upstream_cfg = cfg
-    if stage is not Stage.all:
-        upstream_cfg = cfg.copy()
-        upstream_cfg.force = False
-    results = {}
-    for name in stages_to_run(cfg):
-        started = time.perf_counter()
-        stage_cfg = cfg if name is stage else upstream_cfg
-        if name is Stage.train_ppo and stage in (Stage.all, Stage.evaluate):
-            # upstream of evaluate: its own agent and every policy type evaluate compares
-            results[name.value] = train_policies(stage_cfg, int(cfg.train_workers))
-            cross_model_upstream(stage_cfg, int(cfg.train_workers))
-        elif name is Stage.fit_model and stage is not Stage.fit_model:
-            results[name.value] = fit_models(stage_cfg)
-        else:
-            results[name.value] = stage_function(name)(stage_cfg)
-        log.info("stage %s done in %.1f s", name.value, time.perf_counter() - started)
+    jobs = plan(cfg, lambda variant: keys.key("train_ppo", variant))
+    if cfg.get("dry_run"):
+        log.info("dry run: %d jobs, nothing runs\n%s", len(jobs), plan_table(jobs))
+        return {}
+    results: dict[str, Any] = {}
+    position = 0
+    while position < len(jobs):
+        group = [jobs[position]]
+        while (group[0].parallel and position + len(group) < len(jobs)
+               and jobs[position + len(group)].parallel == group[0].parallel):
+            group.append(jobs[position + len(group)])
+        workers = max(1, min(int(cfg.train_workers), len(group)))
+        with ThreadPoolExecutor(workers) as pool:
+            artifacts = list(pool.map(run_job, group))
+        for job, artifact in zip(group, artifacts, strict=True):
+            if job.result:
+                results[job.stage.value] = artifact
+        position += len(group)
     return results
 
 
-def fit_models(cfg: Any) -> Any:
-    """fit_model for ``cfg`` and, for training in an ensemble (``env.ensemble_seeds``), for its
-    further model seeds (one after another); returns the artifact of ``cfg``'s own model."""
-    fit = stage_function(Stage.fit_model)
-    artifact = fit(cfg)
-    for member in keys.ensemble_configs(cfg):
-        started = time.perf_counter()
-        fit(member)
-        log.info("stage fit_model (model.seed=%d) done in %.1f s", int(member.model.seed),
-                 time.perf_counter() - started)
+def run_job(job: Job) -> Any:
+    """Runs one job and logs how long it took."""
+    started = time.perf_counter()
+    artifact = stage_function(job.stage)(job.cfg)
+    label = f" ({job.label})" if job.label else ""
+    log.info("stage %s%s done in %.1f s", job.stage.value, label, time.perf_counter() - started)
     return artifact
 
 
-def train_policies(cfg: Any, workers: int) -> Any:
-    """train_ppo for ``cfg``'s agent and for each policy type of ``evaluation.policies``
-    (``workers`` at once); returns the artifact of ``cfg``'s own agent."""
-    train = stage_function(Stage.train_ppo)
-    variants = {cfg.agent.name: cfg, **keys.policy_configs(cfg)}
-    by_key = {keys.key("train_ppo", variant): (name, variant) for name, variant in
-              variants.items()}
-
-    def timed(name: str, variant: Any) -> Any:
-        started = time.perf_counter()
-        artifact = train(variant)
-        log.info("stage train_ppo (%s) done in %.1f s", name, time.perf_counter() - started)
-        return artifact
-
-    with ThreadPoolExecutor(max(1, min(workers, len(by_key)))) as pool:
-        futures = {key: pool.submit(timed, *job) for key, job in by_key.items()}
-        artifacts = {key: future.result() for key, future in futures.items()}
-    return artifacts[keys.key("train_ppo", cfg)]
-
-
-def cross_model_upstream(cfg: Any, workers: int) -> None:
-    """What evaluate's cross-model protocol reads (``evaluation.cross_model``): for each group
-    of recordings its data, its model (and ensemble) and every policy type trained in it."""
-    for direction, (train, _) in keys.cross_model_folds(cfg).items():
-        started = time.perf_counter()
-        for stage in (Stage.collect, Stage.align):
-            stage_function(stage)(train)
-        fit_models(train)
-        train_policies(train, workers)
-        log.info("cross-model: the group %s trains in (%s) ready in %.1f s", direction[0],
-                 ", ".join(train.robot.files), time.perf_counter() - started)
+def plan_table(jobs: list[Job]) -> str:
+    """One aligned line per job: stage, label, artifact key and whether it is reused."""
+    rows = [("stage", "job", "artifact", "status")]
+    for job in jobs:
+        key, status = "-", "runs"
+        if job.stage.value in keys.SPECS:
+            key = keys.key(job.stage.value, job.cfg)
+            found = ArtifactStore(job.cfg.paths.artifact_dir).find(job.stage.value, key)
+            status = ("recomputed (force)" if found is not None and job.cfg.force
+                      else "reused" if found is not None else "runs")
+        rows.append((job.stage.value, job.label or "-", key, status))
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    return "\n".join("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip()
+                     for row in rows)
 
 
 register_configs()
-cli.register_help(STAGES)  # the stages and groups of `--help` (conf/hydra/help/)
+cli.register_help({stage: spec.runs for stage, spec in STAGES.items()})  # the stages and groups of `--help` (conf/hydra/help/)
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
@@ -224,7 +168,9 @@ def main(cfg: DictConfig) -> None:
 
 def console() -> None:
     """``python -m pipeline`` and the ``sorolearn`` script: a mistyped key is refused first
-    (saying so, rather than Hydra's suggestion to append it with ``+key=value``)."""
+    (saying so, rather than Hydra's suggestion to append it with ``+key=value``); ``--dry-run``
+    stands for ``dry_run=true``."""
+    sys.argv[1:] = cli.dry_run_flag(sys.argv[1:])
     cli.exit_on_unknown_key(sys.argv[1:])
     main()
 

@@ -728,6 +728,8 @@ class Config:
     stage: Stage = Stage.all
     seed: int = 0
     force: bool = False  # recompute artifacts even when one with the same key exists
+    # print what the run would do (every job, its artifact key, reused or to run) and stop
+    dry_run: bool = False
     # policy types the chain trains at once (threads; each training is one compiled program).
     # 1: each training already runs on every core (cpu_devices); 2 was not faster on 2 cores
     train_workers: int = 1

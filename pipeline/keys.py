@@ -15,8 +15,14 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from pipeline.arm.twins import twin_physics
+from pipeline.chain import (
+    IMPORT_KINDS,
+    control_policy_config,
+    cross_model_folds,
+    ensemble_configs,
+    policy_configs,
+)
 from pipeline.config import (
-    PROJECT_ROOT,
     ConfigError,
     EnvName,
     ModelProtocol,
@@ -28,7 +34,6 @@ from pipeline.infra.artifacts import MANIFEST, artifact_key
 
 Spec = tuple[dict[str, Any], dict[str, str]]
 
-IMPORT_KINDS = (RobotKind.sorolex_csv, RobotKind.plotjuggler_csv, RobotKind.rosbag)
 # How a ROS 2 session runs, not what it records: kept out of the key (so that, e.g.,
 # robot.reuse_incomplete=true finds the interrupted artifact it is meant to reuse).
 _ROS2_OPERATIONAL = ("node_name", "domain_id", "startup_timeout_s", "flush_every_s",
@@ -136,16 +141,6 @@ def env_spec(cfg: Any) -> dict[str, Any]:
     return env
 
 
-def ensemble_configs(cfg: Any) -> list[Any]:
-    """The configs of the ensemble's further fit_model artifacts (``env.ensemble_seeds``): ``cfg``
-    with ``model.seed + 1``, ..., ``model.seed + ensemble_seeds - 1``."""
-    if EnvName(cfg.env.name) is not EnvName.learned:
-        return []
-    seed = int(cfg.model.seed)
-    return [OmegaConf.merge(cfg, {"model": {"seed": seed + offset}})
-            for offset in range(1, int(cfg.env.get("ensemble_seeds", 1)))]
-
-
 def ensemble_entries(cfg: Any) -> dict[str, str]:
     """The ensemble's further members by input name: the fit_model keys of
     :func:`ensemble_configs`, then ``env.models`` (folders or keys; ``ArtifactStore.resolve``
@@ -187,89 +182,6 @@ def train_ppo_spec(cfg: Any) -> Spec:
     return spec, inputs
 
 
-def agent_option(name: str, base: Any) -> Any:
-    """``base`` (the composed ``agent``) with the settings of option ``name`` laid over it.
-
-    The option file (``conf/agent/<name>.yaml``) says what makes the policy type (name,
-    recurrent, ...); everything else, e.g. an experiment's seeds and budget, carries over.
-    """
-    path = PROJECT_ROOT / "conf" / "agent" / f"{name}.yaml"
-    if not path.is_file():
-        options = sorted(p.stem for p in path.parent.glob("*.yaml"))
-        raise ValueError(f"evaluation.policies: no agent config {name!r}; options: {options}")
-    node = OmegaConf.load(path)
-    node.pop("defaults", None)
-    return OmegaConf.merge(base, node)
-
-
-def policy_configs(cfg: Any) -> dict[str, Any]:
-    """One full config per evaluated policy type: ``cfg`` with its ``agent`` replaced."""
-    variants = {}
-    for name in cfg.evaluation.policies:
-        variant = cfg.copy()
-        variant.agent = agent_option(name, cfg.agent)
-        variants[name] = variant
-    return variants
-
-
-CROSS_MODEL_DIRECTIONS = ("A->B", "B->A")
-
-
-def cross_model_groups(cfg: Any) -> tuple[list[str], list[str]] | None:
-    """The two disjoint groups of recordings (names) of the cross-model protocol, or None where
-    it does not run. ``evaluation.cross_model``: true runs it (an error where it cannot), false
-    does not, null runs it for recorded data in the learned env with at least two recordings a
-    group (fit_model scores each group's model leave-one-run-out). Group A is
-    ``evaluation.cross_model_group_a`` (names), or every other of the sorted recordings; B the
-    rest."""
-    evaluation = cfg.get("evaluation")
-    setting = None if evaluation is None else evaluation.get("cross_model")
-    if setting is False or evaluation is None:
-        return None
-    recorded = RobotKind(cfg.robot.kind) in IMPORT_KINDS
-    if not recorded or EnvName(cfg.env.name) is not EnvName.learned:
-        if setting:
-            raise ConfigError(
-                f"evaluation.cross_model=true needs recorded data (robot.kind one of "
-                f"{[kind.value for kind in IMPORT_KINDS]}) and env=learned; this config has "
-                f"robot.kind={RobotKind(cfg.robot.kind).value}, env.name="
-                f"{EnvName(cfg.env.name).value}")
-        return None
-    names = [path.name for path in list_recordings(cfg.robot)]
-    chosen = [str(name) for name in evaluation.get("cross_model_group_a") or []]
-    unknown = [name for name in chosen if name not in names]
-    if unknown:
-        raise ConfigError(f"evaluation.cross_model_group_a: {unknown} are not among the "
-                          f"recordings {names}")
-    first = [name for name in names if name in chosen] if chosen else names[0::2]
-    second = [name for name in names if name not in first]
-    if min(len(first), len(second)) < 2:
-        if setting:
-            raise ConfigError(
-                f"evaluation.cross_model=true: each group needs at least two recordings (its "
-                f"model is scored leave-one-run-out); group A {first}, group B {second}")
-        return None
-    return first, second
-
-
-def cross_model_group_config(cfg: Any, names: list[str]) -> Any:
-    """``cfg`` restricted to the recordings ``names`` (its own data, model and policies), without
-    a cross-model protocol of its own."""
-    return OmegaConf.merge(cfg, {"robot": {"files": list(names), "num_runs": None},
-                                 "evaluation": {"cross_model": False, "models": []}})
-
-
-def cross_model_folds(cfg: Any) -> dict[str, tuple[Any, Any]]:
-    """The cross-model protocol by direction (``A->B``, ``B->A``): the config that trains in one
-    group's model and the config of the other group, whose model it is evaluated in. Empty
-    where the protocol does not run (:func:`cross_model_groups`)."""
-    groups = cross_model_groups(cfg)
-    if groups is None:
-        return {}
-    first, second = (cross_model_group_config(cfg, names) for names in groups)
-    return dict(zip(CROSS_MODEL_DIRECTIONS, ((first, second), (second, first)), strict=True))
-
-
 def evaluation_twins(cfg: Any) -> dict[str, dict[str, Any]]:
     """The calibrated twins of ``evaluation.twins`` by name (a robot config's name, or the
     calibrate artifact's folder name or key): their SimPhysics values."""
@@ -305,14 +217,6 @@ def evaluate_spec(cfg: Any) -> Spec:
                 *train_ppo_spec(variant))
         inputs[f"cross_model/{direction}/fit_model"] = artifact_key(*fit_model_spec(test))
     return spec, inputs
-
-
-def control_policy_config(cfg: Any) -> Any:
-    """The config that trained ``control.policy``: ``cfg`` with that agent option laid over its
-    ``agent`` (as :func:`policy_configs` does for evaluate)."""
-    variant = cfg.copy()
-    variant.agent = agent_option(str(cfg.control.policy), cfg.agent)
-    return variant
 
 
 def control_policy_key(cfg: Any) -> str:

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from pipeline import keys
+from pipeline import chain, keys
 from pipeline.config import AgentConfig
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.rl.envs.factory import environment
@@ -25,7 +25,7 @@ def write_policy(cfg, medians_mm=(3.0, 2.0), scale: float = 1.0):
     """A train_ppo artifact for ``cfg`` (its control.policy as the agent): random networks of
     ``agent.num_seeds`` seeds (parameters times ``scale``: NaN makes a broken policy) and an
     evaluation.parquet whose last held-out medians are ``medians_mm``."""
-    variant = keys.control_policy_config(cfg)
+    variant = chain.control_policy_config(cfg)
     spec, inputs = keys.train_ppo_spec(variant)
     store = ArtifactStore(cfg.paths.artifact_dir)
     env, train_params, _ = environment(variant)

@@ -11,10 +11,11 @@ import pytest
 from omegaconf import OmegaConf
 
 from pipeline import keys
-from pipeline.__main__ import apply_physics_from, run, stages_to_run
+from pipeline.__main__ import apply_physics_from, run
 from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
 from pipeline.arm.twins import load_physics
+from pipeline.chain import stages_to_run
 from pipeline.config import SimPhysics, Stage
 from pipeline.data.schemas import read_table
 from pipeline.dynamics.calibration_report import PARAMETERS, fold_weights

@@ -6,7 +6,7 @@ import os
 import subprocess
 import sys
 
-from pipeline.__main__ import STAGES
+from pipeline.chain import STAGES
 from pipeline.cli import unknown_key_message
 from pipeline.config import PROJECT_ROOT
 

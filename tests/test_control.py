@@ -319,7 +319,7 @@ def test_live_goals_take_effect_at_the_next_period_and_bad_ones_are_refused(poli
 
 
 def test_control_is_routed_alone_and_never_by_the_chain(make_cfg):
-    from pipeline.__main__ import CHAIN, STAGES, stages_to_run
+    from pipeline.chain import CHAIN, STAGES, stages_to_run
     from pipeline.config import Stage
 
     assert Stage.control in STAGES and Stage.control not in CHAIN

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from experiments.cross_model import VARIANTS, variant_overrides
+from pipeline.chain import policy_configs
 from pipeline.config import AgentConfig, ConfigError, RandomizationConfig, budget_overrides
-from pipeline.keys import policy_configs
 
 RANDOMIZED = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
               "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5}
@@ -37,7 +37,7 @@ def test_each_variant_sets_what_its_name_says(make_cfg, variant):
 
 def test_experiment_real_arm_trains_the_gru_twice_as_long(make_cfg):
     """One budget per policy type, whichever agent the command names; evaluate's copies of the
-    other policy type (keys.policy_configs) get the same budgets as a run naming that agent."""
+    other policy type (chain.policy_configs) get the same budgets as a run naming that agent."""
     for named in ("ppo_ff", "ppo_rnn"):
         cfg = make_cfg("experiment=real_arm", f"agent={named}")
         variants = {named: cfg, **policy_configs(cfg)}
@@ -141,7 +141,7 @@ def _recordings(folder, count):
 
 
 def test_cross_model_groups_alternate_or_follow_group_a(make_cfg, tmp_path):
-    from pipeline.keys import cross_model_groups
+    from pipeline.chain import cross_model_groups
 
     data = _recordings(tmp_path / "runs", 5)
     names = [f"Step_control_{n:02d}.csv" for n in range(5)]
@@ -157,7 +157,7 @@ def test_cross_model_groups_alternate_or_follow_group_a(make_cfg, tmp_path):
 
 
 def test_cross_model_needs_two_recordings_a_group_and_known_names(make_cfg, tmp_path):
-    from pipeline.keys import cross_model_groups
+    from pipeline.chain import cross_model_groups
 
     robot = ["robot=sorolex_csv", f"robot.data_dir={_recordings(tmp_path / 'runs', 3)}"]
     assert cross_model_groups(make_cfg(*robot)) is None  # 2 + 1: too few for B, so off
@@ -180,7 +180,7 @@ def test_evaluate_reads_each_groups_policies_and_the_other_groups_model(make_cfg
                        "robot.files=[Step_control_00.csv,Step_control_02.csv]")
     group_b = make_cfg("robot=sorolex_csv", f"robot.data_dir={data}",
                        "robot.files=[Step_control_01.csv,Step_control_03.csv]")
-    for name, variant in keys.policy_configs(group_a).items():
+    for name, variant in policy_configs(group_a).items():
         assert inputs[f"cross_model/A->B/train_ppo/{name}"] == keys.key("train_ppo", variant)
     assert inputs["cross_model/A->B/fit_model"] == keys.key("fit_model", group_b)
     assert inputs["cross_model/B->A/fit_model"] == keys.key("fit_model", group_a)

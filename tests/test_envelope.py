@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 import pipeline.__main__ as router
-from pipeline.__main__ import DRIVES_ARM, run, stages_to_run
+from pipeline.__main__ import run
 from pipeline.arm.limits import UnsafeCommandError
+from pipeline.chain import DRIVES_ARM, stages_to_run
 from pipeline.config import PROJECT_ROOT, ConfigError, Stage, validate_config
 from pipeline.ros2.gate import CommandGate
 

@@ -11,7 +11,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.__main__ import run, stages_to_run
+from pipeline.__main__ import run
+from pipeline.chain import stages_to_run
 from pipeline.config import PROJECT_ROOT, Stage
 from pipeline.data.schemas import ALIGNED, COMMANDS, MOCAP, RUNS, DataError, read_table, write_table
 from pipeline.infra.artifacts import ArtifactStore

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from pipeline import keys
+from pipeline import chain, keys
 from pipeline.__main__ import run
 from pipeline.arm.safety import SafeSet, project
 from pipeline.config import ConfigError, validate_config
@@ -311,7 +311,7 @@ def test_default_keys_do_not_see_the_robustness_settings(make_cfg):
     assert set(inputs) == {"fit_model"}
     assert not {"ensemble_seeds", "models", "randomization"} & set(
         keys.evaluate_spec(cfg)[0]["env"])
-    assert keys.ensemble_configs(cfg) == [] and keys.ensemble_entries(cfg) == {}
+    assert chain.ensemble_configs(cfg) == [] and keys.ensemble_entries(cfg) == {}
     # zero magnitudes spelled out are the default
     zero = make_cfg("experiment=quick", "env.randomization.gain_std=0.0", "env.ensemble_seeds=1")
     assert keys.key("train_ppo", zero) == keys.key("train_ppo", cfg)
@@ -321,7 +321,7 @@ def test_ensemble_and_randomization_are_part_of_the_train_ppo_key(make_cfg):
     base = make_cfg("experiment=quick")
     ensemble = make_cfg("experiment=quick", "env.ensemble_seeds=3")
     _, inputs = keys.train_ppo_spec(ensemble)
-    seeds = [member.model.seed for member in keys.ensemble_configs(ensemble)]
+    seeds = [member.model.seed for member in chain.ensemble_configs(ensemble)]
     assert seeds == [1, 2] and base.model.seed == 0
     assert inputs["fit_model/seed+1"] == keys.key("fit_model", make_cfg("experiment=quick",
                                                                         "model.seed=1"))

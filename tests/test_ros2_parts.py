@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.__main__ import CHAIN, STAGES
 from pipeline.arm import sim_arm
+from pipeline.chain import CHAIN, STAGES
 from pipeline.config import Stage
 from pipeline.data.ros_messages import read_pressures, read_stamp_ns, set_field, write_stamp_ns
 from pipeline.infra.artifacts import ArtifactStore

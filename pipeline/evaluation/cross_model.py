@@ -1,7 +1,7 @@
 """The cross-model protocol: policies trained in the model of one group of recorded runs and
 rolled out in the model of another, disjoint group, fitted to runs they never saw (a stand-in
 for the arm, whose errors the policies cannot have learned). The groups and their configs:
-:func:`pipeline.keys.cross_model_folds`; the evaluate stage runs both directions.
+:func:`pipeline.chain.cross_model_folds`; the evaluate stage runs both directions.
 
 Each direction's episodes are those of :func:`pipeline.evaluation.closed_loop.run_evaluation`
 on the training group's held-out goals (positions measured on the arm), in the policies' own

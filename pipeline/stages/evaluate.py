@@ -35,7 +35,7 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline import keys
+from pipeline import chain, keys
 from pipeline.config import EnvName
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import run_evaluation
@@ -100,7 +100,7 @@ def _cross_model_inputs(cfg: Any, store: ArtifactStore, inputs: dict[str, str]
     """The cross-model protocol's artifacts by direction (empty where it does not run): the
     training group's config, policies, model and aligned data, and the other group's model."""
     folds = {}
-    for direction, (train, test) in keys.cross_model_folds(cfg).items():
+    for direction, (train, test) in chain.cross_model_folds(cfg).items():
         prefix = f"cross_model/{direction}"
         hint = f" (the cross-model group {direction[0]}: robot.files={list(train.robot.files)})"
         folds[direction] = {

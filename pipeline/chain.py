@@ -1,0 +1,264 @@
+"""The chain as data: every stage, what it reads and writes, and the jobs a run fans out into.
+
+One declaration (:data:`STAGES`) says for each stage the function that runs it, the artifacts it
+consumes and whether it drives a real arm; :func:`stages_to_run` orders a run's stages and
+:func:`plan` expands them into :class:`Job` s: the ensemble's further model seeds
+(``env.ensemble_seeds``), one training per policy type that evaluate compares
+(``evaluation.policies``) and, for the cross-model protocol (``evaluation.cross_model``), each
+group's data, models and policies. The entry point runs the plan (or prints it with
+``dry_run=true``); the artifact keys (``pipeline.keys``) read the same fan-out, so what runs and
+what evaluate looks up cannot drift apart.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from pipeline.config import PROJECT_ROOT, ConfigError, EnvName, RobotKind, Stage
+from pipeline.data.importers import list_recordings
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One stage: ``"module:function"`` that runs it, the stages whose artifacts it reads, what
+    it writes (for ``--help`` and the plan), and whether it publishes to a real arm's valves."""
+
+    runs: str
+    consumes: tuple[Stage, ...] = ()
+    produces: str = ""
+    drives_arm: bool = False
+
+
+STAGES: dict[Stage, StageSpec] = {
+    Stage.collect: StageSpec("pipeline.stages.collect:collect", (),
+                             "commands, mocap and runs tables", drives_arm=True),
+    Stage.align: StageSpec("pipeline.stages.align:align", (Stage.collect,),
+                           "aligned runs at the command times"),
+    Stage.fit_model: StageSpec("pipeline.stages.fit_model:fit_model", (Stage.align,),
+                               "the learned model, its losses and metrics"),
+    Stage.train_ppo: StageSpec("pipeline.stages.train_ppo:train_ppo", (Stage.fit_model,),
+                               "policy checkpoints and training metrics"),
+    Stage.evaluate: StageSpec("pipeline.stages.evaluate:evaluate", (Stage.train_ppo,),
+                              "evaluation tables and the report"),
+    Stage.twin: StageSpec("pipeline.stages.twin:twin", (), "nothing: a ROS 2 server"),
+    Stage.guard: StageSpec("pipeline.stages.guard:guard", (), "nothing: a ROS 2 server",
+                           drives_arm=True),
+    Stage.control: StageSpec("pipeline.stages.control:control", (Stage.train_ppo,),
+                             "a control session's records and report", drives_arm=True),
+    Stage.calibrate: StageSpec("pipeline.stages.calibrate:calibrate", (Stage.align,),
+                               "the simulated arm's fitted physics"),
+}
+# what `stage=all` runs, in order (the digital twin and the guard are servers, started on their own)
+CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
+# stages outside the chain that read its data: the part of the chain they need first
+UPSTREAM: dict[Stage, tuple[Stage, ...]] = {Stage.calibrate: (Stage.collect, Stage.align)}
+# Stages that publish to a real arm's valves (robot=ros2): each runs only when asked for by name.
+DRIVES_ARM = frozenset(stage for stage, spec in STAGES.items() if spec.drives_arm)
+CROSS_MODEL_DIRECTIONS = ("A->B", "B->A")
+# robots whose data is imported from recordings, not collected
+IMPORT_KINDS = (RobotKind.sorolex_csv, RobotKind.plotjuggler_csv, RobotKind.rosbag)
+
+
+def stages_to_run(cfg: Any) -> list[Stage]:
+    """``cfg.stage`` preceded by the upstream stages it needs (the whole chain for ``all``); a
+    real arm's collection is never started by another stage."""
+    stage = Stage(cfg.stage)
+    if stage is Stage.all:
+        chain = list(CHAIN)
+    elif stage not in CHAIN:
+        chain = [*UPSTREAM.get(stage, ()), stage]
+    else:
+        chain = list(CHAIN[: CHAIN.index(stage) + 1])
+        env = getattr(cfg.env.name, "value", cfg.env.name)
+        # only the learned environment trains on data; evaluate also reads it, except on gymnax
+        needs_data = env == "learned" or (stage is Stage.evaluate and env != "gymnax")
+        if not needs_data:
+            chain = [s for s in chain if s not in (Stage.collect, Stage.align, Stage.fit_model)]
+    if RobotKind(cfg.robot.kind) is RobotKind.ros2:
+        chain = [s for s in chain if s is stage or s not in DRIVES_ARM]
+    return chain
+
+
+# ---------------------------------------------------------------------------------------------
+# fan-out: the configs one stage of a run stands for
+# ---------------------------------------------------------------------------------------------
+def ensemble_configs(cfg: Any) -> list[Any]:
+    """The configs of the ensemble's further fit_model artifacts (``env.ensemble_seeds``): ``cfg``
+    with ``model.seed + 1``, ..., ``model.seed + ensemble_seeds - 1``."""
+    if EnvName(cfg.env.name) is not EnvName.learned:
+        return []
+    seed = int(cfg.model.seed)
+    return [OmegaConf.merge(cfg, {"model": {"seed": seed + offset}})
+            for offset in range(1, int(cfg.env.get("ensemble_seeds", 1)))]
+
+
+def agent_option(name: str, base: Any) -> Any:
+    """``base`` (the composed ``agent``) with the settings of option ``name`` laid over it.
+
+    The option file (``conf/agent/<name>.yaml``) says what makes the policy type (name,
+    recurrent, ...); everything else, e.g. an experiment's seeds and budget, carries over.
+    """
+    path = PROJECT_ROOT / "conf" / "agent" / f"{name}.yaml"
+    if not path.is_file():
+        options = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise ValueError(f"evaluation.policies: no agent config {name!r}; options: {options}")
+    node = OmegaConf.load(path)
+    node.pop("defaults", None)
+    return OmegaConf.merge(base, node)
+
+
+def policy_configs(cfg: Any) -> dict[str, Any]:
+    """One full config per evaluated policy type: ``cfg`` with its ``agent`` replaced."""
+    variants = {}
+    for name in cfg.evaluation.policies:
+        variant = cfg.copy()
+        variant.agent = agent_option(name, cfg.agent)
+        variants[name] = variant
+    return variants
+
+
+def control_policy_config(cfg: Any) -> Any:
+    """The config that trained ``control.policy``: ``cfg`` with that agent option laid over its
+    ``agent`` (as :func:`policy_configs` does for evaluate)."""
+    variant = cfg.copy()
+    variant.agent = agent_option(str(cfg.control.policy), cfg.agent)
+    return variant
+
+
+def cross_model_groups(cfg: Any) -> tuple[list[str], list[str]] | None:
+    """The two disjoint groups of recordings (names) of the cross-model protocol, or None where
+    it does not run. ``evaluation.cross_model``: true runs it (an error where it cannot), false
+    does not, null runs it for recorded data in the learned env with at least two recordings a
+    group (fit_model scores each group's model leave-one-run-out). Group A is
+    ``evaluation.cross_model_group_a`` (names), or every other of the sorted recordings; B the
+    rest."""
+    evaluation = cfg.get("evaluation")
+    setting = None if evaluation is None else evaluation.get("cross_model")
+    if setting is False or evaluation is None:
+        return None
+    recorded = RobotKind(cfg.robot.kind) in IMPORT_KINDS
+    if not recorded or EnvName(cfg.env.name) is not EnvName.learned:
+        if setting:
+            raise ConfigError(
+                f"evaluation.cross_model=true needs recorded data (robot.kind one of "
+                f"{[kind.value for kind in IMPORT_KINDS]}) and env=learned; this config has "
+                f"robot.kind={RobotKind(cfg.robot.kind).value}, env.name="
+                f"{EnvName(cfg.env.name).value}")
+        return None
+    names = [path.name for path in list_recordings(cfg.robot)]
+    chosen = [str(name) for name in evaluation.get("cross_model_group_a") or []]
+    unknown = [name for name in chosen if name not in names]
+    if unknown:
+        raise ConfigError(f"evaluation.cross_model_group_a: {unknown} are not among the "
+                          f"recordings {names}")
+    first = [name for name in names if name in chosen] if chosen else names[0::2]
+    second = [name for name in names if name not in first]
+    if min(len(first), len(second)) < 2:
+        if setting:
+            raise ConfigError(
+                f"evaluation.cross_model=true: each group needs at least two recordings (its "
+                f"model is scored leave-one-run-out); group A {first}, group B {second}")
+        return None
+    return first, second
+
+
+def cross_model_group_config(cfg: Any, names: list[str]) -> Any:
+    """``cfg`` restricted to the recordings ``names`` (its own data, model and policies), without
+    a cross-model protocol of its own."""
+    return OmegaConf.merge(cfg, {"robot": {"files": list(names), "num_runs": None},
+                                 "evaluation": {"cross_model": False, "models": []}})
+
+
+def cross_model_folds(cfg: Any) -> dict[str, tuple[Any, Any]]:
+    """The cross-model protocol by direction (``A->B``, ``B->A``): the config that trains in one
+    group's model and the config of the other group, whose model it is evaluated in. Empty
+    where the protocol does not run (:func:`cross_model_groups`)."""
+    groups = cross_model_groups(cfg)
+    if groups is None:
+        return {}
+    first, second = (cross_model_group_config(cfg, names) for names in groups)
+    return dict(zip(CROSS_MODEL_DIRECTIONS, ((first, second), (second, first)), strict=True))
+
+
+# ---------------------------------------------------------------------------------------------
+# the plan
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Job:
+    """One stage run of a plan.
+
+    stage: what runs; cfg: the config it runs with; label: what sets it apart from the stage's
+    own run (empty for that one, e.g. ``model.seed=1``, ``ppo_rnn``, ``cross-model A->B``);
+    result: whether its artifact is the stage's result of the run (the requested config's own
+    run); parallel: jobs of one such group (consecutive, same non-empty value) may run at once.
+    """
+
+    stage: Stage
+    cfg: Any
+    label: str = ""
+    result: bool = True
+    parallel: str = ""
+
+
+def model_jobs(cfg: Any, prefix: str = "", result: bool = True) -> list[Job]:
+    """fit_model for ``cfg`` and for the ensemble's further model seeds (one after another)."""
+    return [Job(Stage.fit_model, cfg, prefix.rstrip(", "), result)] + [
+        Job(Stage.fit_model, member, f"{prefix}model.seed={int(member.model.seed)}", False)
+        for member in ensemble_configs(cfg)]
+
+
+def policy_jobs(cfg: Any, key_of, prefix: str = "", result: bool = True) -> list[Job]:
+    """train_ppo for ``cfg``'s agent and each policy type of ``evaluation.policies`` (one job per
+    distinct artifact key, ``key_of(cfg)``; they may run side by side)."""
+    variants = {str(cfg.agent.name): cfg, **policy_configs(cfg)}
+    jobs, seen = [], set()
+    for name, variant in variants.items():
+        key = key_of(variant)
+        if key in seen:
+            continue
+        seen.add(key)
+        own = not jobs
+        jobs.append(Job(Stage.train_ppo, variant, f"{prefix}{name}", result and own,
+                        parallel=f"{prefix}train_ppo"))
+    return jobs
+
+
+def cross_model_jobs(cfg: Any, key_of) -> list[Job]:
+    """For each direction of the cross-model protocol: the data, models (and ensemble) and every
+    policy type of the group its policies train in."""
+    jobs = []
+    for direction, (train, _) in cross_model_folds(cfg).items():
+        prefix = f"cross-model {direction}, "
+        jobs += [Job(Stage.collect, train, prefix.rstrip(", "), False),
+                 Job(Stage.align, train, prefix.rstrip(", "), False),
+                 *model_jobs(train, prefix, result=False),
+                 *policy_jobs(train, key_of, prefix, result=False)]
+    return jobs
+
+
+def plan(cfg: Any, key_of) -> list[Job]:
+    """The jobs of a run of ``cfg``, in order. Upstream of the requested stage every config has
+    ``force=false`` (``force=true`` recomputes the requested stage only; every stage for
+    ``all``); fit_model upstream of a training also fits the ensemble's further seeds; training
+    upstream of evaluate trains every policy type it compares, and the cross-model groups'.
+    ``key_of(cfg)``: the train_ppo artifact key of a config (policy types that share a key train
+    once)."""
+    stage = Stage(cfg.stage)
+    upstream_cfg = cfg
+    if stage is not Stage.all:
+        upstream_cfg = cfg.copy()
+        upstream_cfg.force = False
+    jobs: list[Job] = []
+    for name in stages_to_run(cfg):
+        stage_cfg = cfg if name is stage else upstream_cfg
+        if name is Stage.train_ppo and stage in (Stage.all, Stage.evaluate):
+            jobs += policy_jobs(stage_cfg, key_of)
+            jobs += cross_model_jobs(stage_cfg, key_of)
+        elif name is Stage.fit_model and stage is not Stage.fit_model:
+            jobs += model_jobs(stage_cfg)
+        else:
+            jobs.append(Job(name, stage_cfg))
+    return jobs

@@ -147,6 +147,19 @@ def make_train(
     return train
 
 
+class _Build(NamedTuple):
+    """What every part of a training run is built from (fixed when the program is built; the
+    environment parameters, which may be large, stay arguments of the parts)."""
+
+    config: AgentConfig
+    env: Any
+    network: Any
+    low: Any  # action bounds of the training env
+    high: Any
+    obs_shape: tuple[int, ...]
+    has_distance: bool
+
+
 def make_train_program(
     agent: Any,
     env: Any,
@@ -172,154 +185,191 @@ def make_train_program(
         eval_steps = int(env_params.max_steps_in_episode)
     low, high = action_bounds(env, env_params)  # read here: the env params are traced below
     eval_bounds = action_bounds(env, eval_env_params)
-    action_dim = int(np.prod(low.shape))
-    obs_shape = tuple(env.observation_space(env_params).shape)
-    network = make_network(config, action_dim)
-    num_envs, num_steps = config.num_envs, config.num_steps
-    num_minibatches, num_updates = config.num_minibatches, config.num_updates
-    has_distance = _has_distance(env, env_params)
-
-    def learning_rate(count):
-        fraction = 1.0 - (count // (num_minibatches * config.update_epochs)) / num_updates
-        return config.lr * fraction
-
-    def apply_step(params, hidden, obs, reset):
-        """One time step for a batch: [B, H], [B, D], [B] -> hidden, pi, value [B]."""
-        hidden, pi, value = network.apply(params, hidden, obs[None], reset[None])
-        return hidden, pi, value[0]
-
-    def bootstrap_values(params, final_obs, hidden):
-        """V(final observation) of every rollout step in one batched call: ``final_obs [T, B,
-        obs_dim]`` (gymnax's ``info["final_observation"]``, the observation after step t before
-        any reset) seen with ``hidden [T, B, H]``, the policy state after step t's observation
-        -> ``[T, B]``. The parameters do not change during a rollout, so this is what calling
-        the critic at every step would give, with T times fewer (and larger) calls."""
-        flat = lambda x: x.reshape(1, num_steps * num_envs, *x.shape[2:])  # noqa: E731
-        _, _, values = network.apply(params, flat(hidden)[0], flat(final_obs),
-                                     jnp.zeros((1, num_steps * num_envs), bool))
-        return values.reshape(num_steps, num_envs)
-
-    def env_step(keys, state, action, params):
-        return jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-            keys, state, to_env_action(action, low, high), params)
+    build = _Build(config, env, make_network(config, int(np.prod(low.shape))), low, high,
+                   tuple(env.observation_space(env_params).shape), _has_distance(env, env_params))
 
     def init(rng: jax.Array, env_params=env_params, init_params=None) -> RunnerState:
-        # ---------------------------------------------------------------- init network, optimizer
-        init_key, reset_key, runner_key = jax.random.split(rng, 3)
-        hidden0 = initial_hidden(network, num_envs)
-        variables = network.init(init_key, hidden0, jnp.zeros((1, num_envs, *obs_shape)),
-                                 jnp.zeros((1, num_envs), bool))
-        if init_params is not None:  # warm start (e.g. a policy trained on another model)
-            check_same_variables(variables, init_params, "init_params")
-            variables = jax.tree.map(jnp.asarray, init_params)
-        lr = learning_rate if config.anneal_lr else config.lr
-        tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
-                         optax.adam(learning_rate=lr, eps=1e-5))
-        train_state = TrainState.create(apply_fn=network.apply, params=variables, tx=tx)
-
-        # ---------------------------------------------------------------- init environments
-        obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(
-            jax.random.split(reset_key, num_envs), env_params)
-        return RunnerState(train_state, env_state, obs, jnp.ones(num_envs, bool), hidden0,
-                           jnp.zeros(num_envs), jnp.zeros(num_envs, jnp.int32), runner_key)
+        return _init(build, rng, env_params, init_params)
 
     def chunk(runner: RunnerState, chunk_index, env_params=env_params,
               eval_env_params=eval_env_params):
-        # ---------------------------------------------------------------- one update
-        def update_step(runner: RunnerState, update_index):
-            # ------------------------------------------------------------ collect a rollout
-            def rollout_step(runner: RunnerState, _):
-                rng, action_key, step_key = jax.random.split(runner.rng, 3)
-                params = runner.train_state.params
-                hidden, pi, value = apply_step(params, runner.hidden, runner.obs, runner.reset)
-                action = pi.sample(seed=action_key)[0]
-                log_prob = pi.log_prob(action[None])[0]
-                obs, env_state, reward, terminated, truncated, info = env_step(
-                    jax.random.split(step_key, num_envs), runner.env_state, action, env_params)
-                done = jnp.logical_or(terminated, truncated)
-                episode_return = runner.episode_return + reward
-                episode_length = runner.episode_length + 1
-                transition = Transition(
-                    runner.obs, runner.reset, action, log_prob, value,
-                    reward * config.reward_scale, terminated, truncated, None)
-                episode = {
-                    "done": done,
-                    "terminated": terminated,
-                    "return": episode_return,
-                    "length": episode_length,
-                    "distance": info["distance_m"] if has_distance else jnp.zeros(num_envs),
-                }
-                runner = RunnerState(
-                    runner.train_state, env_state, obs, done, hidden,
-                    jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length),
-                    rng)
-                return runner, (transition, episode, (info["final_observation"], hidden))
-
-            rollout_hidden = runner.hidden
-            runner, (trajectory, episodes, finals) = jax.lax.scan(
-                rollout_step, runner, None, num_steps)
-            trajectory = trajectory._replace(
-                bootstrap_value=bootstrap_values(runner.train_state.params, *finals))
-
-            # ------------------------------------------------------------ advantages
-            _, _, last_value = apply_step(runner.train_state.params, runner.hidden, runner.obs,
-                                          runner.reset)
-            advantages, targets = compute_gae(
-                trajectory.reward, trajectory.value, trajectory.terminated,
-                trajectory.truncated, trajectory.bootstrap_value, last_value, config.gamma,
-                config.gae_lambda)
-
-            # ------------------------------------------------------------ PPO epochs
-            def minibatch_step(train_state: TrainState, minibatch):
-                hidden, batch, advantage, target = minibatch
-                (total, aux), grads = jax.value_and_grad(ppo_loss, has_aux=True)(
-                    train_state.params, network, hidden, batch, advantage, target, config)
-                return train_state.apply_gradients(grads=grads), {"total_loss": total, **aux}
-
-            def epoch_step(carry, _):
-                train_state, rng = carry
-                rng, permute_key = jax.random.split(rng)
-                data = (trajectory, advantages, targets)
-                if config.recurrent:
-                    hidden, data = sequence_minibatches(permute_key, data, rollout_hidden,
-                                                        num_minibatches)
-                else:
-                    hidden, data = step_minibatches(permute_key, data, num_minibatches)
-                train_state, losses = jax.lax.scan(
-                    minibatch_step, train_state, (hidden, *data))
-                return (train_state, rng), losses
-
-            rng, epoch_key = jax.random.split(runner.rng)
-            (train_state, _), losses = jax.lax.scan(
-                epoch_step, (runner.train_state, epoch_key), None, config.update_epochs)
-            runner = runner._replace(train_state=train_state, rng=rng)
-
-            # ------------------------------------------------------------ metrics
-            done = episodes["done"]
-            metrics = {k: v.mean() for k, v in losses.items()}
-            metrics.update({
-                "timesteps": (update_index + 1) * num_steps * num_envs,
-                "episodes": done.sum(),
-                "mean_return": _masked_mean(episodes["return"], done),
-                "mean_length": _masked_mean(episodes["length"].astype(jnp.float32), done),
-                "success_rate": _masked_mean(episodes["terminated"].astype(jnp.float32), done),
-                "final_distance_m": (_masked_mean(episodes["distance"], done)
-                                     if has_distance else jnp.nan),
-            })
-            return runner, metrics
-
-        # ---------------------------------------------------------------- the chunk's updates
-        update_indices = chunk_index * config.updates_per_eval + jnp.arange(
-            config.updates_per_eval)
-        runner, metrics = jax.lax.scan(update_step, runner, update_indices)
-        rng, eval_key = jax.random.split(runner.rng)
-        evaluation = evaluate_policy(env, eval_env_params, network, runner.train_state.params,
-                                     eval_key, config.eval_envs, eval_steps, has_distance,
-                                     eval_bounds)
-        evaluation["timesteps"] = metrics["timesteps"][-1]
-        return runner._replace(rng=rng), (metrics, evaluation)
+        return _chunk(build, runner, chunk_index, env_params, eval_env_params, eval_steps,
+                      eval_bounds)
 
     return TrainProgram(init, chunk, config.num_evals)
+
+
+def _init(build: _Build, rng: jax.Array, env_params: Any, init_params: Any) -> RunnerState:
+    """The network (random, or ``init_params``: a warm start), its optimizer, and
+    ``agent.num_envs`` environments reset."""
+    config, network, num_envs = build.config, build.network, build.config.num_envs
+    init_key, reset_key, runner_key = jax.random.split(rng, 3)
+    hidden0 = initial_hidden(network, num_envs)
+    variables = network.init(init_key, hidden0, jnp.zeros((1, num_envs, *build.obs_shape)),
+                             jnp.zeros((1, num_envs), bool))
+    if init_params is not None:  # warm start (e.g. a policy trained on another model)
+        check_same_variables(variables, init_params, "init_params")
+        variables = jax.tree.map(jnp.asarray, init_params)
+    tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
+                     optax.adam(learning_rate=_learning_rate(config), eps=1e-5))
+    train_state = TrainState.create(apply_fn=network.apply, params=variables, tx=tx)
+    obs, env_state = jax.vmap(build.env.reset, in_axes=(0, None))(
+        jax.random.split(reset_key, num_envs), env_params)
+    return RunnerState(train_state, env_state, obs, jnp.ones(num_envs, bool), hidden0,
+                       jnp.zeros(num_envs), jnp.zeros(num_envs, jnp.int32), runner_key)
+
+
+def _learning_rate(config: AgentConfig) -> Any:
+    """``agent.lr``, annealed linearly to zero over the updates where ``agent.anneal_lr``."""
+    if not config.anneal_lr:
+        return config.lr
+
+    def learning_rate(count):
+        fraction = 1.0 - (count // (config.num_minibatches * config.update_epochs)
+                          ) / config.num_updates
+        return config.lr * fraction
+
+    return learning_rate
+
+
+def _chunk(build: _Build, runner: RunnerState, chunk_index: jax.Array, env_params: Any,
+           eval_env_params: Any, eval_steps: int, eval_bounds: Any):
+    """``agent.updates_per_eval`` updates, then one deterministic evaluation."""
+    config = build.config
+    update_indices = chunk_index * config.updates_per_eval + jnp.arange(config.updates_per_eval)
+    runner, metrics = jax.lax.scan(
+        lambda r, i: _update_step(build, r, i, env_params), runner, update_indices)
+    rng, eval_key = jax.random.split(runner.rng)
+    evaluation = evaluate_policy(build.env, eval_env_params, build.network,
+                                 runner.train_state.params, eval_key, config.eval_envs,
+                                 eval_steps, build.has_distance, eval_bounds)
+    evaluation["timesteps"] = metrics["timesteps"][-1]
+    return runner._replace(rng=rng), (metrics, evaluation)
+
+
+def _apply_step(network: Any, params: Any, hidden: jax.Array, obs: jax.Array, reset: jax.Array):
+    """One time step for a batch: [B, H], [B, D], [B] -> hidden, pi, value [B]."""
+    hidden, pi, value = network.apply(params, hidden, obs[None], reset[None])
+    return hidden, pi, value[0]
+
+
+def _update_step(build: _Build, runner: RunnerState, update_index: jax.Array, env_params: Any):
+    """One PPO update: a rollout, its advantages, ``agent.update_epochs`` epochs of minibatch
+    steps; ``-> (runner, metrics)`` (scalars)."""
+    config = build.config
+    rollout_hidden = runner.hidden
+    runner, trajectory, episodes = _rollout(build, runner, env_params)
+    _, _, last_value = _apply_step(build.network, runner.train_state.params, runner.hidden,
+                                   runner.obs, runner.reset)
+    advantages, targets = compute_gae(
+        trajectory.reward, trajectory.value, trajectory.terminated, trajectory.truncated,
+        trajectory.bootstrap_value, last_value, config.gamma, config.gae_lambda)
+    rng, epoch_key = jax.random.split(runner.rng)
+    train_state, losses = _ppo_epochs(build, runner.train_state, epoch_key,
+                                      (trajectory, advantages, targets), rollout_hidden)
+    runner = runner._replace(train_state=train_state, rng=rng)
+    return runner, _update_metrics(build, losses, episodes, update_index)
+
+
+def _rollout(build: _Build, runner: RunnerState, env_params: Any):
+    """``agent.num_steps`` steps of every environment: ``-> (runner, trajectory [T, B],
+    episodes [T, B])``, the trajectory's ``bootstrap_value`` filled (:func:`_bootstrap_values`)."""
+    config, num_envs = build.config, build.config.num_envs
+
+    def rollout_step(runner: RunnerState, _):
+        rng, action_key, step_key = jax.random.split(runner.rng, 3)
+        params = runner.train_state.params
+        hidden, pi, value = _apply_step(build.network, params, runner.hidden, runner.obs,
+                                        runner.reset)
+        action = pi.sample(seed=action_key)[0]
+        log_prob = pi.log_prob(action[None])[0]
+        obs, env_state, reward, terminated, truncated, info = jax.vmap(
+            build.env.step, in_axes=(0, 0, 0, None))(
+            jax.random.split(step_key, num_envs), runner.env_state,
+            to_env_action(action, build.low, build.high), env_params)
+        done = jnp.logical_or(terminated, truncated)
+        episode_return = runner.episode_return + reward
+        episode_length = runner.episode_length + 1
+        transition = Transition(
+            runner.obs, runner.reset, action, log_prob, value,
+            reward * config.reward_scale, terminated, truncated, None)
+        episode = {
+            "done": done,
+            "terminated": terminated,
+            "return": episode_return,
+            "length": episode_length,
+            "distance": info["distance_m"] if build.has_distance else jnp.zeros(num_envs),
+        }
+        runner = RunnerState(
+            runner.train_state, env_state, obs, done, hidden,
+            jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length), rng)
+        return runner, (transition, episode, (info["final_observation"], hidden))
+
+    runner, (trajectory, episodes, finals) = jax.lax.scan(
+        rollout_step, runner, None, config.num_steps)
+    trajectory = trajectory._replace(
+        bootstrap_value=_bootstrap_values(build, runner.train_state.params, *finals))
+    return runner, trajectory, episodes
+
+
+def _bootstrap_values(build: _Build, params: Any, final_obs: jax.Array, hidden: jax.Array
+                      ) -> jax.Array:
+    """V(final observation) of every rollout step in one batched call: ``final_obs [T, B,
+    obs_dim]`` (gymnax's ``info["final_observation"]``, the observation after step t before
+    any reset) seen with ``hidden [T, B, H]``, the policy state after step t's observation
+    -> ``[T, B]``. The parameters do not change during a rollout, so this is what calling
+    the critic at every step would give, with T times fewer (and larger) calls."""
+    num_steps, num_envs = build.config.num_steps, build.config.num_envs
+    flat = lambda x: x.reshape(1, num_steps * num_envs, *x.shape[2:])  # noqa: E731
+    _, _, values = build.network.apply(params, flat(hidden)[0], flat(final_obs),
+                                       jnp.zeros((1, num_steps * num_envs), bool))
+    return values.reshape(num_steps, num_envs)
+
+
+def _ppo_epochs(build: _Build, train_state: TrainState, rng: jax.Array, data: tuple,
+                rollout_hidden: jax.Array) -> tuple[TrainState, dict]:
+    """``agent.update_epochs`` passes of clipped-PPO minibatch steps over ``data`` =
+    (trajectory [T, B], advantages [T, B], targets [T, B]); recurrent policies take whole
+    sequences from ``rollout_hidden`` [B, H]. ``-> (train_state, losses [epochs, minibatches])``."""
+    config = build.config
+
+    def minibatch_step(train_state: TrainState, minibatch):
+        hidden, batch, advantage, target = minibatch
+        (total, aux), grads = jax.value_and_grad(ppo_loss, has_aux=True)(
+            train_state.params, build.network, hidden, batch, advantage, target, config)
+        return train_state.apply_gradients(grads=grads), {"total_loss": total, **aux}
+
+    def epoch_step(carry, _):
+        train_state, rng = carry
+        rng, permute_key = jax.random.split(rng)
+        if config.recurrent:
+            hidden, batches = sequence_minibatches(permute_key, data, rollout_hidden,
+                                                   config.num_minibatches)
+        else:
+            hidden, batches = step_minibatches(permute_key, data, config.num_minibatches)
+        train_state, losses = jax.lax.scan(minibatch_step, train_state, (hidden, *batches))
+        return (train_state, rng), losses
+
+    (train_state, _), losses = jax.lax.scan(
+        epoch_step, (train_state, rng), None, config.update_epochs)
+    return train_state, losses
+
+
+def _update_metrics(build: _Build, losses: dict, episodes: dict, update_index: jax.Array
+                    ) -> dict[str, jax.Array]:
+    """The update's mean losses and the episodes that ended in its rollout."""
+    config, done = build.config, episodes["done"]
+    metrics = {k: v.mean() for k, v in losses.items()}
+    metrics.update({
+        "timesteps": (update_index + 1) * config.num_steps * config.num_envs,
+        "episodes": done.sum(),
+        "mean_return": _masked_mean(episodes["return"], done),
+        "mean_length": _masked_mean(episodes["length"].astype(jnp.float32), done),
+        "success_rate": _masked_mean(episodes["terminated"].astype(jnp.float32), done),
+        "final_distance_m": (_masked_mean(episodes["distance"], done)
+                             if build.has_distance else jnp.nan),
+    })
+    return metrics
 
 
 def check_same_variables(expected: Any, given: Any, what: str) -> None:

@@ -65,7 +65,7 @@ def dry_run_flag(arguments: Sequence[str]) -> list[str]:
     """The command line with ``--dry-run`` (or ``--plan``) replaced by ``dry_run=true``."""
     flags = ("--dry-run", "--plan")
     rest = [argument for argument in arguments if argument not in flags]
-    return rest + ["dry_run=true"] if len(rest) < len(arguments) else rest
+    return [*rest, "dry_run=true"] if len(rest) < len(arguments) else rest
 
 
 # ---------------------------------------------------------------------------------------------

@@ -48,25 +48,20 @@ _SPLIT_KEYS = ("train_fraction", "split_seed")
 _NON_DETERMINING_AGENT_KEYS = ("progress",)
 
 
-# settings added later (to the simulated arm, the model's training, the env's reward), left out
-# of a spec while they have their default, so that configs that do not use them keep the
-# artifact keys they had
-_UNSET_LATER = {"session_std": {}, "replay": None, "loss": "mse", "command_change_cost": 0.0,
-                "include_error_integral": False, "error_integral_decay": 0.8,
-                "goal_agreement_mm": None}
+# The version of each stage's spec. A change to what a stage's artifact holds or to how its spec is
+# formed (a new setting, a setting renamed) raises that stage's number: every artifact of the
+# stage, and through their input keys every artifact downstream, is then made anew, once. Every
+# setting of the composed config is in its stage's spec with its value, defaults included.
+SPEC_VERSIONS = {"collect": 2, "align": 2, "calibrate": 2, "fit_model": 2, "train_ppo": 2,
+                 "evaluate": 2, "control": 2}
 
 
 def _container(node: Any) -> Any:
-    return _without_unset(OmegaConf.to_container(node, resolve=True))
+    return OmegaConf.to_container(node, resolve=True)
 
 
-def _without_unset(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _without_unset(v) for k, v in value.items()
-                if not (k in _UNSET_LATER and v == _UNSET_LATER[k])}
-    if isinstance(value, list):
-        return [_without_unset(v) for v in value]
-    return value
+def _versioned(stage: str, spec: dict[str, Any]) -> dict[str, Any]:
+    return {"spec_version": SPEC_VERSIONS[stage], **spec}
 
 
 def collect_spec(cfg: Any) -> Spec:
@@ -80,7 +75,7 @@ def collect_spec(cfg: Any) -> Spec:
         for where in ("data_dir", "pattern", "files", "num_runs"):
             robot.pop(where, None)
         files = {p.name: recording_digest(p) for p in list_recordings(cfg.robot)}
-        return {"robot": robot, "files": files}, {}
+        return _versioned("collect", {"robot": robot, "files": files}), {}
     if kind is RobotKind.ros2:
         for setting in _ROS2_OPERATIONAL:
             robot.pop(setting, None)
@@ -88,19 +83,19 @@ def collect_spec(cfg: Any) -> Spec:
         # replayed commands are keyed by the recordings' content, not by where they lie
         robot["replay"] = {"kind": robot["replay"]["kind"], "files": {
             p.name: recording_digest(p) for p in list_recordings(cfg.robot.replay)}}
-    return {"robot": robot, "exploration": _container(cfg.exploration)}, {}
+    return _versioned("collect", {"robot": robot, "exploration": _container(cfg.exploration)}), {}
 
 
 def align_spec(cfg: Any) -> Spec:
-    return ({"align": _container(cfg.dataset.align)},
+    return (_versioned("align", {"align": _container(cfg.dataset.align)}),
             {"collect": artifact_key(*collect_spec(cfg))})
 
 
 def calibrate_spec(cfg: Any) -> Spec:
     """The simulator fitted to the aligned runs: the calibration settings and the rate its
     errors are scored at."""
-    spec = {"calibration": _container(cfg.calibration),
-            "dataset": {"model_hz": float(cfg.dataset.model_hz)}}
+    spec = _versioned("calibrate", {"calibration": _container(cfg.calibration),
+                                    "dataset": {"model_hz": float(cfg.dataset.model_hz)}})
     return spec, {"align": artifact_key(*align_spec(cfg))}
 
 
@@ -118,26 +113,19 @@ def fit_model_spec(cfg: Any) -> Spec:
     dataset = _container(cfg.dataset)
     protocol = model_protocol(cfg)
     chosen = _MODEL_DATASET_KEYS + (_SPLIT_KEYS if protocol is ModelProtocol.split else ())
-    spec = {"model": _container(cfg.model),
-            "dataset": {**{k: dataset[k] for k in chosen}, "protocol": protocol.value}}
+    spec = _versioned("fit_model", {
+        "model": _container(cfg.model),
+        "dataset": {**{k: dataset[k] for k in chosen}, "protocol": protocol.value}})
     return spec, {"align": artifact_key(*align_spec(cfg))}
 
 
 def env_spec(cfg: Any) -> dict[str, Any]:
-    """``cfg.env`` as keys see it: the robustness settings only where they differ from their
-    defaults (so that the keys of configs without them are those they had before they existed),
-    and no ``env.models`` (where those lie does not matter, their keys are inputs)."""
+    """``cfg.env`` as keys see it: without ``env.models`` (where those lie does not matter, their
+    keys are inputs) and, for absolute actions, without the incremental step (unused)."""
     env = _container(cfg.env)
-    if int(env.get("ensemble_seeds", 1)) == 1:
-        env.pop("ensemble_seeds", None)
     env.pop("models", None)
     if not incremental_actions(env):
-        env.pop("action_mode", None)
         env.pop("action_step_kpa", None)
-    randomization = {name: value for name, value in (env.pop("randomization", None) or {}).items()
-                     if float(value) != 0.0}
-    if randomization:
-        env["randomization"] = randomization
     return env
 
 
@@ -161,10 +149,8 @@ def train_ppo_spec(cfg: Any) -> Spec:
     agent = _container(cfg.agent)
     for name in _NON_DETERMINING_AGENT_KEYS:
         agent.pop(name, None)
-    for name in ("init_policy", "init_policy_seed", "init_policy_log_std"):
-        if agent.get(name) is None:  # cold starts keep the keys they had before warm starts
-            agent.pop(name, None)
-    spec: dict[str, Any] = {"env": env_spec(cfg), "agent": agent, "seed": int(cfg.seed)}
+    spec: dict[str, Any] = _versioned("train_ppo", {"env": env_spec(cfg), "agent": agent,
+                                                    "seed": int(cfg.seed)})
     if agent.get("init_policy"):  # a warm start: the starting policy's content decides too
         from pipeline.rl.policy_io import init_policy_file  # JAX only where a policy is read
 
@@ -198,7 +184,8 @@ def evaluation_twins(cfg: Any) -> dict[str, dict[str, Any]]:
 def evaluate_spec(cfg: Any) -> Spec:
     """The evaluation settings and env; the policies, the other models (``evaluation.models``)
     and, for the cross-model protocol, each group's policies and the model they meet."""
-    spec = {"evaluation": _container(cfg.evaluation), "env": env_spec(cfg)}
+    spec = _versioned("evaluate", {"evaluation": _container(cfg.evaluation),
+                                   "env": env_spec(cfg)})
     inputs = {f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
               for name, variant in policy_configs(cfg).items()}
     spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do
@@ -254,7 +241,8 @@ def control_spec(cfg: Any) -> Spec:
             robot.pop(setting, None)
         robot.pop("twin", None)  # the twin is another process: its settings are not ours
         control.pop("arm_seed", None)
-    return {"control": control, "robot": robot}, {"train_ppo": control_policy_key(cfg)}
+    return (_versioned("control", {"control": control, "robot": robot}),
+            {"train_ppo": control_policy_key(cfg)})
 
 
 SPECS = {"collect": collect_spec, "align": align_spec, "fit_model": fit_model_spec,

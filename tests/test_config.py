@@ -85,13 +85,13 @@ def test_experiment_paper_keeps_the_papers_lstm_while_the_default_is_a_gru(make_
     assert not paper.model.step_size and list(paper.model.step_decays) == []
 
 
-def test_settings_a_simulated_arm_does_not_use_stay_out_of_its_keys(make_cfg):
+def test_the_session_spread_of_a_simulated_arm_is_part_of_its_keys(make_cfg):
     from pipeline import keys
 
     cfg = make_cfg()
     spec, _ = keys.collect_spec(cfg)
-    assert "session_std" not in spec["robot"]["physics"] and "replay" not in spec["robot"]
-    assert "session_std" not in keys.calibrate_spec(cfg)[0]["calibration"]["init"]
+    assert spec["spec_version"] == keys.SPEC_VERSIONS["collect"]
+    assert not spec["robot"]["physics"]["session_std"] and spec["robot"]["replay"] is None
     spread = make_cfg("+robot.physics.session_std={bend_gain:0.01}")
     assert keys.collect_spec(spread)[0]["robot"]["physics"]["session_std"] == {"bend_gain": 0.01}
     assert keys.key("collect", spread) != keys.key("collect", cfg)

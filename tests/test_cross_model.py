@@ -169,8 +169,8 @@ def test_cross_model_needs_two_recordings_a_group_and_known_names(make_cfg, tmp_
 
 def test_evaluate_reads_each_groups_policies_and_the_other_groups_model(make_cfg, tmp_path):
     """The evaluate key's cross-model inputs are the group configs' own train_ppo and
-    fit_model keys (so the experiment script's artifacts serve it), and a config without the
-    protocol keeps the key it had before the setting existed."""
+    fit_model keys (so the experiment script's artifacts serve it), and where the protocol does
+    not run its settings do not change the key."""
     from pipeline import keys
 
     data = _recordings(tmp_path / "runs", 4)

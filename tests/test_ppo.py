@@ -378,8 +378,7 @@ def test_warm_start_policy_content_is_part_of_the_train_ppo_key(make_cfg, tmp_pa
     path = tmp_path / "start.msgpack"
     stacked_policy(path, AgentConfig(), num_seeds=1, log_std=-0.3)
     cold = key("train_ppo", make_cfg("env=gymnax"))
-    # cold starts keep the keys they had before the option existed (cached artifacts stay valid)
-    assert "init_policy" not in train_ppo_spec(make_cfg("env=gymnax"))[0]["agent"]
+    assert train_ppo_spec(make_cfg("env=gymnax"))[0]["agent"]["init_policy"] is None
     warm = key("train_ppo", make_cfg("env=gymnax", f"agent.init_policy={path}"))
     stacked_policy(path, AgentConfig(), num_seeds=1, log_std=-0.4)  # same path, new content
     rewritten = key("train_ppo", make_cfg("env=gymnax", f"agent.init_policy={path}"))

@@ -304,13 +304,13 @@ def test_members_of_different_architectures_are_refused():
 
 
 # ---- config and keys --------------------------------------------------------------------------
-def test_default_keys_do_not_see_the_robustness_settings(make_cfg):
+def test_every_env_setting_is_in_the_keys_with_its_value(make_cfg):
     cfg = make_cfg("experiment=quick")
     spec, inputs = keys.train_ppo_spec(cfg)
-    assert not {"ensemble_seeds", "models", "randomization"} & set(spec["env"])
+    assert spec["spec_version"] == keys.SPEC_VERSIONS["train_ppo"]
+    assert spec["env"]["ensemble_seeds"] == 1 and set(spec["env"]["randomization"])
+    assert "models" not in spec["env"]  # where further models lie is not part of the key
     assert set(inputs) == {"fit_model"}
-    assert not {"ensemble_seeds", "models", "randomization"} & set(
-        keys.evaluate_spec(cfg)[0]["env"])
     assert chain.ensemble_configs(cfg) == [] and keys.ensemble_entries(cfg) == {}
     # zero magnitudes spelled out are the default
     zero = make_cfg("experiment=quick", "env.randomization.gain_std=0.0", "env.ensemble_seeds=1")
@@ -331,7 +331,7 @@ def test_ensemble_and_randomization_are_part_of_the_train_ppo_key(make_cfg):
     assert keys.key("train_ppo", ensemble) != keys.key("train_ppo", base)
     randomized = make_cfg("experiment=quick", "env.randomization.max_delay_s=0.2")
     spec, _ = keys.train_ppo_spec(randomized)
-    assert spec["env"]["randomization"] == {"max_delay_s": 0.2}
+    assert {k: v for k, v in spec["env"]["randomization"].items() if v} == {"max_delay_s": 0.2}
     assert keys.key("train_ppo", randomized) != keys.key("train_ppo", base)
     other = make_cfg("experiment=quick", "env.models=[/somewhere/fit_model/abc123def456]")
     assert keys.ensemble_entries(other) == {
@@ -452,7 +452,8 @@ def test_incremental_actions_are_part_of_the_keys_and_reach_the_environment(make
     from pipeline.rl.envs.factory import common_params, observation_options
 
     base = make_cfg("experiment=quick")
-    assert "action_mode" not in keys.train_ppo_spec(base)[0]["env"]
+    assert keys.train_ppo_spec(base)[0]["env"]["action_mode"] == "absolute"
+    # the incremental step is unused by absolute actions: not part of their key
     spelled = make_cfg("experiment=quick", "env.action_mode=absolute", "env.action_step_kpa=3")
     assert keys.key("train_ppo", spelled) == keys.key("train_ppo", base)
     incremental = make_cfg("experiment=quick", "env.action_mode=incremental")
@@ -564,9 +565,9 @@ def test_conservative_goals_need_an_ensemble_and_a_positive_agreement(make_cfg, 
         validate_config(make_cfg(*overrides))
 
 
-def test_conservative_goals_are_part_of_the_key_only_when_set(make_cfg):
+def test_conservative_goals_are_part_of_the_key(make_cfg):
     base = make_cfg("experiment=quick", "env.ensemble_seeds=2")
     agreed = make_cfg("experiment=quick", "env.ensemble_seeds=2", "env.goal_agreement_mm=1.0")
     validate_config(agreed)
-    assert "goal_agreement_mm" not in keys.train_ppo_spec(base)[0]["env"]
+    assert keys.train_ppo_spec(base)[0]["env"]["goal_agreement_mm"] is None
     assert keys.key("train_ppo", agreed) != keys.key("train_ppo", base)

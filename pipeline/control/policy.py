@@ -21,9 +21,10 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from pipeline import keys
-from pipeline.config import EnvName
+from pipeline.config import ConfigError, EnvName
 from pipeline.evaluation.rollouts import policy_controller
 from pipeline.infra.artifacts import Artifact, ArtifactStore
+from pipeline.keys import SPEC_VERSIONS
 from pipeline.rl.envs.factory import environment
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 from pipeline.rl.envs.observation import observe, update_error_integral
@@ -82,6 +83,11 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
     read from its manifest and those of its inputs."""
     manifest = artifact.manifest
     spec = manifest["spec"]
+    version = spec.get("spec_version", 1)
+    if version != SPEC_VERSIONS["train_ppo"]:
+        raise ConfigError(f"{artifact.path}: a policy of train_ppo spec version {version}, this "
+                          f"version rebuilds environments of version "
+                          f"{SPEC_VERSIONS['train_ppo']}; train it anew (stage=train_ppo)")
     env_name = EnvName(spec["env"]["name"])
     if env_name is EnvName.gymnax:
         raise ValueError(f"{artifact.path}: a policy of a gymnax environment "

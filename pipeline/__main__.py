@@ -115,9 +115,12 @@ def run(cfg: Any) -> dict[str, Any]:
         while (group[0].parallel and position + len(group) < len(jobs)
                and jobs[position + len(group)].parallel == group[0].parallel):
             group.append(jobs[position + len(group)])
-        workers = max(1, min(int(cfg.train_workers), len(group)))
-        with ThreadPoolExecutor(workers) as pool:
-            artifacts = list(pool.map(run_job, group))
+        workers = min(int(cfg.train_workers), len(group))
+        if workers > 1:  # side by side (threads: each job one compiled program)
+            with ThreadPoolExecutor(workers) as pool:
+                artifacts = list(pool.map(run_job, group))
+        else:  # in this thread: stages that serve a ROS 2 graph install signal handlers
+            artifacts = [run_job(job) for job in group]
         for job, artifact in zip(group, artifacts, strict=True):
             if job.result:
                 results[job.stage.value] = artifact

@@ -70,7 +70,7 @@ def test_a_lab_arm_file_may_set_its_own_bounds(tmp_path, make_cfg):
                                         "safety_bounds:\n  watchdog_s: 2.0\n")
     cfg = make_cfg("robot=ros2", "robot.watchdog_s=1.5", "robot.safety_bounds.watchdog_s=2.0")
     validate_config(cfg, "lab_arm", [tmp_path])
-    with pytest.raises(ConfigError, match="robot.safety_bounds.watchdog_s=2.0 differs from 1.0"):
+    with pytest.raises(ConfigError, match=r"robot\.safety_bounds\.watchdog_s=2\.0 differs from 1\.0"):
         validate_config(cfg, "ros2")
 
 

@@ -31,7 +31,7 @@ pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros
 pytestmark = pytest.mark.ros
 
 TIME_SCALE = 4.0
-ROS = ["robot=ros2", f"robot.time_scale={TIME_SCALE}", "robot.watchdog_s=1.0",
+ROS = ["robot=ros2", "robot.rehearsal=true", f"robot.time_scale={TIME_SCALE}", "robot.watchdog_s=1.0",
        "robot.stop_timeout_s=2.0", "robot.startup_timeout_s=60", "control.flush_every_s=0.2"]
 PRELOAD = [2.0, 2.0, 2.0]
 

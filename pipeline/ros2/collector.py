@@ -28,7 +28,7 @@ import datetime as _dt
 import logging
 import shutil
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -229,9 +229,10 @@ class Session:
     """One collect session on the arm: runs played out, streams recorded, a safe stop."""
 
     def __init__(self, robot: Any, link: ArmLink, gate: CommandGate, recorder: ChunkedRecorder,
-                 signals: StopSignals):
+                 signals: StopSignals, clock: Callable[[], float] = time.monotonic):
         self.robot, self.link, self.gate, self.recorder = robot, link, gate, recorder
         self.signals = signals
+        self.clock = clock  # wall seconds (monotonic); injectable for tests
         self.time_scale = float(robot.time_scale)
         self.period_wall_s = 1.0 / (float(robot.control_hz) * self.time_scale)
         self.watchdog_wall_s = float(robot.watchdog_s) / self.time_scale
@@ -242,18 +243,18 @@ class Session:
         self.max_missed = int(robot.max_missed_periods)
         self.missed_in_row = 0
         self.stalls: list[dict[str, Any]] = []  # periods skipped after a stall, per event
-        self.clock = ClockCheck(float(robot.max_pose_latency_s))
+        self.clock_check = ClockCheck(float(robot.max_pose_latency_s))
         self._next_sources = 0.0
         self._last_stamp = -1
         self._last_receipt: int | None = None
-        self._next_flush = time.monotonic() + self.flush_every_s
+        self._next_flush = self.clock() + self.flush_every_s
 
     # ---- start ---------------------------------------------------------------------------------
     def wait_for_arm(self) -> None:
         """Wait for a first pose, the arm side's handshake and its subscription to the commands;
         refuse (:class:`ArmRefused`, one line) if they lack or the handshake does not match."""
         robot = self.robot
-        deadline = time.monotonic() + float(robot.startup_timeout_s)
+        deadline = self.clock() + float(robot.startup_timeout_s)
         mismatch_since, problem = None, None
         while True:
             if self.signals.received:
@@ -265,10 +266,10 @@ class Session:
                 problem = handshake_problem(answer, robot, self.link.command_subscribers())
                 if problem is None:
                     break
-                mismatch_since = mismatch_since or time.monotonic()
-                if time.monotonic() - mismatch_since > _HANDSHAKE_GRACE_S:
+                mismatch_since = mismatch_since or self.clock()
+                if self.clock() - mismatch_since > _HANDSHAKE_GRACE_S:
                     raise ArmRefused(f"refusing to publish on {robot.command_topic}: {problem}")
-            if time.monotonic() > deadline:
+            if self.clock() > deadline:
                 raise ArmRefused(problem or self._startup_problem())
             self.link.spin_once(_SPIN_SLICE_S)
         self.check_sources(force=True)
@@ -327,7 +328,7 @@ class Session:
             if start is not None:
                 due = start + i * self.period_wall_s
                 self._wait_until(due)
-                missed = self._missed(run_id, i, time.monotonic() - due)
+                missed = self._missed(run_id, i, self.clock() - due)
                 if missed:
                     i += missed  # the overdue commands are never sent
                     if i >= len(commands):
@@ -335,10 +336,10 @@ class Session:
                     projected = last  # this period holds the last command
                 else:
                     self.missed_in_row = 0
-            due = start + i * self.period_wall_s if start is not None else time.monotonic()
+            due = start + i * self.period_wall_s if start is not None else self.clock()
             safe = self.gate.check(projected)
             stamp = self.link.publish(safe)
-            self.stats.command_lateness_ms.append((time.monotonic() - due) * 1e3)
+            self.stats.command_lateness_ms.append((self.clock() - due) * 1e3)
             if start is None:
                 start = due
                 end = stamp + round(len(commands) * self.period_wall_s * NS_PER_S)
@@ -383,12 +384,12 @@ class Session:
         """Receive poses until the monotonic ``deadline``, checking stops and flushing chunks."""
         while True:
             self._check()
-            remaining = deadline - time.monotonic()
+            remaining = deadline - self.clock()
             if remaining <= 0:
                 return
             self.link.spin_once(min(remaining, _SPIN_SLICE_S))
             self._drain()
-            if time.monotonic() >= self._next_flush:
+            if self.clock() >= self._next_flush:
                 self.recorder.flush()
                 self._next_flush += self.flush_every_s
 
@@ -401,7 +402,7 @@ class Session:
             raise ArmFault(f"the poses on {robot.pose_topic} changed frame_id from "
                            f"'{self.link.frame_id}' to '{self.link.frame_id_changed}': two "
                            f"sources of poses? (a digital twin left running, a bag replay)")
-        now = time.monotonic()
+        now = self.clock()
         if not force and now < self._next_sources:
             return
         self._next_sources = now + _SOURCES_EVERY_S
@@ -416,7 +417,7 @@ class Session:
                            f"(stop the digital twin or the bag replay beside the motion capture)")
 
     def check_clock(self, stamp_ns: int, receipt_ns: int) -> None:
-        problem = self.clock.problem(stamp_ns, receipt_ns)
+        problem = self.clock_check.problem(stamp_ns, receipt_ns)
         if problem is not None:
             raise ArmFault(f"clocks: {problem} (pose topic {self.robot.pose_topic})")
 
@@ -457,8 +458,8 @@ class Session:
             return
         preload = self.gate.check(self.gate.preload)
         self.link.publish(preload)
-        settle_until = time.monotonic() + _SETTLE_S
-        while time.monotonic() < settle_until:
+        settle_until = self.clock() + _SETTLE_S
+        while self.clock() < settle_until:
             self.link.spin_once(_SPIN_SLICE_S)
         # Poses from now on show the arm going to the preload, which no command row explains:
         # they are not recorded.

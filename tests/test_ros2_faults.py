@@ -173,7 +173,7 @@ def test_the_float64_check_refuses_inside_collects_publish_path(tmp_path, monkey
     clock = Clock()
     link = FakeLink(clock)
     run = session(tmp_path, link, clock)
-    monkeypatch.setattr(run.gate, "project", lambda p: np.asarray(p, float) + [4.5, 0, 0])
+    monkeypatch.setattr(run.gate, "project", lambda p: np.asarray(p, float) + np.array([4.5, 0, 0]))
     stopped = run.play([("r0", walk())])
     assert isinstance(stopped.error, UnsafeCommandError)
     assert ("refusing pressure command [7.5, 2.0, 2.0] kPa outside the arm's rating"

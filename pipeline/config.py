@@ -403,6 +403,9 @@ class RosbagRobotConfig(ImportRobotConfig, RosTopicsConfig):
     """ROS 2 bags (sqlite3 or MCAP folders) recorded from the ros2 topics, imported."""
 
     pattern: str = "*"  # matched in data_dir; only bag folders (with metadata.yaml) are read
+    # largest offset of the poses' log times from their header stamps [s]: beyond it (or
+    # stamps after their log times) the clocks disagree and the bag is refused
+    max_clock_offset_s: float = 0.25
 
 
 # --------------------------------------------------------------------------------------------

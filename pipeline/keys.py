@@ -36,7 +36,7 @@ _ROS2_OPERATIONAL = ("node_name", "domain_id", "startup_timeout_s", "flush_every
 # Checks of the commands and data, not what is recorded: a run that passes them records the same
 # data whatever they are (the limits, which shape the commands, stay in the key).
 _SAFETY_ONLY = ("rating", "workspace", "command_timeout_s", "guard", "safety_bounds",
-                "max_missed_periods", "max_pose_latency_s")
+                "max_missed_periods", "max_pose_latency_s", "max_clock_offset_s")
 # the dataset settings of the model (alignment has its own key); the split's only for it
 _MODEL_DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order")
 _SPLIT_KEYS = ("train_fraction", "split_seed")

@@ -21,13 +21,14 @@ from pipeline.data.schemas import CMD_COLUMNS
 from pipeline.infra.artifacts import ArtifactStore
 from tests.conftest import compose_config
 from tests.control_fixtures import SMALL, goals_mm, write_policy
+from tests.ros_required import require_ros
 from tests.test_ros2_link import (
     Pipeline,
     received,
     stop,
 )
 
-pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
+require_ros("rclpy")
 pytestmark = pytest.mark.ros
 
 TIME_SCALE = 4.0

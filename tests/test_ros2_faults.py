@@ -17,8 +17,9 @@ from pipeline.ros2.guard import Deadman, GuardNode
 from pipeline.ros2.handshake import answer_of, handshake_problem
 from pipeline.ros2.node import ArmRefused
 from pipeline.ros2.recorder import ChunkedRecorder
+from tests.ros_required import require_ros
 
-pytest.importorskip("std_msgs", reason="needs the ROS 2 extra (pip install -e .[ros])")
+require_ros("std_msgs")
 
 NS = 1_000_000_000
 PRELOAD = [2.0, 2.0, 2.0]
@@ -398,3 +399,14 @@ def test_the_guard_refuses_a_second_publisher_and_holds_the_preload(guard, caplo
     assert node_.ignored == 2 and node_.forwarded == 1
     assert ("2 publishers on /control_pressure: rosbag2_player, sorolearn_collect; exactly one "
             "is accepted") in caplog.text
+
+
+def test_live_goals_queue_without_growing():
+    from pipeline.control.ros_arm import MAX_QUEUED_GOALS, RosArm
+
+    arm = object.__new__(RosArm)  # only the goal queue
+    arm._goals = []
+    for i in range(10):
+        arm._on_goal(SimpleNamespace(point=SimpleNamespace(x=float(i), y=0.0, z=0.0)))
+    assert MAX_QUEUED_GOALS == 8
+    assert [g[0] for g in arm.take_goals()] == [2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]

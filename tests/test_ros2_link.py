@@ -26,8 +26,9 @@ from pipeline.keys import key
 from pipeline.stages.align import align
 from pipeline.stages.collect import STAGE
 from tests.conftest import compose_config
+from tests.ros_required import require_ros
 
-pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
+require_ros("rclpy")
 pytestmark = pytest.mark.ros
 
 TIME_SCALE = 4.0

@@ -81,3 +81,18 @@ def test_an_unbounded_deadman_fails_on_the_command_line_with_one_line(tmp_path):
     assert ("ConfigError: robot.command_timeout_s=1000000000.0 s exceeds its bound "
             "robot.safety_bounds.command_timeout_s=2.0 s") in output
     assert "Traceback" not in output and output.count("ERROR") == 1
+
+
+def test_without_the_ros_extra_the_safety_tests_fail_loudly(monkeypatch):
+    import sys
+
+    from tests.ros_required import require_ros
+
+    monkeypatch.setitem(sys.modules, "rclpy", None)  # import rclpy -> ImportError
+    monkeypatch.delenv("SOROLEARN_WITHOUT_ROS", raising=False)
+    with pytest.raises(pytest.fail.Exception, match=r"the ROS 2 extra is not installed .*"
+                                                    r"`make setup`"):
+        require_ros("rclpy")
+    monkeypatch.setenv("SOROLEARN_WITHOUT_ROS", "1")
+    with pytest.raises(pytest.skip.Exception, match="SOROLEARN_WITHOUT_ROS=1"):
+        require_ros("rclpy")

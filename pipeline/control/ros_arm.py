@@ -12,6 +12,7 @@ pose times are their header stamps on the same clock. Live goals arrive as
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,9 @@ from pipeline.data.ros_messages import NS_PER_S, message_class
 from pipeline.ros2.collector import ArmLink, Session
 from pipeline.ros2.gate import CommandGate
 
+log = logging.getLogger(__name__)
 _SPIN_SLICE_S = 0.002  # wall: longest wait inside the executor
+MAX_QUEUED_GOALS = 8  # live goals kept between two periods (the oldest dropped beyond)
 
 
 class RosArm:
@@ -42,6 +45,10 @@ class RosArm:
 
     def _on_goal(self, message: Any) -> None:
         point = message.point
+        if len(self._goals) >= MAX_QUEUED_GOALS:  # only the latest goals matter
+            dropped = self._goals.pop(0)
+            log.warning("control: more than %d live goals queued within a period: dropped %s m",
+                        MAX_QUEUED_GOALS, dropped.tolist())
         self._goals.append(np.array([point.x, point.y, point.z], np.float64))
 
     def _arm_time(self, ns: int) -> float:

@@ -190,11 +190,13 @@ def test_the_float64_check_refuses_inside_collects_publish_path(tmp_path, monkey
      "the poses on /mocap/pose changed frame_id from 'mocap' to 'sorolearn_twin'"),
     ({"listeners": ["sorolearn_guard", "rosbag2_recorder"]},
      "2 subscribers of /control_pressure: sorolearn_guard, rosbag2_recorder"),
+    ({"listeners": []}, "the guard 'sorolearn_guard' no longer subscribes to /control_pressure"),
 ])
 def test_collect_stops_on_a_second_source_or_listener(tmp_path, change, message):
     clock = Clock()
     link = FakeLink(clock)
     run = session(tmp_path, link, clock)
+    run.guard_node = "sorolearn_guard"  # as the handshake left it
 
     def plan():
         yield "r0", walk(3)

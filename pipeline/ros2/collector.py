@@ -245,6 +245,7 @@ class Session:
         self.stalls: list[dict[str, Any]] = []  # periods skipped after a stall, per event
         self.clock_check = ClockCheck(float(robot.max_pose_latency_s))
         self._next_sources = 0.0
+        self.guard_node: str | None = None  # the node that answered the handshake
         self._last_stamp = -1
         self._last_receipt: int | None = None
         self._next_flush = self.clock() + self.flush_every_s
@@ -272,6 +273,7 @@ class Session:
             if self.clock() > deadline:
                 raise ArmRefused(problem or self._startup_problem())
             self.link.spin_once(_SPIN_SLICE_S)
+        self.guard_node = str(answer["node"])
         self.check_sources(force=True)
         log.info("collect: arm ready (poses on %s from frame '%s'; the %s '%s' answers for the "
                  "arm with the rating %s and is the only subscriber of %s)", robot.pose_topic,
@@ -410,6 +412,10 @@ class Session:
         if len(listeners) > 1:
             raise ArmFault(f"{len(listeners)} subscribers of {robot.command_topic}: "
                            f"{', '.join(listeners)}; only the guard (or the twin) may listen")
+        if self.guard_node is not None and listeners != [self.guard_node]:
+            raise ArmFault(f"the guard '{self.guard_node}' no longer subscribes to "
+                           f"{robot.command_topic} (stopped or killed): nothing guards the "
+                           f"valves; stopping")
         publishers = self.link.pose_publishers()
         if len(publishers) > 1:
             raise ArmFault(f"{len(publishers)} publishers on {robot.pose_topic}: "

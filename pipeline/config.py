@@ -359,8 +359,10 @@ class SafetyBounds:
 class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     """A real arm over ROS 2 (rclpy); durations in the arm's seconds unless marked wall.
 
-    ``time_scale`` is arm seconds per wall second: 1 on a real arm; the digital twin and collect
-    can both run faster (same value on both sides) so that a rehearsal or a test takes seconds.
+    ``time_scale`` is arm seconds per wall second: 1 on a real arm; in a rehearsal
+    (``rehearsal=true``, on the twin's own domain) the digital twin and the stage can both run
+    faster (same value on both sides) so that a rehearsal or a test takes seconds. The rating and
+    ``safety_bounds`` are pinned by the robot's YAML file (docs/safety.md).
     """
 
     name: str = "ros2"

@@ -157,7 +157,7 @@ def run_session(cfg: Any, deployment: Deployment, schedule: GoalSchedule, writer
               f"command sent in them), {outcome.holds} period(s) held the last command (rows "
               f"with an `event` in periods.parquet)." if outcome.missed_periods or outcome.holds
               else "")
-    served = ("every goal served, with gaps." if stalls else "every goal served.")
+    served = "the goals were served with gaps." if stalls else "every goal served."
     header = [f"Policy `{deployment.artifact.path}` seed {deployment.seed}, on "
               f"robot={robot.name}; goals from {schedule.source}.",
               f"{summary['periods']} control periods at {deployment.control_hz:g} Hz; "

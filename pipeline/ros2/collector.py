@@ -529,7 +529,11 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
           ros_node(robot.node_name, arm_domain(robot)) as (node, executor)):
         session = Session(robot, ArmLink(node, executor, robot), gate, recorder, signals)
         try:
-            session.wait_for_arm()
+            try:
+                session.wait_for_arm()
+            except ArmRefused:
+                shutil.rmtree(recovery, ignore_errors=True)  # nothing was recorded
+                raise
             interruption = session.play(
                 (f"ros2-{i:03d}", run) for i, run in enumerate(plan.commands))
         finally:

@@ -40,7 +40,7 @@ def assert_safe_wire(rows: list[dict], limits: dict = LIMITS) -> None:
 
 
 def test_collect_stopped_5_s_ends_at_the_preload_without_a_burst(tmp_path, ros_domain):
-    pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=200", "robot.watchdog_s=1.0")
+    pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=200")
     record = tmp_path / "twin.jsonl"
     twin = pipe.start_twin(record)
     try:

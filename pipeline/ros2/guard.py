@@ -82,7 +82,7 @@ class SinglePublisher:
             self.refusal = (f"{len(publishers)} publishers on {self.topic}: "
                             f"{', '.join(publishers)}; exactly one is accepted (a second collect "
                             f"or control, a bag replay?): nothing more is forwarded, the preload "
-                            f"holds until the guard is restarted")
+                            f"holds until this node is restarted")
         return self.refusal
 
 

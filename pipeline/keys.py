@@ -56,6 +56,15 @@ def _container(node: Any) -> Any:
     return _without_unset(OmegaConf.to_container(node, resolve=True))
 
 
+def _robot(cfg: Any) -> dict[str, Any]:
+    """The robot's settings for a spec, without the rating's valve count (added later; validation
+    holds it equal to ``robot.n_valves`` on a real arm), so that keys stay those they had."""
+    robot = _container(cfg.robot)
+    if isinstance(robot.get("rating"), dict):
+        robot["rating"].pop("n_valves", None)
+    return robot
+
+
 def _without_unset(value: Any) -> Any:
     if isinstance(value, dict):
         return {k: _without_unset(v) for k, v in value.items()
@@ -67,7 +76,7 @@ def _without_unset(value: Any) -> Any:
 
 def collect_spec(cfg: Any) -> Spec:
     """The raw data: the robot and, where it is driven, the exploration."""
-    robot = _container(cfg.robot)
+    robot = _robot(cfg)
     for setting in _SAFETY_ONLY:
         robot.pop(setting, None)
     kind = RobotKind(cfg.robot.kind)
@@ -178,7 +187,7 @@ def train_ppo_spec(cfg: Any) -> Spec:
         spec["init_policy_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
     inputs: dict[str, str] = {}
     if env_name is EnvName.sim:
-        spec["robot"] = _container(cfg.robot)
+        spec["robot"] = _robot(cfg)
         spec["model_hz"] = float(cfg.dataset.model_hz)
     elif env_name is EnvName.learned:
         spec["limits"] = _container(cfg.robot.limits)
@@ -345,7 +354,7 @@ def control_spec(cfg: Any) -> Spec:
     if cfg.control.goals_csv:
         control["goals_csv_sha256"] = hashlib.sha256(
             Path(str(cfg.control.goals_csv)).read_bytes()).hexdigest()
-    robot = _container(cfg.robot)
+    robot = _robot(cfg)
     if RobotKind(cfg.robot.kind) is RobotKind.ros2:
         for setting in _ROS2_OPERATIONAL:
             robot.pop(setting, None)

@@ -114,13 +114,13 @@ def test_a_second_publisher_sends_the_twin_to_the_preload(tmp_path, ros_domain):
         pipe.wait_for_log("collect", "run ros2-000 started", timeout_s=120)
         with ros_node("second_publisher", ros_domain) as (node, executor):
             publisher = node.create_publisher(Float64MultiArray, "/control_pressure", 10)
-            until = time.monotonic() + 2.0
-            while time.monotonic() < until:
+            until = time.monotonic() + 60.0  # discovery takes a while on a busy machine
+            while "exactly one is accepted" not in pipe.log("twin"):
+                assert time.monotonic() < until, pipe.log("twin")
                 message = Float64MultiArray()
                 message.data = [4.0, 4.0, 4.0]
                 publisher.publish(message)
                 executor.spin_once(timeout_sec=0.05)
-        pipe.wait_for_log("twin", "exactly one is accepted", timeout_s=30)
         stop(collect)
         code = stop(twin)
     finally:
@@ -135,3 +135,5 @@ def test_a_second_publisher_sends_the_twin_to_the_preload(tmp_path, ros_domain):
     later = [r for r in rows if r["receipt_ns"] > refusal["receipt_ns"]]
     assert refusal["pressures"] == PRELOAD
     assert all(r.get("ignored") for r in later)  # nothing applied after the refusal
+    # what the second publisher sent before the twin saw it on the graph may have been applied
+    # (discovery lags delivery): within the rating, and the arm ended at the preload

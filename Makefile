@@ -2,7 +2,8 @@
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
-EXTRAS ?= dev
+# the ROS 2 wheels (PyPI) are part of the default setup: the real-arm safety tests need them
+EXTRAS ?= dev,ros
 
 .DEFAULT_GOAL := help
 .PHONY: help setup setup-ros run quick test test-all lint bench figures clean
@@ -10,12 +11,12 @@ EXTRAS ?= dev
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-10s %s\n", $$1, $$2}'
 
-setup: ## create the virtual environment and install the project (editable) with test tools
+setup: ## create the virtual environment and install the project (editable), test tools and ROS 2 wheels
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --upgrade pip
 	$(BIN)/python -m pip install -e ".[$(EXTRAS)]"
 
-setup-ros: ## like setup, plus the ROS 2 wheels (robot=ros2, the digital twin, rosbag tests)
+setup-ros: ## the same as setup (kept for old instructions)
 	$(MAKE) setup EXTRAS=dev,ros
 
 run: ## run the whole pipeline on the simulated arm (the embedded default)

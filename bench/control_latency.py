@@ -2,7 +2,7 @@
 
     python -m bench control_latency
     python -m bench.control_latency [--periods 200] [--policy-file ff=PATH --policy-file rnn=PATH]
-    python -m bench.control_latency --ros [...]   # against a running twin or arm (robot=ros2)
+    python -m bench.control_latency --ros [...]   # against a running digital twin (robot=ros2)
 
 Compute latency is wall time from the pose taken to the command published, as the loop records
 it (``latency_ms`` in ``periods.parquet``): the observation, the policy's deterministic action
@@ -10,8 +10,10 @@ with its carry, the action mapping (one jitted call) and the command gate. By de
 policies are freshly initialized networks of the default agent sizes (latency does not depend on
 the weights) and the loop runs on the in-process simulated arm in simulated time, where the pose
 age is only the mocap frame's (10 ms); with ``--ros`` it runs over ROS 2 in real time
-(``robot=ros2``; start ``python -m pipeline stage=twin robot=ros2`` first), where the pose age
-includes the transport and the wait for the next period.
+(``robot=ros2 robot.rehearsal=true``; start ``python -m pipeline stage=twin robot=ros2`` first),
+where the pose age includes the transport and the wait for the next period. It never drives a
+real arm: over ROS 2 it runs as a rehearsal, on the twin's ROS domain, and starts only when the
+arm side answers as a twin (a guard's answer is refused).
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ def measure(policy: str, periods: int, policy_file: str | None, ros: bool, out: 
         goals = None
     run_cfg = _compose(out / ("ros" if ros else "sim"), "stage=control",
                        f"control.policy_file={policy_file}",
-                       *(["robot=ros2"] if ros else []))
+                       *(["robot=ros2", "robot.rehearsal=true"] if ros else []))
     if goals is None:  # a trained policy: goals from its own workspace
         from pipeline.control.policy import load_deployment
         from pipeline.infra.artifacts import ArtifactStore

@@ -39,7 +39,8 @@ def run_link(out: Path, time_scale: float, steps: int, domain: int, mocap_faults
              ) -> tuple[Path, Path]:
     """Run twin + collect once; return the collect artifact folder and the twin's record."""
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
-    common = ["robot=ros2", f"robot.time_scale={time_scale}", f"paths.output_dir={out}",
+    common = ["robot=ros2", "robot.rehearsal=true", f"robot.rehearsal_domain_id={domain}",
+              f"robot.time_scale={time_scale}", f"paths.output_dir={out}",
               f"exploration.num_steps={steps}", "robot.startup_timeout_s=60"]
     if not mocap_faults:  # measure the link, not the simulated mocap's dropouts and stamp jitter
         common += ["robot.twin.mocap.drop_prob=0", "robot.twin.mocap.burst_prob=0",

@@ -45,14 +45,14 @@ from pipeline.data.schemas import DataError
 from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
 from pipeline.infra.compile_cache import use_compilation_cache
 from pipeline.infra.devices import configure_cpu_devices
-from pipeline.ros2.node import RosUnavailableError
+from pipeline.ros2.node import ArmRefused, RosUnavailableError
 
 log = logging.getLogger("pipeline")
 
 # Errors that are the user's to fix: one message, exit status 1, no traceback.
 KNOWN_ERRORS: tuple[type[BaseException], ...] = (
     ConfigError, DataError, RecordingNotFoundError, UnsafeCommandError, MissingArtifactError,
-    CollectionInterrupted, RosUnavailableError)
+    CollectionInterrupted, RosUnavailableError, ArmRefused)
 
 
 def stage_function(stage: Stage) -> Callable[[Any], Any]:

@@ -159,6 +159,7 @@ class PressureRating:
     p_max: float = 7.0  # highest pressure of one valve [kPa]
     sum_max: float = 13.0  # the paper's P_max: highest summed pressure of all valves [kPa]
     preload: float = 2.0  # pressure of every valve at rest, where a deadman returns it [kPa]
+    n_valves: int = 3  # valves of the arm: a real arm's robot.n_valves must equal it
 
 
 @dataclass
@@ -330,16 +331,38 @@ class GuardConfig:
     """
 
     output_topic: str = "/control_pressure/guarded"
+    # std_msgs/String (JSON, latched): who answers for the arm (guard or twin) and the rating it
+    # enforces; a real-arm stage publishes only after this answer matches its config
+    handshake_topic: str = "/sorolearn/arm_handshake"
     node_name: str = "sorolearn_guard"
     max_duration_s: float | None = None  # wall seconds until it exits by itself; None: SIGINT
+
+
+@dataclass
+class SafetyBounds:
+    """Upper bounds of a real arm's safety settings, pinned like its rating.
+
+    Read from the robot's YAML file (``robot.safety_bounds``): an override of them is refused,
+    and ``robot.watchdog_s``, ``robot.command_timeout_s``, ``robot.max_missed_periods`` and
+    ``robot.max_pose_latency_s`` may only be set at or below them. In a rehearsal
+    (``robot.rehearsal=true``, the twin running faster than real time) the durations are
+    compared in wall seconds (value / ``robot.time_scale``).
+    """
+
+    watchdog_s: float = 1.0  # longest mocap silence before the preload [s]
+    command_timeout_s: float = 2.0  # longest deadman timeout of the guard and the twin [s]
+    max_missed_periods: int = 3  # most control periods a loop may be late in a row
+    max_pose_latency_s: float = 0.5  # wall: largest pose latency (receipt - header stamp)
 
 
 @dataclass
 class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     """A real arm over ROS 2 (rclpy); durations in the arm's seconds unless marked wall.
 
-    ``time_scale`` is arm seconds per wall second: 1 on a real arm; the digital twin and collect
-    can both run faster (same value on both sides) so that a rehearsal or a test takes seconds.
+    ``time_scale`` is arm seconds per wall second: 1 on a real arm; in a rehearsal
+    (``rehearsal=true``, on the twin's own domain) the digital twin and the stage can both run
+    faster (same value on both sides) so that a rehearsal or a test takes seconds. The rating and
+    ``safety_bounds`` are pinned by the robot's YAML file (docs/safety.md).
     """
 
     name: str = "ros2"
@@ -357,6 +380,18 @@ class Ros2RobotConfig(RobotConfig, RosTopicsConfig):
     startup_timeout_s: float = 10.0  # wall: wait this long for the first pose and a subscriber
     flush_every_s: float = 5.0  # wall: raw streams are written to Parquet chunks this often
     stop_timeout_s: float = 3.0  # wall: wait up to this for the preload's acknowledgement
+    # a loop (collect, control) more than one period late holds the last command; late more
+    # than this many periods in a row: the preload and a clear error
+    max_missed_periods: int = 2
+    # wall: a pose whose latency (receipt - header stamp) is negative beyond the clocks'
+    # tolerance or above this (at best, over the recent frames) means unsynchronised clocks
+    max_pose_latency_s: float = 0.25
+    safety_bounds: SafetyBounds = field(default_factory=SafetyBounds)
+    # talk to the digital twin: it runs on rehearsal_domain_id (never the arm's domain), the
+    # stages follow it there only with rehearsal=true, and its handshake must say it is a twin;
+    # only then may time_scale differ from 1
+    rehearsal: bool = False
+    rehearsal_domain_id: int = 42
     num_runs: int = 1
     reuse_incomplete: bool = False  # reuse an interrupted artifact instead of recollecting
     twin: TwinConfig = field(default_factory=TwinConfig)
@@ -370,6 +405,9 @@ class RosbagRobotConfig(ImportRobotConfig, RosTopicsConfig):
     """ROS 2 bags (sqlite3 or MCAP folders) recorded from the ros2 topics, imported."""
 
     pattern: str = "*"  # matched in data_dir; only bag folders (with metadata.yaml) are read
+    # largest offset of the poses' log times from their header stamps [s]: beyond it (or
+    # stamps after their log times) the clocks disagree and the bag is refused
+    max_clock_offset_s: float = 0.25
 
 
 # --------------------------------------------------------------------------------------------
@@ -824,22 +862,36 @@ def robot_file(choice: str, search_dirs: list[Path] | None = None) -> Path | Non
     return None
 
 
-def rating_from_file(path: Path, search_dirs: list[Path] | None = None) -> dict[str, float]:
-    """The rating a robot's YAML file sets over the schema's defaults, following the robot
-    options its defaults list extends (``defaults: [ros2, _self_]``)."""
+def _section_from_file(path: Path, section: str, schema: type,
+                       search_dirs: list[Path] | None = None) -> dict[str, Any]:
+    """The values a robot's YAML file sets for ``section`` over ``schema``'s defaults, following
+    the robot options its defaults list extends (``defaults: [ros2, _self_]``)."""
     text = OmegaConf.load(path)
-    rating = OmegaConf.structured(PressureRating)
+    values = OmegaConf.structured(schema)
     for entry in text.get("defaults") or []:
         parent = robot_file(entry, search_dirs) if isinstance(entry, str) else None
         if parent is not None and parent != path:
-            rating = OmegaConf.merge(rating, rating_from_file(parent, search_dirs))
-    rating = OmegaConf.merge(rating, text.get("rating") or {})
-    return {k: float(v) for k, v in rating.items()}
+            values = OmegaConf.merge(values, _section_from_file(parent, section, schema,
+                                                                search_dirs))
+    values = OmegaConf.merge(values, text.get(section) or {})
+    return dict(OmegaConf.to_container(values))
+
+
+def rating_from_file(path: Path, search_dirs: list[Path] | None = None) -> dict[str, float]:
+    """The pressure rating [kPa] a robot's YAML file sets over the schema's defaults, following
+    the robot options its defaults list extends (``defaults: [ros2, _self_]``)."""
+    values = _section_from_file(path, "rating", PressureRating, search_dirs)
+    return {k: float(v) for k, v in values.items() if k != "n_valves"}
+
+
+# what a real arm's YAML file pins: an override of these is refused
+_PINNED_SECTIONS = {"rating": PressureRating, "safety_bounds": SafetyBounds}
 
 
 def check_rating_source(robot: Any, choice: str | None,
                         search_dirs: list[Path] | None = None) -> None:
-    """A real arm's rating must be the one its YAML file sets: an override cannot change it."""
+    """A real arm's rating and safety bounds must be those its YAML file sets: an override
+    cannot change them."""
     if RobotKind(robot.kind) is not RobotKind.ros2:
         return
     choice = choice or str(robot.name)
@@ -847,14 +899,60 @@ def check_rating_source(robot: Any, choice: str | None,
     if path is None:
         raise ConfigError(f"robot={choice}: no conf/robot/{choice}.yaml to read the arm's rating "
                           f"from; a real arm's rating comes from its robot config file")
-    expected = rating_from_file(path, search_dirs)
-    for name, value in expected.items():
-        got = float(robot.rating[name])
-        if got != value and not (math.isnan(got) and math.isnan(value)):
-            raise ConfigError(
-                f"robot.rating.{name}={got} kPa differs from {value} kPa in {path}: the rating of "
-                f"a real arm (robot=ros2) cannot be overridden; edit {path} to change it (an "
-                f"override may tighten robot.limits instead)")
+    for section, schema in _PINNED_SECTIONS.items():
+        expected = _section_from_file(path, section, schema, search_dirs)
+        for name, value in expected.items():
+            got = float(robot[section][name])
+            if got != float(value) and not (math.isnan(got) and math.isnan(float(value))):
+                unit = " kPa" if section == "rating" and name != "n_valves" else ""
+                raise ConfigError(
+                    f"robot.{section}.{name}={robot[section][name]}{unit} differs from {value}"
+                    f"{unit} in {path}: the {section.replace('_', ' ')} of a real arm "
+                    f"(robot=ros2) cannot be overridden; edit {path} to change it (an override "
+                    f"may tighten robot.limits and the timeouts instead)")
+
+
+def _check_real_arm(cfg: Any) -> None:
+    """A real arm's settings against its pinned rating and safety bounds (``robot=ros2``)."""
+    robot = cfg.robot
+    if RobotKind(robot.kind) is not RobotKind.ros2:
+        return
+    rating, bounds = robot.rating, robot.safety_bounds
+    rehearsal, scale = bool(robot.rehearsal), float(robot.time_scale)
+    if int(robot.n_valves) != int(rating.n_valves):
+        raise ConfigError(f"robot.n_valves={robot.n_valves} differs from the arm's rating "
+                          f"robot.rating.n_valves={rating.n_valves}: the number of valves comes "
+                          f"from the rating")
+    if float(robot.limits.preload) != float(rating.preload):
+        raise ConfigError(f"robot.limits.preload={robot.limits.preload} kPa differs from the "
+                          f"arm's rating robot.rating.preload={rating.preload} kPa: a fault "
+                          f"returns the arm to the rating's preload, so the limits must use it")
+    if str(robot.command_topic) == str(robot.guard.output_topic):
+        raise ConfigError(f"robot.command_topic={robot.command_topic} is the guard's output "
+                          f"(robot.guard.output_topic): commands must go through the guard, not "
+                          f"around it")
+    stage = str(cfg.get("stage", ""))
+    if scale != 1.0 and not rehearsal and stage != "twin":
+        raise ConfigError(f"robot.time_scale={robot.time_scale}: a real arm runs in real time "
+                          f"(time_scale=1); only a rehearsal on the digital twin "
+                          f"(robot.rehearsal=true) may run faster")
+    wall = scale if rehearsal or stage == "twin" else 1.0
+    for name in ("watchdog_s", "command_timeout_s"):
+        value, bound = float(robot[name]), float(bounds[name])
+        if value / wall > bound:
+            where = f" ({value / wall:g} wall s at robot.time_scale={scale:g})" if wall != 1 else ""
+            raise ConfigError(f"robot.{name}={robot[name]} s{where} exceeds its bound "
+                              f"robot.safety_bounds.{name}={bound} s, set in the arm's robot "
+                              f"config file: a real arm's timeouts may only be shortened")
+    if not 1 <= int(robot.max_missed_periods) <= int(bounds.max_missed_periods):
+        raise ConfigError(f"robot.max_missed_periods={robot.max_missed_periods} must lie in "
+                          f"[1, robot.safety_bounds.max_missed_periods="
+                          f"{bounds.max_missed_periods}]")
+    latency = float(robot.max_pose_latency_s)
+    if not 0 < latency <= float(bounds.max_pose_latency_s):
+        raise ConfigError(f"robot.max_pose_latency_s={robot.max_pose_latency_s} s must lie in "
+                          f"(0, robot.safety_bounds.max_pose_latency_s="
+                          f"{bounds.max_pose_latency_s}] s")
 
 
 def validate_config(cfg: Any, robot_choice: str | None = None,
@@ -883,6 +981,7 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
                 f"preload between commands")
     check_rating_source(robot, robot_choice, search_dirs)
     _check_inside_rating(robot)
+    _check_real_arm(cfg)
     low, high = list(robot.workspace.low_m), list(robot.workspace.high_m)
     if len(low) != 3 or len(high) != 3 or not all(a < b for a, b in zip(low, high)):
         raise ConfigError(f"robot.workspace: low_m={low} must lie below high_m={high} (x, y, z)")

@@ -37,10 +37,11 @@ Spec = tuple[dict[str, Any], dict[str, str]]
 # How a ROS 2 session runs, not what it records: kept out of the key (so that, e.g.,
 # robot.reuse_incomplete=true finds the interrupted artifact it is meant to reuse).
 _ROS2_OPERATIONAL = ("node_name", "domain_id", "startup_timeout_s", "flush_every_s",
-                     "stop_timeout_s", "reuse_incomplete")
+                     "stop_timeout_s", "reuse_incomplete", "rehearsal", "rehearsal_domain_id")
 # Checks of the commands and data, not what is recorded: a run that passes them records the same
 # data whatever they are (the limits, which shape the commands, stay in the key).
-_SAFETY_ONLY = ("rating", "workspace", "command_timeout_s", "guard")
+_SAFETY_ONLY = ("rating", "workspace", "command_timeout_s", "guard", "safety_bounds",
+                "max_missed_periods", "max_pose_latency_s", "max_clock_offset_s")
 # the dataset settings of the model (alignment has its own key); the split's only for it
 _MODEL_DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order")
 _SPLIT_KEYS = ("train_fraction", "split_seed")

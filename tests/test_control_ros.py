@@ -21,17 +21,18 @@ from pipeline.data.schemas import CMD_COLUMNS
 from pipeline.infra.artifacts import ArtifactStore
 from tests.conftest import compose_config
 from tests.control_fixtures import SMALL, goals_mm, write_policy
+from tests.ros_required import require_ros
 from tests.test_ros2_link import (
     Pipeline,
     received,
     stop,
 )
 
-pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
+require_ros("rclpy")
 pytestmark = pytest.mark.ros
 
 TIME_SCALE = 4.0
-ROS = ["robot=ros2", f"robot.time_scale={TIME_SCALE}", "robot.watchdog_s=1.0",
+ROS = ["robot=ros2", "robot.rehearsal=true", f"robot.time_scale={TIME_SCALE}", "robot.watchdog_s=1.0",
        "robot.stop_timeout_s=2.0", "robot.startup_timeout_s=60", "control.flush_every_s=0.2"]
 PRELOAD = [2.0, 2.0, 2.0]
 

@@ -35,9 +35,10 @@ def recorded_run(seed: int, n_commands: int = 10) -> tuple[np.ndarray, np.ndarra
 
 
 def write_bag(path: Path, storage: StoragePlugin, commands: np.ndarray, poses: np.ndarray,
-              lost_frame: int | None = None) -> None:
+              lost_frame: int | None = None, stamp_shift_ns: int = 0) -> None:
     """A bag like ``ros2 bag record`` of the two topics: commands logged at 2 Hz, poses stamped
-    at 100 Hz and logged 1.5 ms later; ``lost_frame`` has a NaN position (marker occluded)."""
+    at 100 Hz and logged 1.5 ms later; ``lost_frame`` has a NaN position (marker occluded);
+    ``stamp_shift_ns``: the stamps that much earlier (a mocap clock behind)."""
     command_type, pose_type = "std_msgs/msg/Float64MultiArray", "geometry_msgs/msg/PoseStamped"
     T = TYPES.types
     with Writer(path, version=9, storage_plugin=storage) as writer:
@@ -52,14 +53,14 @@ def write_bag(path: Path, storage: StoragePlugin, commands: np.ndarray, poses: n
         for k, xyz in enumerate(poses):
             if k == lost_frame:
                 xyz = np.full(3, np.nan)
-            stamp = START_NS + k * NS // 100
+            stamp = START_NS + k * NS // 100 - stamp_shift_ns
             header = T["std_msgs/msg/Header"](
                 stamp=T["builtin_interfaces/msg/Time"](sec=stamp // NS, nanosec=stamp % NS),
                 frame_id="world")
             pose = T["geometry_msgs/msg/Pose"](
                 position=T["geometry_msgs/msg/Point"](x=xyz[0], y=xyz[1], z=xyz[2]),
                 orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
-            messages.append((stamp + 1_500_000, pose_conn, pose_type,
+            messages.append((stamp + stamp_shift_ns + 1_500_000, pose_conn, pose_type,
                              T[pose_type](header=header, pose=pose)))
         for log_ns, connection, msgtype, message in sorted(messages, key=lambda m: m[0]):
             writer.write(connection, log_ns, TYPES.serialize_cdr(message, msgtype))
@@ -110,4 +111,23 @@ def test_bag_without_the_configured_topic_names_what_it_holds(tmp_path, make_cfg
     cfg = make_cfg("robot=rosbag", f"robot.data_dir={bags}", "robot.pose_topic=/elsewhere")
     with pytest.raises(DataError, match=r"no topic '/elsewhere' in the bag; it holds .*"
                                         r"/mocap_rigid_bodies/rigid_bodies_1/pose"):
+        collect(cfg)
+
+
+@pytest.mark.parametrize(("shift_ns", "message"), [
+    (300_000_000, r"logged at least 0\.30\d s after their header stamps \(5th percentile\), above "
+                  r"robot\.max_clock_offset_s=0\.25 s: the motion capture's clock runs behind"),
+    (-50_000_000, r"logged 0\.04\d s before their header stamps \(5th percentile\): the motion "
+                  r"capture's clock runs ahead"),
+])
+def test_a_bag_whose_clocks_disagree_is_refused_naming_them(tmp_path, make_cfg, shift_ns,
+                                                             message):
+    # the mocap stamps its poses shift_ns earlier (later when negative) than the recording
+    # computer logs them, beyond the 1.5 ms of transport
+    bags = tmp_path / "bags"
+    bags.mkdir()
+    commands, poses = recorded_run(3)
+    write_bag(bags / "run", StoragePlugin.MCAP, commands, poses, stamp_shift_ns=shift_ns)
+    cfg = make_cfg("robot=rosbag", f"robot.data_dir={bags}", "robot.limits.p_max=4.0")
+    with pytest.raises(DataError, match=message):
         collect(cfg)

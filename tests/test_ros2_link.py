@@ -26,14 +26,15 @@ from pipeline.keys import key
 from pipeline.stages.align import align
 from pipeline.stages.collect import STAGE
 from tests.conftest import compose_config
+from tests.ros_required import require_ros
 
-pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
+require_ros("rclpy")
 pytestmark = pytest.mark.ros
 
 TIME_SCALE = 4.0
 LIMITS = {"p_min": 0.0, "p_max": 4.5, "sum_max": 10.0, "preload": 2.0}  # the walk hits p_max
 OVERRIDES = [
-    "robot=ros2", f"robot.time_scale={TIME_SCALE}", "robot.watchdog_s=4.0",
+    "robot=ros2", "robot.rehearsal=true", f"robot.time_scale={TIME_SCALE}", "robot.watchdog_s=4.0",
     "robot.stop_timeout_s=0.5", "robot.flush_every_s=0.5", "robot.startup_timeout_s=60",
     "exploration.pad_steps=2",
     *(f"robot.limits.{k}={v}" for k, v in LIMITS.items()),
@@ -44,6 +45,7 @@ class Pipeline:
     def __init__(self, tmp_path: Path, domain: int, *overrides: str):
         self.out = tmp_path / "outputs"
         self.overrides = [*OVERRIDES, *overrides]
+        self.domain = domain  # the twin's (rehearsal) domain and the arm's
         self.env = {**os.environ, "ROS_DOMAIN_ID": str(domain),
                     "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "HYDRA_FULL_ERROR": "1"}
         self.logs = tmp_path
@@ -52,7 +54,8 @@ class Pipeline:
         with open(self.logs / f"{stage}.log", "w") as log:  # the child keeps its own handle
             return subprocess.Popen(
                 [sys.executable, "-m", "pipeline", f"stage={stage}",
-                 f"paths.output_dir={self.out}", *self.overrides, *overrides],
+                 f"paths.output_dir={self.out}", f"robot.rehearsal_domain_id={self.domain}",
+                 *self.overrides, *overrides],
                 env=self.env, stdout=log, stderr=subprocess.STDOUT)
 
     def log(self, stage: str) -> str:

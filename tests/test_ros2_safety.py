@@ -12,9 +12,10 @@ import time
 
 import pytest
 
+from tests.ros_required import require_ros
 from tests.test_ros2_link import TIME_SCALE, Pipeline, stop
 
-pytest.importorskip("rclpy", reason="needs the ROS 2 extra (pip install -e .[ros])")
+require_ros("rclpy")
 pytestmark = pytest.mark.ros
 
 COMMAND_TIMEOUT_S = 1.5  # conf/robot/ros2.yaml: three control periods

@@ -12,6 +12,14 @@ Each control period ``k`` (``1 / robot.control_hz`` arm seconds):
 4. the command gate (:class:`pipeline.ros2.gate.CommandGate`: projection onto ``robot.limits``,
    float64 check), publish, and a row to the records.
 
+No catch-up: never more than one command per period. When the loop wakes more than one period
+after a tick (a stall of the process, swap, a forward step of the clock), the overdue periods are
+skipped, not run back to back: the current period holds the last safe command (a row with
+``event = "late"`` and ``missed_periods``), and the policy acts again only on a pose stamped after
+the stall (until one arrives each period holds, ``event = "stale_pose"``). More than
+``robot.max_missed_periods`` periods missed in a row: the preload and a :class:`ControlFault`.
+A clock that steps back holds the command until its tick comes again.
+
 At the end of the goals, on a stop signal, the watchdog, a fault or any exception the arm is
 sent the preload (:meth:`Arm.stop_safely`: published last, its delivery awaited on ROS 2).
 
@@ -76,6 +84,8 @@ class Outcome:
     error: BaseException | None = None
     preload_acknowledged: bool | None = None
     periods: int = 0
+    missed_periods: int = 0  # periods skipped after stalls (no command sent in them)
+    holds: int = 0  # periods that held the last command (after a stall, for a fresh pose)
 
 
 class ControlLoop:
@@ -89,6 +99,11 @@ class ControlLoop:
         self.max_jump_m = float(control.max_pose_jump_mm) / MM_PER_M
         self.margin_mm = float(control.workspace_margin_mm)
         self.flush_every_s = float(control.flush_every_s)
+        self.max_missed = int(robot.get("max_missed_periods", 2))
+        self.missed_in_row = 0
+        self.missed_total = 0
+        self.holds = 0
+        self._fresh_after: float | None = None  # a pose stamped after this, before acting again
         self._latest: Frame | None = None
         self._next_flush = time.monotonic() + self.flush_every_s
 
@@ -161,7 +176,42 @@ class ControlLoop:
                 self.recorder.flush()
         if outcome.periods == 0:
             outcome.periods = self.recorder.periods
+        outcome.missed_periods, outcome.holds = self.missed_total, self.holds
         return outcome
+
+    def _late(self, period: int, now: float) -> int:
+        """Periods missed when the loop wakes at ``now`` for ``period`` (0: on time); more than
+        ``max_missed_periods`` in a row raise :class:`ControlFault`."""
+        late = now - period * self.period_s
+        if late <= self.period_s:
+            return 0
+        missed = int(late // self.period_s)
+        self.missed_in_row += missed
+        self.missed_total += missed
+        if self.missed_in_row > self.max_missed:
+            raise ControlFault(
+                f"the control loop woke {late:.2f} s after the tick of period {period}: "
+                f"{self.missed_in_row} periods missed in a row, more than robot.max_missed_periods"
+                f"={self.max_missed} (the process stalled or its clock jumped)")
+        log.warning("control: woke %.3f s after the tick of period %d: %d period(s) skipped, "
+                    "holding the last command", late, period, missed)
+        return missed
+
+    def _hold(self, period: int, pressure: np.ndarray, event: str, missed: int,
+              goal: tuple[int, np.ndarray] | None) -> None:
+        """Publish the last safe command again for ``period`` and record why."""
+        safe = self.gate.check(pressure)
+        published = self.arm.publish(safe)
+        self.holds += 1
+        latest = self._latest
+        position = latest[2] if latest is not None else np.full(3, np.nan)
+        pose_t = latest[0] if latest is not None else np.nan
+        index, target = goal if goal is not None else (-2, np.full(3, np.nan))
+        self.recorder.add(period=period, t=period * self.period_s, publish_t=published,
+                          pose_t=pose_t, pose_age_s=self.arm.now() - pose_t, position=position,
+                          goal_index=index, goal=target, observation=None,
+                          action=np.full(len(safe), np.nan), command=safe, latency_ms=np.nan,
+                          cpu_ms=np.nan, event=event, missed_periods=missed)
 
     def _periods(self) -> int:
         deployment, schedule = self.deployment, self.schedule
@@ -169,18 +219,36 @@ class ControlLoop:
         last_pressure = self.gate.preload
         period = 0
         while schedule.end is None or period < schedule.end:
+            self._wait_until(period * self.period_s)
+            now = self.arm.now()
+            missed = self._late(period, now)
+            if missed:
+                period += missed  # the overdue periods get no command at all
+                if schedule.end is not None and period >= schedule.end:
+                    break
+                self._fresh_after = now
+                self._take_goals(period)
+                self._hold(period, last_pressure, "late", missed, schedule.goal(period))
+                period += 1
+                continue
             tick = period * self.period_s
-            self._wait_until(tick)
             self._take_goals(period)
             current = schedule.goal(period)
             started, cpu_started = time.perf_counter(), time.process_time()
-            frame, age = self._pose(self.arm.now())
+            frame, age = self._pose(now)
             if current is None:  # live goals: none yet, hold the preload
                 safe = self.gate.check(self.gate.preload)
                 self.arm.publish(safe)
                 last_pressure = safe
+                self.missed_in_row = 0
                 period += 1
                 continue
+            if self._fresh_after is not None and frame[0] <= self._fresh_after:
+                self._hold(period, last_pressure, "stale_pose", 0, current)
+                period += 1
+                continue
+            self._fresh_after = None
+            self.missed_in_row = 0
             index, goal = current
             hidden, obs, action, pressure = deployment.act(hidden, first, frame[2], goal,
                                                            last_pressure)

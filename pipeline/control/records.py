@@ -10,8 +10,12 @@ Columns (one row per control period, and a last row with the pose at the end of 
 ``pose_t`` (the pose's stamp, arm s), ``pose_age_s`` (at command time), ``x, y, z`` (m),
 ``goal_index`` (-1 on the last row), ``goal_x, goal_y, goal_z`` (m), ``obs_<i>``, ``action_<j>``
 ([-1, 1]), ``p_cmd_<j>`` (kPa, the command sent after the gate), ``latency_ms`` (wall: pose
-taken to command published) and ``cpu_ms`` (the CPU time this process spent on it: the compute
-itself, without the waits for cores that other processes hold).
+taken to command published), ``cpu_ms`` (the CPU time this process spent on it: the compute
+itself, without the waits for cores that other processes hold), ``event`` (empty; ``late``: the
+loop woke after a stall and held the last command, ``missed_periods`` periods before it got no
+command; ``stale_pose``: held while waiting for a pose stamped after the stall) and
+``missed_periods``. A held period has no observation or action (NaN) and, before the first goal,
+``goal_index`` -2.
 """
 
 from __future__ import annotations
@@ -47,8 +51,8 @@ class PeriodRecorder:
 
     def add(self, *, period: int, t: float, publish_t: float, pose_t: float, pose_age_s: float,
             position: np.ndarray, goal_index: int, goal: np.ndarray, observation: Any,
-            action: np.ndarray, command: np.ndarray, latency_ms: float, cpu_ms: float
-            ) -> None:
+            action: np.ndarray, command: np.ndarray, latency_ms: float, cpu_ms: float,
+            event: str = "", missed_periods: int = 0) -> None:
         obs = (np.full(self.obs_dim, np.nan) if observation is None
                else np.asarray(observation, np.float64))
         row = {"period": int(period), "t": float(t), "publish_t": float(publish_t),
@@ -58,7 +62,8 @@ class PeriodRecorder:
                **{f"obs_{i}": float(v) for i, v in enumerate(obs)},
                **{f"action_{j}": float(v) for j, v in enumerate(action)},
                **dict(zip(CMD_COLUMNS, map(float, command))), "latency_ms": float(latency_ms),
-               "cpu_ms": float(cpu_ms)}
+               "cpu_ms": float(cpu_ms), "event": str(event),
+               "missed_periods": int(missed_periods)}
         self._rows.append(row)
         if goal_index >= 0:
             self.periods += 1

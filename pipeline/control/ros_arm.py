@@ -1,15 +1,18 @@
 """The arm over ROS 2 for the control loop, in real time on the arm's clock.
 
 Built on collect's node (:class:`pipeline.ros2.collector.ArmLink`: command publisher, pose
-subscriber) and its session helpers (:meth:`~pipeline.ros2.collector.Session.wait_for_arm`,
-:meth:`~pipeline.ros2.collector.Session.stop_safely`: the preload published last and its
-delivery awaited). Arm time is ROS time since :meth:`RosArm.start` times ``robot.time_scale``;
+subscriber) and its session helpers (:meth:`~pipeline.ros2.collector.Session.wait_for_arm`: the
+guard's handshake; :meth:`~pipeline.ros2.collector.Session.check_sources` and
+:meth:`~pipeline.ros2.collector.Session.check_clock`: one pose source, one listener, clocks
+together; :meth:`~pipeline.ros2.collector.Session.stop_safely`: the preload published last and
+its delivery awaited). Arm time is ROS time since :meth:`RosArm.start` times ``robot.time_scale``;
 pose times are their header stamps on the same clock. Live goals arrive as
 ``geometry_msgs/msg/PointStamped`` (metres) on ``control.goal_topic``.
 """
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -19,7 +22,9 @@ from pipeline.data.ros_messages import NS_PER_S, message_class
 from pipeline.ros2.collector import ArmLink, Session
 from pipeline.ros2.gate import CommandGate
 
+log = logging.getLogger(__name__)
 _SPIN_SLICE_S = 0.002  # wall: longest wait inside the executor
+MAX_QUEUED_GOALS = 8  # live goals kept between two periods (the oldest dropped beyond)
 
 
 class RosArm:
@@ -40,6 +45,10 @@ class RosArm:
 
     def _on_goal(self, message: Any) -> None:
         point = message.point
+        if len(self._goals) >= MAX_QUEUED_GOALS:  # only the latest goals matter
+            dropped = self._goals.pop(0)
+            log.warning("control: more than %d live goals queued within a period: dropped %s m",
+                        MAX_QUEUED_GOALS, dropped.tolist())
         self._goals.append(np.array([point.x, point.y, point.z], np.float64))
 
     def _arm_time(self, ns: int) -> float:
@@ -57,6 +66,7 @@ class RosArm:
             raise Stop(f"{self.signals.received} received")
         remaining_wall = (until - self.now()) / self.scale
         self.link.spin_once(min(max(remaining_wall, 0.0), _SPIN_SLICE_S))
+        self.session.check_sources()
         silent = self.link.silence_s(self.watchdog_wall_s)
         if silent > self.watchdog_wall_s:
             raise Stop(f"mocap watchdog: no pose on {self.robot.pose_topic} for "
@@ -68,8 +78,12 @@ class RosArm:
             self.link.spin_once(0.0)
 
     def take_frames(self) -> list[Frame]:
-        return [(self._arm_time(stamp), self._arm_time(receipt), np.asarray(xyz, np.float64))
-                for stamp, receipt, xyz in self.link.take_poses()]
+        frames = []
+        for stamp, receipt, xyz in self.link.take_poses():
+            self.session.check_clock(stamp, receipt)
+            frames.append((self._arm_time(stamp), self._arm_time(receipt),
+                           np.asarray(xyz, np.float64)))
+        return frames
 
     def take_goals(self) -> list[np.ndarray]:
         goals, self._goals = self._goals, []

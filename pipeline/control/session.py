@@ -29,7 +29,7 @@ import numpy as np
 
 from pipeline import keys
 from pipeline.arm.limits import validate_limits
-from pipeline.config import RobotKind
+from pipeline.config import RobotKind, validate_config
 from pipeline.control.goals import GoalError, GoalSchedule, goal_schedule
 from pipeline.control.loop import ControlLoop, Outcome, SimArm
 from pipeline.control.policy import MM_PER_M, Deployment, load_deployment
@@ -40,6 +40,7 @@ from pipeline.control.results import (
     make_figures,
     write_control_report,
 )
+from pipeline.data.raw import CollectionInterrupted
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.node import StopSignals
@@ -48,7 +49,7 @@ log = logging.getLogger(__name__)
 STAGE = "control"
 
 
-class ControlInterrupted(RuntimeError):
+class ControlInterrupted(CollectionInterrupted):
     """A session was cut short; what was recorded is in the artifact, marked interrupted."""
 
 
@@ -64,6 +65,7 @@ def _set_aside_interrupted(store: ArtifactStore, key: str) -> None:
 
 def control(cfg: Any) -> Artifact:
     """Run ``control.policy`` (or ``control.policy_file``) on ``cfg.robot``; see the module doc."""
+    validate_config(cfg)  # also when called without the entry point (scripts, benchmarks)
     robot = cfg.robot
     kind = RobotKind(robot.kind)
     if kind not in (RobotKind.sim, RobotKind.ros2):
@@ -107,16 +109,12 @@ def run_session(cfg: Any, deployment: Deployment, schedule: GoalSchedule, writer
     """Run the loop on the configured arm and fill ``writer``."""
     robot, control_cfg = cfg.robot, cfg.control
     kind = RobotKind(robot.kind)
-    gate = CommandGate(robot.limits, robot.n_valves)
+    gate = CommandGate.for_robot(robot)  # robot.limits inside the arm's rating
     started = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
     recovery = Path(cfg.paths.output_dir) / "recovery" / f"{STAGE}-{writer.key}-{started}"
     obs_dim = int(deployment.env.obs_dim)
     recorder = PeriodRecorder(recovery, obs_dim, spec, {"stage": STAGE, "robot": robot.name,
                                                         "recovery": True})
-    if kind is RobotKind.ros2 and float(robot.time_scale) != 1.0:
-        log.warning("control: robot.time_scale=%s: the arm's time runs %sx wall time, which only "
-                    "a digital twin with the same time_scale can follow", robot.time_scale,
-                    robot.time_scale)
     log.info("control: periods are saved to %s every %s s while running", recovery,
              control_cfg.flush_every_s)
     with StopSignals() as signals:
@@ -126,9 +124,9 @@ def run_session(cfg: Any, deployment: Deployment, schedule: GoalSchedule, writer
                                   robot).run()
         else:
             from pipeline.control.ros_arm import RosArm
-            from pipeline.ros2.node import ros_node
+            from pipeline.ros2.node import arm_domain, ros_node
 
-            with ros_node(str(control_cfg.node_name), robot.domain_id) as (node, executor):
+            with ros_node(str(control_cfg.node_name), arm_domain(robot)) as (node, executor):
                 arm = RosArm(node, executor, robot, control_cfg, gate, signals)
                 outcome = ControlLoop(deployment, schedule, gate, arm, recorder, control_cfg,
                                       robot).run()
@@ -153,11 +151,17 @@ def run_session(cfg: Any, deployment: Deployment, schedule: GoalSchedule, writer
     }
     if outcome.reason is not None:
         summary["interrupted"] = outcome.reason
+    summary["missed_periods"], summary["held_periods"] = outcome.missed_periods, outcome.holds
     writer.summary = summary
+    stalls = (f" **{outcome.missed_periods} period(s) missed after stalls** of the loop (no "
+              f"command sent in them), {outcome.holds} period(s) held the last command (rows "
+              f"with an `event` in periods.parquet)." if outcome.missed_periods or outcome.holds
+              else "")
+    served = "the goals were served with gaps." if stalls else "every goal served."
     header = [f"Policy `{deployment.artifact.path}` seed {deployment.seed}, on "
               f"robot={robot.name}; goals from {schedule.source}.",
               f"{summary['periods']} control periods at {deployment.control_hz:g} Hz; "
-              + (f"**interrupted**: {outcome.reason}." if outcome.reason else "every goal served."),
+              + (f"**interrupted**: {outcome.reason}." if outcome.reason else served) + stalls,
               f"Median final distance {np.median(metrics['final_distance_mm']):.2f} mm over "
               f"{len(metrics)} goal(s); workspace (training goals, mm): "
               f"{np.round(deployment.workspace_m * MM_PER_M, 1).tolist()}."]

@@ -6,7 +6,10 @@ The topics, message types and field paths are those of the ``robot=ros2`` config
 default command type has no header); poses by their header stamp (``stamp_field``; empty: the log
 time). ``t = 0`` is the earlier of the first command and the first pose. Poses with a
 non-finite position become ``valid = False`` frames; a pose whose stamp does not advance is
-dropped. Reading uses the ``rosbags`` library (no ROS installation needed); message definitions
+dropped. Commands and poses then share a clock only if the motion capture's clock agrees with
+the recording computer's: the offset of the poses' log times from their stamps (its 5th
+percentile, what transport adds least) must lie within ``[-0.01, robot.max_clock_offset_s]``
+seconds, else the bag is refused naming both clocks. Reading uses the ``rosbags`` library (no ROS installation needed); message definitions
 come from the bag, or for bags without them from rosbags' built-in ROS 2 types.
 """
 
@@ -27,6 +30,30 @@ from pipeline.data.schemas import CMD_COLUMNS, COMMANDS, MOCAP, XYZ, DataError, 
 log = logging.getLogger(__name__)
 
 
+CLOCK_TOLERANCE_S = 0.01  # a pose logged this much before its stamp: the clocks are apart
+
+
+def _check_clocks(source: str, robot: Any, offsets_ns: np.ndarray) -> None:
+    """Refuse a bag whose pose stamps and log times are on clocks apart (see module doc)."""
+    if not offsets_ns.size:
+        return
+    best = float(np.percentile(offsets_ns, 5)) / NS_PER_S
+    bound = float(robot.get("max_clock_offset_s", 0.25))
+    if best < -CLOCK_TOLERANCE_S:
+        raise DataError(source, f"poses on {robot.pose_topic} are logged {-best:.3f} s before "
+                        f"their header stamps (5th percentile): the motion capture's clock runs "
+                        f"ahead of the recording computer's, so commands (log time) and poses "
+                        f"(header stamps) would be shifted against each other; synchronise the "
+                        f"clocks (e.g. chrony) and record again")
+    if best > bound:
+        raise DataError(source, f"poses on {robot.pose_topic} are logged at least {best:.3f} s "
+                        f"after their header stamps (5th percentile), above "
+                        f"robot.max_clock_offset_s={bound:g} s: the motion capture's clock runs "
+                        f"behind the recording computer's, so commands (log time) and poses "
+                        f"(header stamps) would be shifted against each other; synchronise the "
+                        f"clocks (e.g. chrony) and record again")
+
+
 def read_rosbag(path: Path, robot: Any, run_id: str | None = None
                 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """One bag folder as ``(commands, mocap)`` tables, validated (limits checked)."""
@@ -35,6 +62,7 @@ def read_rosbag(path: Path, robot: Any, run_id: str | None = None
     source = str(path)
     commands: list[tuple[int, np.ndarray]] = []
     poses: list[tuple[int, tuple[float, float, float]]] = []
+    offsets: list[int] = []  # log time - header stamp of each pose [ns]
     with AnyReader([path], default_typestore=get_typestore(Stores.LATEST)) as reader:
         connections = {}
         for topic, msgtype in ((robot.command_topic, robot.command_type),
@@ -58,6 +86,7 @@ def read_rosbag(path: Path, robot: Any, run_id: str | None = None
                     stamp = (read_stamp_ns(message, robot.stamp_field) if robot.stamp_field
                              else log_ns)
                     poses.append((stamp, read_position(message, robot.position_field)))
+                    offsets.append(log_ns - stamp)
             except ValueError as err:
                 raise DataError(source, f"topic {connection.topic}: {err}") from err
     if not commands:
@@ -65,6 +94,8 @@ def read_rosbag(path: Path, robot: Any, run_id: str | None = None
     if not poses:
         raise DataError(source, f"no message on the pose topic {robot.pose_topic!r}")
 
+    if robot.stamp_field:
+        _check_clocks(source, robot, np.array(offsets, np.int64))
     poses.sort(key=lambda pose: pose[0])
     stamps = np.array([stamp for stamp, _ in poses], np.int64)
     advancing = np.r_[True, np.diff(stamps) > 0]

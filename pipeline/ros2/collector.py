@@ -28,7 +28,7 @@ import datetime as _dt
 import logging
 import shutil
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.arm.exploration import exploration_plan, plot_walks
-from pipeline.data.raw import STAGE, write_raw
+from pipeline.data.raw import STAGE, CollectionInterrupted, write_raw
 from pipeline.data.ros_messages import (
     NS_PER_S,
     is_finite,
@@ -48,7 +48,15 @@ from pipeline.data.ros_messages import (
 )
 from pipeline.infra.artifacts import ArtifactWriter
 from pipeline.ros2.gate import CommandGate
-from pipeline.ros2.node import StopSignals, qos_profile, require_rclpy, ros_node
+from pipeline.ros2.handshake import HandshakeListener, handshake_problem
+from pipeline.ros2.node import (
+    ArmRefused,
+    StopSignals,
+    arm_domain,
+    qos_profile,
+    require_rclpy,
+    ros_node,
+)
 from pipeline.ros2.recorder import ChunkedRecorder
 
 log = logging.getLogger(__name__)
@@ -66,6 +74,50 @@ class Interruption:
 
 class _Stop(Exception):
     """Ends the recording early (a stop signal or the watchdog)."""
+
+
+class ArmFault(ArmRefused):
+    """The arm's streams cannot be trusted: two pose sources, a changed frame, clocks apart, a
+    second listener of the commands."""
+
+
+_CLOCK_TOLERANCE_S = 0.01  # wall: a pose stamped later than its receipt by more: clocks apart
+_CLOCK_WINDOW_S = 1.0  # wall: latencies judged over the poses received in this span
+_SOURCES_EVERY_S = 0.5  # wall: how often the pose topic's publishers are counted
+_HANDSHAKE_GRACE_S = 1.0  # wall: a mismatch must last this long (graph discovery) to refuse
+
+
+class ClockCheck:
+    """Pose latency (receipt - header stamp, wall s) as a check of the clocks.
+
+    A latency below ``-tolerance_s`` (a pose from the future) is refused at once; above
+    ``max_latency_s`` it is refused once every pose received over ``window_s`` of receipts was
+    that late: poses queued behind a stall of this process arrive at once with large latencies,
+    but the fresh ones after them are on time, whereas clocks apart stay apart.
+    """
+
+    def __init__(self, max_latency_s: float, tolerance_s: float = _CLOCK_TOLERANCE_S,
+                 window_s: float = _CLOCK_WINDOW_S):
+        self.max_latency_s, self.tolerance_s, self.window_s = max_latency_s, tolerance_s, window_s
+        self._recent: list[tuple[float, float]] = []  # (receipt s, latency s), oldest first
+
+    def problem(self, stamp_ns: int, receipt_ns: int) -> str | None:
+        """Why this pose shows the clocks apart, or None."""
+        receipt, latency = receipt_ns / NS_PER_S, (receipt_ns - stamp_ns) / NS_PER_S
+        if latency < -self.tolerance_s:
+            return (f"a pose stamped {-latency:.3f} s after it was received: the motion "
+                    f"capture's clock (its header stamps) runs ahead of this computer's ROS clock")
+        self._recent.append((receipt, latency))
+        while self._recent and self._recent[0][0] < receipt - self.window_s:
+            self._recent.pop(0)
+        spans = self._recent[-1][0] - self._recent[0][0] >= 0.9 * self.window_s
+        best = min(late for _, late in self._recent)
+        if spans and best > self.max_latency_s:
+            return (f"every pose over the last {self.window_s:g} s arrived at least {best:.3f} s "
+                    f"after its header stamp, above robot.max_pose_latency_s="
+                    f"{self.max_latency_s:g} s: the motion capture's clock runs behind this "
+                    f"computer's ROS clock (synchronise them, e.g. chrony) or the link lags")
+        return None
 
 
 @dataclass
@@ -101,9 +153,13 @@ class ArmLink:
                                                 qos_profile(robot.command_qos))
         node.create_subscription(message_class(robot.pose_type), robot.pose_topic, self._on_pose,
                                  qos_profile(robot.pose_qos))
+        self.handshake = HandshakeListener(node, robot)
+        self.published = 0  # commands published
         self.poses: list[tuple[int, int, tuple[float, float, float]]] = []  # stamp, receipt, xyz
-        self.last_pose_at: float | None = None  # monotonic s
+        self.last_pose_at: float | None = None  # monotonic s of the last pose's callback
+        self.newest_stamp_ns: int | None = None  # the newest pose's stamp (ROS ns)
         self.frame_id: str | None = None
+        self.frame_id_changed: str | None = None  # the first other frame_id seen, if any
 
     def now_ns(self) -> int:
         return self._node.get_clock().now().nanoseconds
@@ -113,20 +169,28 @@ class ArmLink:
         stamp = read_stamp_ns(message, self._stamp_field) if self._stamp_field else receipt
         self.poses.append((stamp, receipt, read_position(message, self._position_field)))
         self.last_pose_at = time.monotonic()
+        if self.newest_stamp_ns is None or stamp > self.newest_stamp_ns:
+            self.newest_stamp_ns = stamp
+        frame_id = str(getattr(getattr(message, "header", None), "frame_id", ""))
         if self.frame_id is None:
-            self.frame_id = str(getattr(getattr(message, "header", None), "frame_id", ""))
+            self.frame_id = frame_id
+        elif frame_id != self.frame_id and self.frame_id_changed is None:
+            self.frame_id_changed = frame_id
 
     def take_poses(self) -> list[tuple[int, int, tuple[float, float, float]]]:
         poses, self.poses = self.poses, []
         return poses
 
     def silence_s(self, watchdog_wall_s: float) -> float:
-        """Wall seconds since the last pose; past ``watchdog_wall_s`` the poses queued behind a
-        stall of this process are taken in first, so only a real silence counts."""
-        silent = time.monotonic() - self.last_pose_at
+        """Wall seconds since the newest pose was taken (its stamp, not when its callback ran:
+        poses queued behind a stall of this process are as old as their stamps say); past
+        ``watchdog_wall_s`` the poses already queued are taken in first, so only a real silence
+        counts."""
+        silent = (self.now_ns() - self.newest_stamp_ns) / NS_PER_S
         if silent > watchdog_wall_s:
-            self.spin_once(0.0)
-            silent = time.monotonic() - self.last_pose_at
+            for _ in range(int(self._robot.pose_qos.depth)):
+                self.spin_once(0.0)
+            silent = (self.now_ns() - self.newest_stamp_ns) / NS_PER_S
         return silent
 
     def spin_once(self, timeout_s: float) -> None:
@@ -138,6 +202,7 @@ class ArmLink:
         write_pressures(message, self._command_field, pressures)
         stamp = self.now_ns()
         self._publisher.publish(message)
+        self.published += 1
         return stamp
 
     def subscribers(self) -> int:
@@ -149,6 +214,11 @@ class ArmLink:
 
         return self._publisher.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * NS_PER_S)))
 
+    def command_subscribers(self) -> list[str]:
+        """Node names of every subscriber of the command topic."""
+        infos = self._node.get_subscriptions_info_by_topic(self._robot.command_topic)
+        return sorted(str(info.node_name) for info in infos)
+
     def pose_publishers(self) -> list[str]:
         """``node (type)`` of every publisher on the pose topic, for error messages."""
         infos = self._node.get_publishers_info_by_topic(self._robot.pose_topic)
@@ -159,9 +229,10 @@ class Session:
     """One collect session on the arm: runs played out, streams recorded, a safe stop."""
 
     def __init__(self, robot: Any, link: ArmLink, gate: CommandGate, recorder: ChunkedRecorder,
-                 signals: StopSignals):
+                 signals: StopSignals, clock: Callable[[], float] = time.monotonic):
         self.robot, self.link, self.gate, self.recorder = robot, link, gate, recorder
         self.signals = signals
+        self.clock = clock  # wall seconds (monotonic); injectable for tests
         self.time_scale = float(robot.time_scale)
         self.period_wall_s = 1.0 / (float(robot.control_hz) * self.time_scale)
         self.watchdog_wall_s = float(robot.watchdog_s) / self.time_scale
@@ -169,36 +240,71 @@ class Session:
         self.runs: list[RunRecord] = []
         self.stats = LinkStats()
         self.preload_acknowledged: bool | None = None
+        self.max_missed = int(robot.max_missed_periods)
+        self.missed_in_row = 0
+        self.stalls: list[dict[str, Any]] = []  # periods skipped after a stall, per event
+        self.clock_check = ClockCheck(float(robot.max_pose_latency_s))
+        self._next_sources = 0.0
+        self.guard_node: str | None = None  # the node that answered the handshake
         self._last_stamp = -1
         self._last_receipt: int | None = None
-        self._next_flush = time.monotonic() + self.flush_every_s
+        self._next_flush = self.clock() + self.flush_every_s
 
     # ---- start ---------------------------------------------------------------------------------
     def wait_for_arm(self) -> None:
-        """Wait for a first pose and a subscriber of the commands; a clear error if they lack."""
+        """Wait for a first pose, the arm side's handshake and its subscription to the commands;
+        refuse (:class:`ArmRefused`, one line) if they lack or the handshake does not match."""
         robot = self.robot
-        deadline = time.monotonic() + float(robot.startup_timeout_s)
-        while self.link.last_pose_at is None or self.link.subscribers() == 0:
+        deadline = self.clock() + float(robot.startup_timeout_s)
+        mismatch_since, problem = None, None
+        while True:
             if self.signals.received:
-                raise RuntimeError(f"collect stopped by {self.signals.received} before the first "
-                                   f"command; nothing was commanded or recorded")
-            if time.monotonic() > deadline:
-                raise RuntimeError(self._startup_problem())
+                raise ArmRefused(f"stopped by {self.signals.received} before the first command; "
+                                 f"nothing was commanded or recorded")
+            answer = self.link.handshake.answer
+            if (self.link.last_pose_at is not None and answer is not None
+                    and self.link.subscribers() > 0):
+                problem = handshake_problem(answer, robot, self.link.command_subscribers())
+                if problem is None:
+                    break
+                mismatch_since = mismatch_since or self.clock()
+                if self.clock() - mismatch_since > _HANDSHAKE_GRACE_S:
+                    raise ArmRefused(f"refusing to publish on {robot.command_topic}: {problem}")
+            if self.clock() > deadline:
+                raise ArmRefused(problem or self._startup_problem())
             self.link.spin_once(_SPIN_SLICE_S)
-        log.info("collect: arm ready (poses on %s from frame '%s', %d subscriber(s) on %s)",
-                 robot.pose_topic, self.link.frame_id, self.link.subscribers(), robot.command_topic)
+        self.guard_node = str(answer["node"])
+        self.check_sources(force=True)
+        log.info("collect: arm ready (poses on %s from frame '%s'; the %s '%s' answers for the "
+                 "arm with the rating %s and is the only subscriber of %s)", robot.pose_topic,
+                 self.link.frame_id, answer["role"], answer["node"], answer["rating"],
+                 robot.command_topic)
 
     def _startup_problem(self) -> str:
         robot = self.robot
-        hint = ("is the arm's driver (or `python -m pipeline stage=twin robot=ros2`) running, with "
-                "the same ROS_DOMAIN_ID / robot.domain_id")
+        domain = arm_domain(robot)
+        where = (f"ROS domain {domain}" if domain is not None
+                 else "the ROS domain of ROS_DOMAIN_ID")
+        if bool(robot.get("rehearsal", False)):
+            hint = (f"is the digital twin (`python -m pipeline stage=twin robot=ros2`) running? "
+                    f"Rehearsals run on robot.rehearsal_domain_id={robot.rehearsal_domain_id}")
+        else:
+            hint = (f"are the arm's driver and the guard (`python -m pipeline stage=guard "
+                    f"robot=ros2`) running on {where}? (a rehearsal on the twin needs "
+                    f"robot.rehearsal=true)")
         if self.link.last_pose_at is None:
             publishers = self.link.pose_publishers()
             return (f"no pose on {robot.pose_topic} ({robot.pose_type}) within "
-                    f"robot.startup_timeout_s={robot.startup_timeout_s} s: {hint}, and a QoS "
+                    f"robot.startup_timeout_s={robot.startup_timeout_s} s: {hint}, with a QoS "
                     f"compatible with robot.pose_qos? Publishers seen: {publishers or 'none'}")
+        if self.link.handshake.answer is None:
+            unreadable = self.link.handshake.unreadable
+            return (f"no answer from a guard on {robot.guard.handshake_topic} within "
+                    f"robot.startup_timeout_s={robot.startup_timeout_s} s"
+                    + (f" (unreadable: {unreadable})" if unreadable else "")
+                    + f": {hint}; commands are published only through the guard")
         return (f"nobody subscribes to {robot.command_topic} ({robot.command_type}) within "
-                f"robot.startup_timeout_s={robot.startup_timeout_s} s: {hint}?")
+                f"robot.startup_timeout_s={robot.startup_timeout_s} s: {hint}")
 
     # ---- runs ----------------------------------------------------------------------------------
     def play(self, plan: Iterable[tuple[str, np.ndarray]]) -> Interruption | None:
@@ -214,15 +320,28 @@ class Session:
         return None
 
     def _play_run(self, run_id: str, commands: np.ndarray) -> None:
-        start = None
-        for i, command in enumerate(commands):
-            projected = self.gate.project(command)  # ahead of the deadline: it takes a while
+        """Publish ``commands`` one per period. No catch-up: a period whose tick is more than a
+        period past (a stall) gets no command; the current one holds the last command (a stall
+        event in the summary); more than ``robot.max_missed_periods`` in a row stop the run."""
+        start, last = None, None
+        i = 0
+        while i < len(commands):
+            projected = self.gate.project(commands[i])  # ahead of the deadline: it takes a while
             if start is not None:
-                self._wait_until(start + i * self.period_wall_s)
-            due = start + i * self.period_wall_s if start is not None else time.monotonic()
+                due = start + i * self.period_wall_s
+                self._wait_until(due)
+                missed = self._missed(run_id, i, self.clock() - due)
+                if missed:
+                    i += missed  # the overdue commands are never sent
+                    if i >= len(commands):
+                        break
+                    projected = last  # this period holds the last command
+                else:
+                    self.missed_in_row = 0
+            due = start + i * self.period_wall_s if start is not None else self.clock()
             safe = self.gate.check(projected)
             stamp = self.link.publish(safe)
-            self.stats.command_lateness_ms.append((time.monotonic() - due) * 1e3)
+            self.stats.command_lateness_ms.append((self.clock() - due) * 1e3)
             if start is None:
                 start = due
                 end = stamp + round(len(commands) * self.period_wall_s * NS_PER_S)
@@ -230,6 +349,8 @@ class Session:
                 log.info("collect: run %s started (%d commands at %g Hz)", run_id, len(commands),
                          float(self.robot.control_hz))
             self.recorder.add_command(run_id, self._run_time(stamp), safe)
+            last = safe
+            i += 1
         self._wait_until(start + len(commands) * self.period_wall_s)  # the last command's period
         self._drain()
         run = self.runs[-1]
@@ -237,6 +358,25 @@ class Session:
         self.recorder.flush()
         log.info("collect: run %s complete (%d commands, %d frames)", run_id, len(commands),
                  run.frames)
+
+    def _missed(self, run_id: str, index: int, late_wall_s: float) -> int:
+        """Periods missed when command ``index`` is ``late_wall_s`` past its tick (0: on time);
+        recorded as a stall event; too many in a row stop the session."""
+        if late_wall_s <= self.period_wall_s:
+            return 0
+        missed = int(late_wall_s // self.period_wall_s)
+        self.missed_in_row += missed
+        late_s = late_wall_s * self.time_scale
+        self.stalls.append({"run_id": run_id, "command": index, "late_s": round(late_s, 4),
+                            "missed_periods": missed})
+        if self.missed_in_row > self.max_missed:
+            raise _Stop(f"the command loop woke {late_s:.2f} s after the tick of command {index} "
+                        f"of run {run_id}: {self.missed_in_row} periods missed in a row, more "
+                        f"than robot.max_missed_periods={self.max_missed} (the process stalled "
+                        f"or its clock jumped)")
+        log.warning("collect: woke %.3f s after the tick of command %d: %d command(s) skipped, "
+                    "holding the last command", late_s, index, missed)
+        return missed
 
     def _run_time(self, stamp_ns: int) -> float:
         """Seconds on the current run's clock (arm seconds) of a ROS time."""
@@ -246,18 +386,51 @@ class Session:
         """Receive poses until the monotonic ``deadline``, checking stops and flushing chunks."""
         while True:
             self._check()
-            remaining = deadline - time.monotonic()
+            remaining = deadline - self.clock()
             if remaining <= 0:
                 return
             self.link.spin_once(min(remaining, _SPIN_SLICE_S))
             self._drain()
-            if time.monotonic() >= self._next_flush:
+            if self.clock() >= self._next_flush:
                 self.recorder.flush()
                 self._next_flush += self.flush_every_s
+
+    def check_sources(self, force: bool = False) -> None:
+        """One pose source in one frame: :class:`ArmFault` when the pose topic has more than one
+        publisher (a twin left running beside the motion capture, a bag replay) or the poses'
+        ``frame_id`` changed. The publishers are counted every ``_SOURCES_EVERY_S``."""
+        robot = self.robot
+        if self.link.frame_id_changed is not None:
+            raise ArmFault(f"the poses on {robot.pose_topic} changed frame_id from "
+                           f"'{self.link.frame_id}' to '{self.link.frame_id_changed}': two "
+                           f"sources of poses? (a digital twin left running, a bag replay)")
+        now = self.clock()
+        if not force and now < self._next_sources:
+            return
+        self._next_sources = now + _SOURCES_EVERY_S
+        listeners = self.link.command_subscribers()
+        if len(listeners) > 1:
+            raise ArmFault(f"{len(listeners)} subscribers of {robot.command_topic}: "
+                           f"{', '.join(listeners)}; only the guard (or the twin) may listen")
+        if self.guard_node is not None and listeners != [self.guard_node]:
+            raise ArmFault(f"the guard '{self.guard_node}' no longer subscribes to "
+                           f"{robot.command_topic} (stopped or killed): nothing guards the "
+                           f"valves; stopping")
+        publishers = self.link.pose_publishers()
+        if len(publishers) > 1:
+            raise ArmFault(f"{len(publishers)} publishers on {robot.pose_topic}: "
+                           f"{', '.join(publishers)}; exactly one source of poses is required "
+                           f"(stop the digital twin or the bag replay beside the motion capture)")
+
+    def check_clock(self, stamp_ns: int, receipt_ns: int) -> None:
+        problem = self.clock_check.problem(stamp_ns, receipt_ns)
+        if problem is not None:
+            raise ArmFault(f"clocks: {problem} (pose topic {self.robot.pose_topic})")
 
     def _check(self) -> None:
         if self.signals.received:
             raise _Stop(f"{self.signals.received} received")
+        self.check_sources()
         silent = self.link.silence_s(self.watchdog_wall_s)
         if silent > self.watchdog_wall_s:
             raise _Stop(f"mocap watchdog: no pose on {self.robot.pose_topic} for "
@@ -268,6 +441,7 @@ class Session:
         """Move received poses into the current run (by stamp); count what does not fit."""
         run = self.runs[-1] if self.runs else None
         for stamp, receipt, xyz in self.link.take_poses():
+            self.check_clock(stamp, receipt)
             if run is None or not run.start_ns <= stamp < run.end_ns:
                 self.stats.poses_outside_runs += 1
                 continue
@@ -283,11 +457,15 @@ class Session:
 
     # ---- stop ----------------------------------------------------------------------------------
     def stop_safely(self) -> None:
-        """Publish the preload, give it a moment to go out, wait for its acknowledgement."""
+        """Publish the preload, give it a moment to go out, wait for its acknowledgement
+        (nothing, if nothing was published: a refused start commands nothing)."""
+        if self.link.published == 0:
+            log.info("collect: nothing was commanded")
+            return
         preload = self.gate.check(self.gate.preload)
         self.link.publish(preload)
-        settle_until = time.monotonic() + _SETTLE_S
-        while time.monotonic() < settle_until:
+        settle_until = self.clock() + _SETTLE_S
+        while self.clock() < settle_until:
             self.link.spin_once(_SPIN_SLICE_S)
         # Poses from now on show the arm going to the preload, which no command row explains:
         # they are not recorded.
@@ -325,6 +503,8 @@ class Session:
             "poses_out_of_order": self.stats.poses_out_of_order,
             "poses_outside_runs": self.stats.poses_outside_runs,
             "preload_acknowledged": self.preload_acknowledged,
+            "stalls": self.stalls,
+            "missed_periods": int(sum(event["missed_periods"] for event in self.stalls)),
         }
 
 
@@ -336,10 +516,6 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
     robot = cfg.robot
     if not float(robot.time_scale) > 0:
         raise ValueError(f"robot.time_scale={robot.time_scale} must be positive")
-    if float(robot.time_scale) != 1.0:
-        log.warning("collect: robot.time_scale=%s: the arm's time runs %sx wall time, which only "
-                    "a digital twin with the same time_scale can follow", robot.time_scale,
-                    robot.time_scale)
     plan = exploration_plan(cfg.exploration, robot.limits, robot.n_valves, robot.num_runs)
     gate = CommandGate.for_robot(robot)
     started = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
@@ -349,10 +525,15 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
     log.info("collect: streams are saved to %s every %s s while recording", recovery,
              robot.flush_every_s)
 
-    with StopSignals() as signals, ros_node(robot.node_name, robot.domain_id) as (node, executor):
+    with (StopSignals() as signals,
+          ros_node(robot.node_name, arm_domain(robot)) as (node, executor)):
         session = Session(robot, ArmLink(node, executor, robot), gate, recorder, signals)
         try:
-            session.wait_for_arm()
+            try:
+                session.wait_for_arm()
+            except ArmRefused:
+                shutil.rmtree(recovery, ignore_errors=True)  # nothing was recorded
+                raise
             interruption = session.play(
                 (f"ros2-{i:03d}", run) for i, run in enumerate(plan.commands))
         finally:
@@ -364,7 +545,7 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
     commands, mocap = recorder.read_all()
     if commands.empty or mocap.empty:
         reason = interruption.reason if interruption else "no pose arrived during the runs"
-        raise RuntimeError(f"collect: nothing to keep ({len(commands)} commands, {len(mocap)} "
+        raise CollectionInterrupted(f"collect: nothing to keep ({len(commands)} commands, {len(mocap)} "
                            f"frames recorded): {reason}") from (interruption and interruption.error)
     source = f"{robot.pose_topic} [{session.link.frame_id}]"
     runs = pd.DataFrame([

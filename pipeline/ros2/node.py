@@ -23,6 +23,19 @@ class RosUnavailableError(ImportError):
     """rclpy (the ``ros`` extra) is missing."""
 
 
+class ArmRefused(RuntimeError):
+    """The arm side is missing or not the one configured (no pose, no guard's handshake or one
+    that does not match, a second listener or pose source, clocks apart): the stage refuses."""
+
+
+def arm_domain(robot: Any) -> int | None:
+    """The ROS domain a stage of ``robot`` runs on: the twin's (``robot.rehearsal_domain_id``)
+    in a rehearsal (``robot.rehearsal=true``), else ``robot.domain_id`` (None: ROS_DOMAIN_ID)."""
+    if bool(robot.get("rehearsal", False)):
+        return int(robot.rehearsal_domain_id)
+    return None if robot.domain_id is None else int(robot.domain_id)
+
+
 def require_rclpy() -> Any:
     """The rclpy module, or :class:`RosUnavailableError` with the install hint."""
     try:

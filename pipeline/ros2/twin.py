@@ -14,6 +14,14 @@ a command outside ``robot.limits`` or the arm's ``robot.rating`` is logged as an
 Deadman (:class:`pipeline.ros2.guard.Deadman`, as the guard node): when no command arrived within
 ``robot.command_timeout_s`` of the last one, the arm returns to the rating's preload.
 
+Like the guard, it answers for the arm (:mod:`pipeline.ros2.handshake`, role ``twin``) and
+accepts exactly one publisher of commands: once a second appears, the arm returns to the preload
+and stays there (the stage fails at the end).
+
+It runs on its own ROS domain, ``robot.rehearsal_domain_id`` (never ``robot.domain_id``): a
+rehearsal's stages follow it there only with ``robot.rehearsal=true``, so a rehearsal on a lab
+network cannot reach the real arm, and the twin's poses cannot feed a real arm's watchdog.
+
 Runs until SIGINT/SIGTERM or ``robot.twin.max_duration_s`` (wall). With ``robot.twin.record_path``
 every command received is appended to a JSON-lines file (receipt time in ROS ns, pressures in
 kPa, whether within the limits), flushed line by line so that it survives a kill; a return to
@@ -44,7 +52,8 @@ from pipeline.data.ros_messages import (
     write_stamp_ns,
 )
 from pipeline.ros2.gate import CommandGate
-from pipeline.ros2.guard import Deadman, rating_preload
+from pipeline.ros2.guard import Deadman, SinglePublisher, rating_preload
+from pipeline.ros2.handshake import HandshakeAnswer
 from pipeline.ros2.node import StopSignals, qos_profile, require_rclpy, ros_node
 
 log = logging.getLogger(__name__)
@@ -146,6 +155,8 @@ class TwinNode:
                                                 qos_profile(robot.pose_qos))
         node.create_subscription(message_class(robot.command_type), robot.command_topic,
                                  self._on_command, qos_profile(robot.command_qos))
+        self.single = SinglePublisher(node, robot.command_topic)
+        self.handshake = HandshakeAnswer(node, robot, "twin")
         self.frames_published = 0
         self.frames_dropped = 0
         self.commands_received = 0
@@ -155,8 +166,23 @@ class TwinNode:
     def _now_ns(self) -> int:
         return self._node.get_clock().now().nanoseconds
 
+    def _refusing(self, now: float, force: bool = False) -> bool:
+        latched = self.single.refusal is not None
+        refusal = self.single.check(now, force)
+        if refusal is not None and not latched:
+            log.error("twin: %s", refusal)
+            self._simulator.set_command(self._preload)
+            self._at_preload = True
+            self._write({"receipt_ns": self._now_ns(), "pressures": self._preload.tolist(),
+                         "within_limits": True, "refused": refusal})
+        return refusal is not None
+
     def _on_command(self, message: Any) -> None:
         receipt = self._now_ns()
+        if self._refusing(time.monotonic(), force=True):
+            self._write({"receipt_ns": receipt, "ignored": True,
+                         "pressures": np.asarray(getattr(message, "data", []), float).tolist()})
+            return
         self.deadman.feed(time.monotonic())
         pressures = read_pressures(message, self._robot.command_field, self._robot.n_valves)
         self.commands_received += 1
@@ -214,7 +240,8 @@ class TwinNode:
             now = time.monotonic()
             if max_wall_s is not None and now - start > float(max_wall_s):
                 return f"robot.twin.max_duration_s={max_wall_s} s elapsed"
-            self._check_deadman(now)
+            if not self._refusing(now):
+                self._check_deadman(now)
             due = start + frame * period_wall_s
             if now < due or now - spun > _SPIN_EVERY_S:
                 self._executor.spin_once(timeout_sec=min(max(due - now, 0.0), _SPIN_SLICE_S))
@@ -246,12 +273,13 @@ def serve(cfg: Any) -> None:
     if record_path is not None:
         record_path.parent.mkdir(parents=True, exist_ok=True)
     with (StopSignals() as signals,
-          ros_node(NODE_NAME, robot.domain_id) as (node, executor),
+          ros_node(NODE_NAME, int(robot.rehearsal_domain_id)) as (node, executor),
           open(record_path, "w") if record_path else contextlib.nullcontext() as record):
         node_ = TwinNode(node, executor, robot, simulator, record)
-        log.info("twin: simulated arm on %s at %g Hz (time_scale %g), listening on %s",
-                 robot.pose_topic, float(robot.twin.mocap.rate_hz), float(robot.time_scale),
-                 robot.command_topic)
+        log.info("twin: simulated arm on %s at %g Hz (time_scale %g), listening on %s, on "
+                 "ROS domain robot.rehearsal_domain_id=%s (stages join it with "
+                 "robot.rehearsal=true)", robot.pose_topic, float(robot.twin.mocap.rate_hz),
+                 float(robot.time_scale), robot.command_topic, robot.rehearsal_domain_id)
         reason = node_.serve(signals)
     log.info("twin: stopped (%s): %d frames published, %d dropped by the simulated mocap, "
              "%d commands received", reason, node_.frames_published, node_.frames_dropped,
@@ -259,6 +287,8 @@ def serve(cfg: Any) -> None:
     if node_.deadman_returns:
         log.info("twin: the deadman returned the arm to the preload %d time(s)",
                  node_.deadman_returns)
+    if node_.single.refusal is not None:
+        raise UnsafeCommandError(f"twin: {node_.single.refusal}")
     if node_.commands_outside_limits:
         raise UnsafeCommandError(f"twin: {node_.commands_outside_limits} of the "
                                  f"{node_.commands_received} commands received were outside "

@@ -48,7 +48,7 @@ _NON_DETERMINING_AGENT_KEYS = ("progress",)
 # artifact keys they had
 _UNSET_LATER = {"session_std": {}, "replay": None, "loss": "mse", "command_change_cost": 0.0,
                 "include_error_integral": False, "error_integral_decay": 0.8,
-                "goal_agreement_mm": None}
+                "goal_agreement_mm": None, "hold_periods": 1, "hold_bonus_mm": 0.0}
 
 
 def _container(node: Any) -> Any:

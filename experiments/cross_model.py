@@ -137,7 +137,8 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
     for where in ("own", "cross", *(["twin"] if twin else [])):
         for metric in (*METRICS, "seeds_median_within_1mm", "deployed_median_final_mm",
                        "deployed_success_1mm"):
-            row[f"{where}_{metric}"] = float(summary.loc[where, metric])
+            if metric in summary:  # an evaluation written before the hold metrics has none
+                row[f"{where}_{metric}"] = float(summary.loc[where, metric])
     return row
 
 

@@ -34,7 +34,9 @@ randomization of the plant, ``env.randomization``, and its price on command chan
 The variants without ``ensemble`` in their name train in one model (``env.ensemble_seeds=1``).
 
 Printed per variant and direction: median final distance, its 90th percentile and the success
-rates within 1 and 3 mm (all seeds' episodes together), own and cross; the share of seeds whose
+rates within 1 and 3 mm (all seeds' episodes together), own and cross; the hold after the first
+arrival within 1 mm (the share of episodes that arrived, and of those the share that ended within
+1.5 mm, ``held_arrivals``; :func:`pipeline.evaluation.metrics.hold_metrics`); the share of seeds whose
 median is within 1 mm across models; and the seed ``stage=control`` would deploy (the best in
 its training's last held-out evaluation) with its own and cross medians and its success within 1
 mm across models. The table is also written to ``<output-dir>/cross_model/results.csv``.
@@ -65,7 +67,8 @@ QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10
 QUICK_PPO_STEPS = 1024  # --quick's budget per seed, unless --ppo-steps
 DIRECTIONS = ("A->B", "B->A")
 GOAL_AGREEMENT_MM = 1.0  # the agreed variant's default env.goal_agreement_mm
-METRICS = ("median_final_mm", "p90_final_mm", "success_1mm", "success_3mm")
+METRICS = ("median_final_mm", "p90_final_mm", "success_1mm", "success_3mm", "arrived_1mm",
+           "held_arrivals", "within_1mm_after_arrival", "median_max_after_arrival_mm")
 
 
 def groups(data_dir: Path, group_a: list[str] | None) -> tuple[list[str], list[str]]:
@@ -134,7 +137,8 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
     for where in ("own", "cross", *(["twin"] if twin else [])):
         for metric in (*METRICS, "seeds_median_within_1mm", "deployed_median_final_mm",
                        "deployed_success_1mm"):
-            row[f"{where}_{metric}"] = float(summary.loc[where, metric])
+            if metric in summary:  # an evaluation written before the hold metrics has none
+                row[f"{where}_{metric}"] = float(summary.loc[where, metric])
     return row
 
 
@@ -159,6 +163,15 @@ def print_table(table: pd.DataFrame) -> None:
             print(f"{row.variant:<32}{row.direction:<7}{row.twin_median_final_mm:>7.2f}"
                   f"{row.twin_p90_final_mm:>7.2f}{row.twin_success_1mm:>7.2f}"
                   f"{row.twin_success_3mm:>7.2f}{row.twin_deployed_median_final_mm:>7.2f}")
+    print("\nthe hold: share of episodes ever within 1 mm / of those, the share ended within "
+          "1.5 mm, per plant")
+    plants = [p for p in ("own", "cross", "twin") if f"{p}_held_arrivals" in table]
+    print(f"{'variant':<32}{'dir':<7}" + "".join(f"{p + ' arrived':>15}{p + ' held':>12}"
+                                               for p in plants))
+    for row in table.itertuples():
+        print(f"{row.variant:<32}{row.direction:<7}" + "".join(
+            f"{getattr(row, f'{p}_arrived_1mm'):>15.2f}{getattr(row, f'{p}_held_arrivals'):>12.2f}"
+            for p in plants))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -552,7 +552,11 @@ class EnvConfig:
 
     name: EnvName = EnvName.learned
     max_steps: int = 40  # control periods per episode (truncation)
-    goal_tolerance_m: float = 0.001  # terminate within this distance of the goal
+    goal_tolerance_m: float = 0.001  # a control period ending within this distance is at the goal
+    # terminate after this many consecutive control periods at the goal (1: the first arrival);
+    # more trains the policy in the states after arrival, where evaluation and the arm keep it
+    hold_periods: int = 1
+    hold_bonus_mm: float = 0.0  # reward [mm] for every control period that ends at the goal
     goal_mode: GoalMode = GoalMode.data
     goal_perturbation_m: float = 0.01
     obs_noise_std: float = 0.0  # m, on the observed position
@@ -1037,6 +1041,17 @@ def _check_env(cfg: Any) -> None:
     if incremental_actions(env) and not (math.isfinite(step) and step > 0):
         raise ConfigError(f"env.action_step_kpa={step} must be finite and > 0 (the change of a "
                           f"command per control period at action 1, env.action_mode=incremental)")
+    hold = env.get("hold_periods", EnvConfig.hold_periods)
+    if isinstance(hold, bool) or not isinstance(hold, int) or hold < 1:
+        raise ConfigError(f"env.hold_periods={hold} must be an integer >= 1 (consecutive control "
+                          f"periods at the goal that end an episode; 1: the first arrival)")
+    if hold > int(env.max_steps):
+        raise ConfigError(f"env.hold_periods={hold} must be at most env.max_steps="
+                          f"{env.max_steps} (an episode could never end at the goal)")
+    bonus = float(env.get("hold_bonus_mm", EnvConfig.hold_bonus_mm))
+    if not (math.isfinite(bonus) and bonus >= 0):
+        raise ConfigError(f"env.hold_bonus_mm={bonus} must be finite and >= 0 (mm of reward per "
+                          f"control period at the goal)")
     decay = float(env.get("error_integral_decay", EnvConfig.error_integral_decay))
     if not 0.0 <= decay < 1.0:
         raise ConfigError(f"env.error_integral_decay={decay} must lie in [0, 1) (the accumulated "

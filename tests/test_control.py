@@ -109,6 +109,9 @@ def test_goal_metrics_by_hand():
     assert row["overshoot_mm"] == pytest.approx(0.8)
     assert row["steady_state_error_mm"] == pytest.approx(0.8)
     assert row["smoothness_kpa"] == pytest.approx(1.0)
+    # from the arrival at tick 2: 0.5, 0.8, 0.8 mm, all within 1 mm, held
+    assert row["within_1mm_after_arrival"] == 1.0 and row["held_1.5mm"] == 1.0
+    assert row["max_after_arrival_mm"] == pytest.approx(0.8)
 
 
 # ---- the stage on the simulated arm ---------------------------------------------------------------

@@ -137,6 +137,45 @@ def test_truncation_at_the_step_limit_is_not_termination():
     assert not np.allclose(info["final_observation"], obs)
 
 
+def test_hold_periods_end_an_episode_after_that_many_periods_at_the_goal_in_a_row():
+    """hold_periods=3: within, away (the count starts again), then within three times."""
+    env, params = toy_env(hold_periods=3, goal_tolerance_m=0.001)
+    _, state = env.reset(jax.random.PRNGKey(0), params)
+    at_preload = env.pressure_to_action(params.preload, params)  # the toy rests at the preload
+    step = jax.jit(env.step_env)  # no auto-reset: the counter is seen after every period
+    here, far = state.position, state.position + jnp.array([0.0, 0.0, 0.01])
+    counts, ends = [], []
+    for i, goal in enumerate([here, far, here, here, here]):
+        _, state, _, terminated, _ = step(jax.random.PRNGKey(i), state.replace(goal=goal),
+                                          at_preload, params)
+        counts.append(int(state.periods_within))
+        ends.append(bool(terminated))
+    assert counts == [1, 0, 1, 2, 3]
+    assert ends == [False, False, False, False, True]
+    # the same compiled step with hold_periods=1 ends at the first arrival, as without the setting
+    _, _, _, terminated, _ = step(jax.random.PRNGKey(9), state.replace(
+        goal=here, periods_within=jnp.zeros((), jnp.int32)), at_preload,
+        params.replace(hold_periods=jnp.asarray(1, jnp.int32)))
+    assert bool(terminated)
+    assert step._cache_size() == 1  # one program for every hold_periods
+    with pytest.raises(ValueError, match="hold_periods"):
+        toy_env(hold_periods=0)
+
+
+def test_hold_bonus_is_paid_for_every_period_at_the_goal():
+    env, params = toy_env(hold_periods=5, hold_bonus_mm=2.5, goal_tolerance_m=0.001)
+    _, state = env.reset(jax.random.PRNGKey(0), params)
+    at_preload = env.pressure_to_action(params.preload, params)
+    offset = jnp.array([0.0004, 0.0, 0.0])  # 0.4 mm: within
+    _, _, reward, _, info = env.step_env(jax.random.PRNGKey(1), state.replace(
+        goal=state.position + offset), at_preload, params)
+    assert float(info["distance_m"]) == pytest.approx(0.0004, abs=1e-6)
+    assert float(reward) == pytest.approx(-0.4 + 2.5, abs=1e-3)
+    _, _, reward, _, info = env.step_env(jax.random.PRNGKey(1), state.replace(
+        goal=state.position + 5 * offset), at_preload, params)  # 2 mm: outside, no bonus
+    assert float(reward) == pytest.approx(-2.0, abs=1e-3)
+
+
 def test_zero_order_hold_steps_the_plant_model_hz_over_control_hz_times():
     env, params = toy_env()
     assert env.steps_per_action == 5

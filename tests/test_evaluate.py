@@ -94,7 +94,12 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
     assert set(summary["plant"]) == {"learned", "plant"}
     assert set(summary["controller"]) == {"ppo_ff", "ppo_rnn", "preload", "mpc"}
     assert (summary["time_above_limits"] == 0).all()
+    # the hold after the first arrival, in the summary and per episode
+    assert {"arrived_1mm", "held_arrivals", "within_1mm_after_arrival",
+            "median_max_after_arrival_mm"} <= set(summary.columns)
+    assert "| ever ≤ 1 mm | of those: final ≤ 1.5 mm |" in markdown
     episodes = pd.read_parquet(artifact.file("episodes.parquet"))
+    assert {"within_1mm_after_arrival", "max_after_arrival_mm", "held_1.5mm"} <= set(episodes)
     assert len(episodes) == 2 * 4 * 4  # plants x controllers (one seed each) x episodes
     gap = pd.read_parquet(artifact.file("plant_gap.parquet"))
     assert len(gap) == 4 * 4 and np.isfinite(gap["final_gap_mm"]).all()

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.evaluation.metrics import episode_metrics, plant_gap, summarize
+from pipeline.evaluation.metrics import episode_metrics, hold_metrics, plant_gap, summarize
 
 LIMITS = SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0)
 
@@ -68,3 +68,32 @@ def test_plant_gap_and_summary():
     s = summarize(m, ["policy"])
     assert s["median_final_mm"].tolist() == [0.5, 4.0]
     assert s["time_above_limits"].tolist() == [0.0, 0.25]
+
+
+def test_hold_after_the_first_arrival_by_hand():
+    distance = np.array([
+        [5.0, 2.0, 0.8, 1.2, 0.9, 1.4],  # arrives at t=2, leaves, ends at 1.4 mm: held
+        [5.0, 4.0, 3.0, 2.0, 2.0, 2.0],  # never within 1 mm
+        [0.5, 0.5, 0.5, 0.5, 0.5, 2.0],  # within from the start, lost at the end: not held
+        [9.0, 8.0, 7.0, 6.0, 5.0, 1.0],  # arrives at the last time
+    ])
+    hold = hold_metrics(distance)
+    # times 2..5: 0.8, 1.2, 0.9, 1.4 -> 2 of 4 within 1 mm; all 6 times, 5 within; 1 of 1
+    np.testing.assert_allclose(hold["within_1mm_after_arrival"], [0.5, np.nan, 5 / 6, 1.0])
+    np.testing.assert_allclose(hold["max_after_arrival_mm"], [1.4, np.nan, 2.0, 1.0])
+    np.testing.assert_allclose(hold["held_1.5mm"], [1.0, np.nan, 0.0, 1.0])
+
+
+def test_summary_counts_the_hold_over_the_arrivals_only():
+    goal = np.zeros(3)
+    distance = np.array([[5.0, 0.8, 1.2, 1.4], [5.0, 0.5, 3.0, 2.5], [6.0, 5.0, 4.0, 4.0]])
+    positions = np.zeros((3, 4, 3))
+    positions[..., 0] = distance / 1000
+    m = episode_metrics(positions, np.stack([goal] * 3), np.full((3, 3, 3), 2.0), LIMITS)
+    np.testing.assert_allclose(m["held_1.5mm"], [1.0, 0.0, np.nan])
+    s = summarize(m.assign(policy="a"), ["policy"]).iloc[0]
+    assert s["arrived_1mm"] == pytest.approx(2 / 3)
+    assert s["held_arrivals"] == pytest.approx(0.5)  # 1 of the 2 that arrived, not 1 of 3
+    # shares after arrival: 1 of 3 (0.8; 1.2, 1.4 out) and 1 of 3 (0.5; 3.0, 2.5 out)
+    assert s["within_1mm_after_arrival"] == pytest.approx(1 / 3)
+    assert s["median_max_after_arrival_mm"] == pytest.approx((1.4 + 3.0) / 2)

@@ -9,6 +9,7 @@ import re
 import numpy as np
 import pandas as pd
 
+from pipeline.evaluation.figures import after_arrival_figure, tail_episodes
 from pipeline.evaluation.metrics import median_steps, seed_spread, summarize
 from pipeline.evaluation.report import Figure, Section, Table, format_number, write_report
 from pipeline.evaluation.sections import consecutive_table
@@ -103,3 +104,32 @@ def test_consecutive_goals_table_has_one_labelled_column_per_goal(tmp_path):
     _, page = write_report(tmp_path, "Run", [Section("C", [Table(table)])])
     headers = re.findall(r"<th>(.*?)</th>", page.read_text())
     assert all(h.strip() for h in headers) and len(headers) == 6
+
+
+def test_tail_episodes_are_the_arrivals_that_ended_furthest_away():
+    distance = np.array([[3.0, 0.9, 2.0],  # arrived, ends at 2.0
+                         [3.0, 2.5, 2.8],  # never arrived: left out however far it ends
+                         [0.5, 0.5, 1.2],  # arrived, ends at 1.2
+                         [2.0, 0.2, 0.3]])  # arrived, ends at 0.3
+    assert tail_episodes(distance, count=2).tolist() == [0, 2]
+    assert tail_episodes(distance, count=5).tolist() == [0, 2, 3]
+
+
+def test_after_arrival_figure_draws_each_plant_with_an_arrival(tmp_path):
+    from types import SimpleNamespace
+
+    goals = np.zeros((2, 3))
+    arrives = np.zeros((2, 5, 3))
+    arrives[:, :, 0] = np.array([4.0, 0.8, 1.5, 2.0, 2.5]) / 1000  # arrives, drifts away
+    never = arrives + np.array([0.01, 0.0, 0.0])  # 10 mm further: never within 1 mm
+    commands = np.full((2, 4, 3), 2.0)
+    results = {"goals": goals, "paths": {("learned", "ppo_ff", 0): arrives,
+                                         ("plant", "ppo_ff", 0): never},
+               "commands": {("learned", "ppo_ff", 0): commands,
+                            ("plant", "ppo_ff", 0): commands}}
+    cfg = SimpleNamespace(robot=SimpleNamespace(control_hz=2.0))
+    figure = after_arrival_figure(tmp_path / "after.png", cfg, results, "ppo_ff")
+    assert figure is not None and figure.path.stat().st_size > 10_000
+    assert "ended furthest from the goal" in figure.caption
+    results["paths"] = {("plant", "ppo_ff", 0): never}
+    assert after_arrival_figure(tmp_path / "none.png", cfg, results, "ppo_ff") is None

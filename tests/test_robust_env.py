@@ -485,6 +485,30 @@ def test_a_negative_command_change_cost_is_refused(make_cfg):
         validate_config(make_cfg("env.command_change_cost=-1"))
 
 
+@pytest.mark.parametrize("overrides, message", [
+    (["env.hold_periods=0"], r"env.hold_periods=0 must be an integer >= 1"),
+    (["env.hold_periods=41"], r"env.hold_periods=41 must be at most env.max_steps=40"),
+    (["env.hold_bonus_mm=-1"], r"env.hold_bonus_mm=-1.0 must be finite and >= 0"),
+])
+def test_unusable_hold_settings_are_refused(make_cfg, overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        validate_config(make_cfg(*overrides))
+
+
+def test_hold_settings_reach_the_env_and_the_key_only_where_set(make_cfg):
+    from pipeline.rl.envs.factory import common_params
+
+    base = make_cfg()
+    assert keys.key("train_ppo", make_cfg("env.hold_periods=1", "env.hold_bonus_mm=0")) == \
+        keys.key("train_ppo", base)  # the defaults spelled out are the defaults
+    held = make_cfg("env.hold_periods=5", "env.hold_bonus_mm=2")
+    validate_config(held)
+    assert keys.train_ppo_spec(held)[0]["env"]["hold_periods"] == 5
+    assert keys.key("train_ppo", held) != keys.key("train_ppo", base)
+    options = common_params(held)
+    assert (options["hold_periods"], options["hold_bonus_mm"]) == (5, 2.0)
+
+
 @pytest.mark.parametrize("decay", ["1.0", "-0.1"])
 def test_an_accumulated_error_decay_outside_0_1_is_refused(make_cfg, decay):
     with pytest.raises(ConfigError, match=rf"env.error_integral_decay={float(decay)} must lie in"):

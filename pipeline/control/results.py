@@ -9,7 +9,10 @@ last one taken before the next goal's first command, or at the end) are its traj
 - ``overshoot_mm``: how far the pose went past the goal along the start-to-goal direction
   (0 when it never passed it);
 - ``steady_state_error_mm``: the mean distance over the last quarter of the goal's ticks;
-- ``smoothness_kpa``: mean absolute change of the command between consecutive periods, per valve.
+- ``smoothness_kpa``: mean absolute change of the command between consecutive periods, per valve;
+- the hold after the first tick within 1 mm (:func:`pipeline.evaluation.metrics.hold_metrics`,
+  NaN when it never got there): ``within_1mm_after_arrival`` (the share of the ticks from then on
+  within 1 mm), ``max_after_arrival_mm`` and ``held_1.5mm`` (1 when the goal ended within 1.5 mm).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import pandas as pd
 
 from pipeline.control.records import GOAL_COLUMNS
 from pipeline.data.schemas import CMD_COLUMNS, XYZ
+from pipeline.evaluation.metrics import hold_metrics
 from pipeline.evaluation.report import Figure, Section, Table, write_report
 
 MM_PER_M = 1000.0
@@ -69,6 +73,7 @@ def goal_metrics(periods: pd.DataFrame, period_s: float) -> pd.DataFrame:
             **times,
             "overshoot_mm": float(max(0.0, past.max())),
             "steady_state_error_mm": float(tail.mean()),
+            **{name: float(value[0]) for name, value in hold_metrics(distance[None]).items()},
             "smoothness_kpa": (float(np.abs(np.diff(commands, axis=0)).mean())
                                if len(commands) > 1 else 0.0),
             "periods": len(commands),

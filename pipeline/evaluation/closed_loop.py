@@ -224,7 +224,7 @@ def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv
         loaded[name] = (network, stacked, jax.tree.leaves(stacked)[0].shape[0])
 
     limits = cfg.robot.limits
-    rows, finals, paths = [], {}, {}
+    rows, finals, paths, sent = [], {}, {}, {}
     keys = jax.random.split(rollout_key, episodes)
     programs = _Programs()
     for plant_name, (plant_env_i, plant_params) in plants.items():
@@ -243,6 +243,7 @@ def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv
                 rows.append(table)
                 finals[(plant_name, controller, seed)] = positions[seed, :, -1]
                 paths[(plant_name, controller, seed)] = positions[seed]
+                sent[(plant_name, controller, seed)] = commands[seed]
     episodes_table = pd.concat(rows, ignore_index=True)
     summary = summarize(episodes_table, ["plant", "controller"])
     gaps = _gap_table(episodes_table, finals) if "plant" in plants else pd.DataFrame()
@@ -250,11 +251,12 @@ def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv
     headline = {
         f"{row.plant}/{row.controller}": {"median_final_mm": float(row.median_final_mm),
                                           "success_1mm": float(row.success_1mm),
-                                          "success_3mm": float(row.success_3mm)}
+                                          "success_3mm": float(row.success_3mm),
+                                          "held_arrivals": float(row.held_arrivals)}
         for row in summary.itertuples()}
     return {"tables": {"episodes": episodes_table, "summary": summary, "plant_gap": gaps,
                        "consecutive": consecutive},
-            "paths": paths, "goals": np.asarray(goals), "headline": headline}
+            "paths": paths, "commands": sent, "goals": np.asarray(goals), "headline": headline}
 
 
 def _gap_table(episodes: pd.DataFrame, finals: dict) -> pd.DataFrame:

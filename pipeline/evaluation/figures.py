@@ -10,12 +10,23 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.evaluation.metrics import MM_PER_M, first_step_within
+from pipeline.evaluation.metrics import ARRIVAL_MM, HELD_MM, MM_PER_M, first_step_within
 from pipeline.evaluation.report import Figure
 from pipeline.rl.results import RETURN_LABEL, training_curves
 
 PLANT_TITLES = {"learned": "learned model", "plant": "simulated arm (plant)"}
 TRAJECTORY_EPISODES = 4  # episodes drawn per panel of the trajectory figure
+TAIL_EPISODES = 3  # episodes drawn per plant in the figure after arrival
+
+
+def tail_episodes(distance_mm: np.ndarray, count: int = TAIL_EPISODES,
+                  arrival_mm: float = ARRIVAL_MM) -> np.ndarray:
+    """Indices of the ``count`` episodes of ``distance_mm [E, T + 1]`` that came within
+    ``arrival_mm`` and ended furthest from the goal, the furthest first (fewer where fewer
+    arrived)."""
+    arrived = np.flatnonzero(np.isfinite(first_step_within(distance_mm, arrival_mm)))
+    order = np.argsort(-distance_mm[arrived, -1], kind="stable")
+    return arrived[order[:count]]
 
 
 def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
@@ -131,8 +142,77 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
                   else f"seed {drawn_seeds[0]}")
     if len(all_seeds) > len(drawn_seeds):
         seed_words += f" of {len(all_seeds)}"
+    for name in policies:
+        drawn = after_arrival_figure(folder / f"after_arrival_{name}.png", cfg, results, name)
+        if drawn is not None:
+            figures[f"after_arrival/{name}"] = drawn
     figures["trajectories"] = Figure(path, (
         f"task-space trajectories in the x–z plane, episodes 0–{episodes - 1} (one colour "
         f"each, the same goals and starts for every controller), {seed_words} of each policy "
         "(line style); MPC has one."))
     return figures
+
+
+def after_arrival_figure(path: Path, cfg, results, controller: str) -> Figure | None:
+    """What happens after the first arrival within 1 mm, for ``controller``'s tail episodes of
+    each plant (:func:`tail_episodes` over every seed's episodes): distance to the goal, position
+    minus goal per axis and the command per valve over time. None when it never arrived."""
+    import matplotlib.pyplot as plt
+
+    goals = results["goals"]
+    plants = sorted({key[0] for key in results["paths"] if key[1] == controller})
+    picked = {}
+    for plant in plants:
+        seeds = sorted(k[2] for k in results["paths"] if k[:2] == (plant, controller))
+        positions = np.concatenate([results["paths"][(plant, controller, s)] for s in seeds])
+        commands = np.concatenate([results["commands"][(plant, controller, s)] for s in seeds])
+        episode_goals = np.concatenate([goals] * len(seeds))
+        distance = np.linalg.norm(positions - episode_goals[:, None], axis=-1) * MM_PER_M
+        chosen = tail_episodes(distance)
+        if len(chosen):
+            picked[plant] = (chosen, len(goals), distance, positions, commands, episode_goals)
+    if not picked:
+        return None
+    fig, axes = plt.subplots(3, len(picked), figsize=(5.5 * len(picked), 8), squeeze=False,
+                             sharex=True)
+    hz = float(cfg.robot.control_hz)
+    axis_styles = ["-", "--", ":"]
+    for col, (plant, (chosen, per_seed, distance, positions, commands, episode_goals)) in (
+            enumerate(picked.items())):
+        t = np.arange(distance.shape[1]) / hz
+        for i, e in enumerate(chosen):
+            colour = f"C{i}"
+            first = int(first_step_within(distance[e:e + 1], ARRIVAL_MM)[0])
+            label = (f"seed {e // per_seed}, episode {e % per_seed}: "
+                     f"{distance[e, -1]:.2f} mm at the end")
+            axes[0, col].plot(t, distance[e], color=colour, label=label)
+            axes[0, col].plot(t[first], distance[e, first], "o", color=colour, ms=5)
+            error = (positions[e] - episode_goals[e]) * MM_PER_M
+            for a in range(3):
+                axes[1, col].plot(t, error[:, a], axis_styles[a], color=colour, lw=1)
+                axes[2, col].step(t[1:], commands[e, :, a], axis_styles[a], where="pre",
+                                  color=colour, lw=1)
+            for row in range(3):
+                axes[row, col].axvline(t[first], color=colour, lw=0.6, alpha=0.5)
+        axes[0, col].axhline(ARRIVAL_MM, color="k", ls=":", lw=0.8)
+        axes[0, col].axhline(HELD_MM, color="k", ls="--", lw=0.8)
+        axes[0, col].set_yscale("log")
+        axes[0, col].set_title(f"{controller} on the {PLANT_TITLES.get(plant, plant)}",
+                               fontsize=10)
+        axes[0, col].legend(fontsize=7)
+        axes[1, col].axhline(0.0, color="k", lw=0.6)
+        axes[2, col].set_xlabel("time [s]")
+    axes[0, 0].set_ylabel("distance to goal [mm]")
+    axes[1, 0].set_ylabel("position − goal [mm]\n(x solid, y dashed, z dotted)")
+    axes[2, 0].set_ylabel("command [kPa]\n(valve 1 solid, 2 dashed, 3 dotted)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Figure(path, (
+        f"after the first arrival within {ARRIVAL_MM:g} mm (dot and vertical line), {controller}'s "
+        f"tail episodes on each plant: of every seed's episodes that arrived, the "
+        f"{TAIL_EPISODES} that ended furthest from the goal (one colour each). Top: distance to "
+        f"the goal (dotted {ARRIVAL_MM:g} mm, dashed {HELD_MM:g} mm: an arrival held to the end "
+        "ends below it); middle: position minus goal per axis; bottom: the command sent in each "
+        "control period, per valve. A command that stands still while the position moves is "
+        "the plant drifting under a held command."))

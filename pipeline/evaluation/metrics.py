@@ -17,6 +17,8 @@ import numpy as np
 import pandas as pd
 
 MM_PER_M = 1000.0
+ARRIVAL_MM = 1.0  # an episode has arrived once its distance was within this
+HELD_MM = 1.5  # an arrival is held when the episode ends within this
 
 
 def distances_mm(positions: np.ndarray, goals: np.ndarray) -> np.ndarray:
@@ -41,6 +43,37 @@ def first_step_within(distance_mm: np.ndarray, tolerance_mm: float) -> np.ndarra
     return steps
 
 
+def hold_metrics(distance_mm: np.ndarray, arrival_mm: float = ARRIVAL_MM,
+                 held_mm: float = HELD_MM) -> dict[str, np.ndarray]:
+    """What happens after the first arrival within ``arrival_mm``, per episode ``[E]``.
+
+    From ``distance_mm [E, T + 1]`` (index t after t control periods), over the times from the
+    first arrival ``a`` to the end ``T`` (both included; NaN for an episode that never arrived):
+
+    - ``within_1mm_after_arrival``: the share of those ``T - a + 1`` times within ``arrival_mm``
+      (1: never left again; the arrival itself counts, so it is at least ``1 / (T - a + 1)``);
+    - ``max_after_arrival_mm``: the largest distance among them;
+    - ``held_1.5mm``: 1.0 when the episode ends within ``held_mm``, else 0.0 (an arrival held to
+      the end; the share of arrivals held is its mean over the episodes that arrived).
+    """
+    distance = np.asarray(distance_mm, np.float64)
+    first = first_step_within(distance, arrival_mm)
+    arrived = np.isfinite(first)
+    times = np.arange(distance.shape[1])[None, :]
+    after = arrived[:, None] & (times >= np.where(arrived, first, np.inf)[:, None])
+    count = after.sum(axis=1)
+    within = ((distance <= arrival_mm) & after).sum(axis=1)
+    largest = np.where(after, distance, -np.inf).max(axis=1)
+    nan = np.full(len(distance), np.nan)
+    return {
+        f"within_{arrival_mm:g}mm_after_arrival": np.where(
+            arrived, within / np.maximum(count, 1), nan),
+        "max_after_arrival_mm": np.where(arrived, largest, nan),
+        f"held_{held_mm:g}mm": np.where(arrived, (distance[:, -1] <= held_mm).astype(float),
+                                        nan),
+    }
+
+
 def steps_above_limits(commands: np.ndarray, limits: Any) -> np.ndarray:
     """Control steps whose command lies outside the safe set, per episode ``[E]`` (exact)."""
     p = np.asarray(commands, np.float64)
@@ -60,7 +93,9 @@ def episode_metrics(
 
     Columns: ``final_distance_mm`` (at the end), ``min_distance_mm``, ``success_<tol>mm`` (final
     distance within the tolerance), ``steps_to_<tol>mm`` (first time within it, NaN if never),
-    ``smoothness_kpa`` (mean absolute change of the command between consecutive steps, per valve),
+    the hold after the first arrival within 1 mm (:func:`hold_metrics`:
+    ``within_1mm_after_arrival``, ``max_after_arrival_mm``, ``held_1.5mm``; NaN for an episode
+    that never arrived), ``smoothness_kpa`` (mean absolute change of the command between consecutive steps, per valve),
     ``steps_above_limits`` (must be 0) and ``time_above_limits`` (its fraction of the episode).
     """
     distance = distances_mm(positions, goals)
@@ -75,6 +110,7 @@ def episode_metrics(
     for tol in tolerances_mm:
         rows[f"success_{tol:g}mm"] = distance[:, -1] <= tol
         rows[f"steps_to_{tol:g}mm"] = first_step_within(distance, tol)
+    rows.update(hold_metrics(distance))
     steps = commands.shape[1]
     change = np.abs(np.diff(commands, axis=1)) if steps > 1 else np.zeros_like(commands)
     rows["smoothness_kpa"] = change.mean(axis=(1, 2)) if steps > 1 else np.zeros(len(distance))
@@ -107,12 +143,19 @@ def median_steps(steps: pd.Series) -> float:
     return float(np.median(values)) if len(values) else float("nan")
 
 
+HELD_COLUMN = f"held_{HELD_MM:g}mm"
+
+
 def summarize(table: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     """Median / mean final distance, success rates and steps per group (e.g. policy, plant).
 
     ``reached_3mm``: the fraction of episodes that were ever within 3 mm; ``median_steps_to_3mm``
     the median over all episodes of when they first were (:func:`median_steps`: ``inf`` when
-    fewer than half were).
+    fewer than half were). The hold (:func:`hold_metrics`; tables without its columns get
+    none): ``arrived_1mm`` the fraction of episodes ever within 1 mm; over those that were,
+    ``held_arrivals`` the share that ended within 1.5 mm, ``within_1mm_after_arrival`` the mean
+    share of the times after the arrival spent within 1 mm and ``median_max_after_arrival_mm``
+    the median of the largest distance after it (NaN where no episode arrived).
     """
     grouped = table.groupby(by, sort=False)
     out = grouped.agg(
@@ -127,6 +170,13 @@ def summarize(table: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         smoothness_kpa=("smoothness_kpa", "mean"),
         time_above_limits=("time_above_limits", "max"),
     )
+    if HELD_COLUMN in table:
+        hold = grouped.agg(
+            arrived_1mm=("steps_to_1mm", lambda x: float(np.isfinite(x).mean())),
+            held_arrivals=(HELD_COLUMN, "mean"),
+            within_1mm_after_arrival=("within_1mm_after_arrival", "mean"),
+            median_max_after_arrival_mm=("max_after_arrival_mm", "median"))
+        out = out.join(hold)
     return out.reset_index()
 
 

@@ -134,4 +134,5 @@ def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> N
     for row in summary[summary["plant"] == CROSS].itertuples():
         results["headline"][f"cross_model/{row.direction}/{row.controller}"] = {
             "median_final_mm": float(row.median_final_mm),
-            "success_1mm": float(row.success_1mm), "success_3mm": float(row.success_3mm)}
+            "success_1mm": float(row.success_1mm), "success_3mm": float(row.success_3mm),
+            "held_arrivals": float(row.held_arrivals)}

@@ -78,6 +78,8 @@ def common_params(cfg: Any) -> dict[str, Any]:
         "goal_mode": str(env_cfg.goal_mode),
         "goal_perturbation_m": float(env_cfg.goal_perturbation_m),
         "goal_tolerance_m": float(env_cfg.goal_tolerance_m),
+        "hold_periods": int(env_cfg.get("hold_periods", EnvConfig.hold_periods)),
+        "hold_bonus_mm": float(env_cfg.get("hold_bonus_mm", EnvConfig.hold_bonus_mm)),
         "obs_noise_std_m": float(env_cfg.obs_noise_std),
         "error_scale_m": float(env_cfg.error_scale_m),
         "error_integral_decay": float(

@@ -21,8 +21,14 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
   ``command_change_cost`` (mm per kPa, 0 by default) times the summed absolute change of the
   applied command ``sum_v |p_t - p_{t-1}|`` kPa: a price on moving the valves, so that a policy
   that can stand still at the goal does so instead of dithering around it.
-- **Terminated** when the distance is within ``goal_tolerance`` (1 mm); **truncated** by gymnax
-  at ``max_steps_in_episode`` steps. Both are returned separately (gymnax 1.x).
+  Plus ``hold_bonus`` mm for every control period that ends within ``goal_tolerance`` (0 by
+  default): a reward for staying at the goal, not only for getting there.
+- **Terminated** when the distance has been within ``goal_tolerance`` (1 mm) at the end of
+  ``hold_periods`` consecutive control periods (1 by default: at the first arrival;
+  ``EnvState.periods_within`` counts them, a period outside the tolerance sets it back to 0);
+  **truncated** by gymnax at ``max_steps_in_episode`` steps. Both are returned separately
+  (gymnax 1.x). With ``hold_periods > 1`` an episode goes on after its first arrival, so the
+  policy is trained in the states after arrival, where evaluation and the arm keep it.
 - **Reset.** The plant rests at the preload: an initial pose (rest pose ± its spread) seeds the
   plant's carry, the preload is held for ``settle_seconds`` and the episode starts from the
   resulting pose. Settling takes tens of plant steps, and gymnax computes a reset on every step
@@ -135,6 +141,8 @@ class EnvState:
       offset. None only in a state that is observed, never stepped.
     error_integral: [3], the accumulated scaled error (:func:`observation.update_error_integral`
       of the measured positions since the reset; zeros at a reset). None like ``perturbation``.
+    periods_within: int32 scalar, consecutive control periods up to now that ended within the
+      goal tolerance (0 at a reset). None like ``perturbation``.
     """
 
     plant_carry: Any
@@ -144,6 +152,7 @@ class EnvState:
     time: jax.Array
     perturbation: Perturbation | None = None
     error_integral: jax.Array | None = None
+    periods_within: jax.Array | None = None
 
 
 @struct.dataclass
@@ -159,7 +168,9 @@ class EnvParams:
     goal_set: [G, 3] m, the goals of ``goal_mode=data``.
     goal_from_data: bool scalar, True for ``goal_mode=data``, False for ``perturb``.
     goal_perturbation: [3] m, std of the ``perturb`` goals around the initial pose.
-    goal_tolerance: m, terminate when the distance is within it.
+    goal_tolerance: m, the distance within which a control period counts as at the goal.
+    hold_periods: int32 scalar >= 1, terminate after this many consecutive periods at the goal.
+    hold_bonus: mm of reward for every control period that ends at the goal.
     obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
     obs_noise_std: m, Gaussian noise on the observed position.
     error_scale: m, divides ``goal - measured`` in the observation (``include_error``).
@@ -183,6 +194,8 @@ class EnvParams:
     goal_from_data: jax.Array
     goal_perturbation: jax.Array
     goal_tolerance: jax.Array
+    hold_periods: jax.Array
+    hold_bonus: jax.Array
     obs_mean: jax.Array
     obs_scale: jax.Array
     obs_noise_std: jax.Array
@@ -280,7 +293,8 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         ``key`` and the position shifted by its rest offset."""
         perturbation = self.draw_perturbation(key, params)
         return EnvState(plant_carry, position + perturbation.rest_offset, goal, params.preload,
-                        jnp.zeros((), jnp.int32), perturbation, jnp.zeros(POSITION_DIM))
+                        jnp.zeros((), jnp.int32), perturbation, jnp.zeros(POSITION_DIM),
+                        jnp.zeros((), jnp.int32))
 
     def draw_perturbation(self, key: jax.Array, params: EnvParams) -> Perturbation:
         """One episode's :class:`Perturbation` drawn with ``params.randomization`` (one key per
@@ -300,7 +314,8 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
                  ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
         """One control period: ``action [3]`` in [-1, 1] held for ``steps_per_action`` steps.
 
-        Returns ``(obs, state, reward [mm, <= 0], terminated, info)``; ``info["distance_m"]`` is
+        Returns ``(obs, state, reward [mm], terminated, info)`` (the reward is <= 0 unless
+        ``params.hold_bonus`` is positive); ``info["distance_m"]`` is
         the distance to the goal at the end of the period and ``info["pressure"]`` the applied
         (projected) command in kPa (before the episode's gain, offset and delay).
         """
@@ -322,10 +337,13 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         measured = self.measure(obs_key, position, params)
         integral = observation.update_error_integral(state.error_integral, measured, state.goal,
                                                      params)
+        within = distance <= params.goal_tolerance
+        periods_within = jnp.where(within, state.periods_within + 1, 0)
         state = EnvState(carry, position, state.goal, pressure, state.time + 1,
-                         perturbation.replace(received=received), integral)
-        terminated = distance <= params.goal_tolerance
-        reward = -MM_PER_M * distance - params.command_change_cost * change
+                         perturbation.replace(received=received), integral, periods_within)
+        terminated = periods_within >= params.hold_periods
+        reward = (-MM_PER_M * distance - params.command_change_cost * change
+                  + params.hold_bonus * within)
         obs = self._observation(measured, state, params)
         obs, state = self._apply_transition_gradient_policy(obs, state)
         return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
@@ -349,7 +367,11 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
             error_integral=state.error_integral if self.include_error_integral else None)
 
     def is_terminated(self, state: EnvState, params: EnvParams) -> jax.Array:
-        return jnp.linalg.norm(state.goal - state.position) <= params.goal_tolerance
+        """Whether the goal has been held for ``params.hold_periods`` periods (without a count
+        in ``state``: whether the position is within the tolerance now)."""
+        if state.periods_within is None:
+            return jnp.linalg.norm(state.goal - state.position) <= params.goal_tolerance
+        return state.periods_within >= params.hold_periods
 
     # -----------------------------------------------------------------------------------------
     # helpers
@@ -419,6 +441,8 @@ def make_env_params(
     goal_mode: str = "data",
     goal_perturbation_m: float | jax.Array = 0.01,
     goal_tolerance_m: float = 0.001,
+    hold_periods: int = 1,
+    hold_bonus_mm: float = 0.0,
     obs_noise_std_m: float = 0.0,
     error_scale_m: float = 0.005,
     error_integral_decay: float = 0.8,
@@ -444,6 +468,9 @@ def make_env_params(
         default: none.
       initial_poses: [N, 3] m, the poses the bank settles from (``N`` replaces
         ``reset_bank_size``); default: drawn around ``rest_pose``.
+      hold_periods: consecutive control periods within ``goal_tolerance_m`` that end an episode
+        (1: the first arrival).
+      hold_bonus_mm: mm of reward for every control period that ends within the tolerance.
     """
     if goal_mode not in GOAL_MODES:
         raise ValueError(f"goal_mode must be one of {GOAL_MODES}, got {goal_mode!r}")
@@ -451,6 +478,9 @@ def make_env_params(
         raise ValueError("goal_mode=data needs a goal_set [G, 3] (positions from the data)")
     if rest_pose is None and initial_poses is None:
         raise ValueError("make_env_params needs a rest_pose [3] or initial_poses [N, 3]")
+    if int(hold_periods) < 1:
+        raise ValueError(f"hold_periods must be >= 1 (1: terminate at the first arrival), got "
+                         f"{hold_periods}")
     preload = jnp.broadcast_to(jnp.asarray(preload, jnp.float32), (NUM_VALVES,))
     if initial_poses is None:
         rest_pose = jnp.asarray(rest_pose, jnp.float32)
@@ -487,6 +517,8 @@ def make_env_params(
         goal_from_data=jnp.asarray(goal_mode == "data"),
         goal_perturbation=jnp.broadcast_to(f32(goal_perturbation_m), (POSITION_DIM,)),
         goal_tolerance=f32(goal_tolerance_m),
+        hold_periods=jnp.asarray(int(hold_periods), jnp.int32),
+        hold_bonus=f32(hold_bonus_mm),
         obs_mean=f32(obs_mean),
         obs_scale=f32(obs_scale),
         obs_noise_std=f32(obs_noise_std_m),

@@ -1020,3 +1020,27 @@ def register_configs() -> None:
     cs.store(group="control", name="base_control", node=ControlConfig)
     cs.store(group="logger", name="base_logger", node=LoggerConfig)
     cs.store(group="paths", name="base_paths", node=PathsConfig)
+    adopt_launcher_schemas()
+
+
+# Hydra's sweep launchers (hydra/launcher=joblib|submitit_local|submitit_slurm): the plugins
+# register their schemas under the options' own names, and a YAML of the same name is then
+# matched to its schema automatically, which Hydra deprecated (a warning on every composition).
+# Each schema moves to base_<name>, which conf/hydra/launcher/<name>.yaml names first, as the
+# other groups name theirs.
+LAUNCHER_OPTIONS = ("joblib", "submitit_local", "submitit_slurm")
+
+
+def adopt_launcher_schemas() -> list[str]:
+    """Store each installed launcher plugin's schema as ``hydra/launcher/base_<name>`` in place of
+    the entry of the option's own name; returns the options whose schema is there."""
+    from hydra.core.plugins import Plugins
+
+    Plugins.instance()  # Hydra's one scan of the plugins, which registers their schemas
+    entries = ConfigStore.instance().repo.setdefault("hydra", {}).setdefault("launcher", {})
+    for name in LAUNCHER_OPTIONS:
+        entry = entries.pop(f"{name}.yaml", None)
+        if entry is not None:
+            ConfigStore.instance().store(group="hydra/launcher", name=f"base_{name}",
+                                         node=entry.node, provider=entry.provider)
+    return [name for name in LAUNCHER_OPTIONS if f"base_{name}.yaml" in entries]

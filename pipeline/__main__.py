@@ -206,12 +206,26 @@ def main(cfg: DictConfig) -> None:
     if Stage(cfg.stage) is not Stage.guard:  # the guard never compiles: it starts without JAX
         quiet_xla_log()
     try:
-        run(cfg)
+        results = run(cfg)
     except KNOWN_ERRORS as err:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise
         log.error("%s: %s", type(err).__name__, err)
         sys.exit(1)
+    print_summary(cfg, results)
+
+
+def print_summary(cfg: Any, results: dict[str, Any]) -> None:
+    """The closing summary (:mod:`pipeline.evaluation.summary`) on stdout: the tables of what
+    ran, the artifact and report paths, the next command (with this run's overrides)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from pipeline.evaluation.summary import closing_summary
+
+    overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    lines = closing_summary(str(Stage(cfg.stage).value), results, cfg, overrides)
+    if lines:
+        print("\n".join(lines), flush=True)
 
 
 def console() -> None:

@@ -103,7 +103,8 @@ def _type_name(annotation: Any) -> str:
 def _resolved_hints(cls: type) -> dict[str, Any]:
     try:
         return typing.get_type_hints(cls)
-    except Exception:  # noqa: BLE001  (a forward reference the module does not resolve)
+    except (NameError, TypeError):  # a forward reference the module does not resolve: the
+        # annotations are then shown as written
         return {}
 
 

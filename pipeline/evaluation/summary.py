@@ -48,7 +48,7 @@ def evaluation_table(artifact_path: Path) -> pd.DataFrame:
     for row in summary.to_dict("records"):
         rows.append({"controller": row["controller"], "plant": row["plant"],
                      "median_final_mm": float(row["median_final_mm"]),
-                     WITHIN: 100.0 * float(row["success_1mm"]),
+                     WITHIN: round(100.0 * float(row["success_1mm"])),
                      "seeds": int(seeds.get((row["plant"], row["controller"]), 1)),
                      "episodes": int(row["episodes"])})
     cross = folder / "cross_model.parquet"
@@ -60,7 +60,7 @@ def evaluation_table(artifact_path: Path) -> pd.DataFrame:
             rows.append({"controller": row["controller"],
                          "plant": f"model of runs {row.get('direction', '?')}",
                          "median_final_mm": float(row["median_final_mm"]),
-                         WITHIN: 100.0 * float(row["success_1mm"]),
+                         WITHIN: round(100.0 * float(row["success_1mm"])),
                          "seeds": int(row["seeds"]) if "seeds" in row else None,
                          "episodes": int(row["episodes"]) if "episodes" in row else None})
     return pd.DataFrame(rows, columns=["controller", "plant", "median_final_mm", WITHIN, "seeds",
@@ -149,16 +149,18 @@ def command(stage: str, overrides: Sequence[str], *extra: str) -> str:
                      *(shlex.quote(o) for o in (*kept, *extra))])
 
 
-def _goals_from(evaluate_path: Path, count: int = 3) -> str | None:
-    """Up to ``count`` held-out goals [mm] of an evaluate artifact as a ``control.goals`` value."""
-    episodes = Path(evaluate_path) / "episodes.parquet"
-    if not episodes.is_file():
+def goals_from_data(align_path: Path, quantiles: Sequence[float] = (0.35, 0.5, 0.65)) -> str | None:
+    """Goals [mm] inside the recorded positions of an align artifact (per axis, the given
+    quantiles of ``aligned.parquet``'s x, y, z), as a ``control.goals`` value; None where there
+    is no such table. Goals of ``stage=control`` must lie inside the training goals' box, which
+    is drawn from these positions."""
+    table = Path(align_path) / "aligned.parquet"
+    if not table.is_file():
         return None
-    axes = ["goal_x_mm", "goal_y_mm", "goal_z_mm"]
-    table = pd.read_parquet(episodes)
-    if not set(axes) <= set(table.columns):
+    positions = pd.read_parquet(table, columns=["x", "y", "z"]).dropna()
+    if positions.empty:
         return None
-    goals = table[axes].drop_duplicates().head(count).to_numpy()
+    goals = positions.quantile(list(quantiles)).to_numpy() * 1e3
     return "[" + ",".join("[" + ",".join(f"{v:.1f}" for v in goal) + "]" for goal in goals) + "]"
 
 
@@ -187,7 +189,7 @@ def closing_summary(stage: str, results: dict[str, Any], cfg: Any,
                "env": summary.get("env", ""), "seeds": summary.get("num_seeds"),
                "steps_per_seed": summary.get("timesteps_per_seed"),
                "median_final_mm": summary.get("final_eval_median_distance_mm"),
-               WITHIN: (100.0 * float(summary["final_eval_success_rate"])
+               WITHIN: (round(100.0 * float(summary["final_eval_success_rate"]))
                         if "final_eval_success_rate" in summary else None)}
         lines += ["", "Training's own final evaluation (held-out goals, in its environment):",
                   *text_table(pd.DataFrame([row]))]
@@ -217,8 +219,8 @@ def next_step(stage: str, results: dict[str, Any], cfg: Any, overrides: Sequence
     """The command that makes sense after ``stage`` (first line), with what it does."""
     policy = str(cfg.agent.name)
     if stage in ("all", "evaluate", "train_ppo"):
-        evaluation = results.get("evaluate")
-        goals = _goals_from(evaluation.path) if evaluation is not None else None
+        align = results.get("align")
+        goals = goals_from_data(align.path) if hasattr(align, "path") else None
         if kind == "sim":
             extra = [f"control.policy={policy}"] + ([f"control.goals={goals}"] if goals else [])
             return [command("control", overrides, *extra),
@@ -231,6 +233,15 @@ def next_step(stage: str, results: dict[str, Any], cfg: Any, overrides: Sequence
                 command("control", ["robot=ros2"], *extra,
                         *([f"control.goals={goals}"] if goals else []))
                 + "    # shell 2: rehearse on the twin before the arm (docs: real-arm workflow)"]
+    control = results.get("control")
+    if stage == "control" and kind == "sim" and hasattr(control, "path"):
+        policy = _manifest(control.path).get("summary", {}).get("policy")
+        if policy:
+            return ["python -m pipeline stage=twin robot=ros2    # shell 1: the digital twin",
+                    command("control", ["robot=ros2"],
+                            f"control.policy_file={_relative(Path(policy) / 'policy.msgpack')}",
+                            *[o for o in overrides if o.startswith("control.goals")])
+                    + "    # shell 2: the same policy over ROS 2 (docs: real-arm workflow)"]
     follow = {"collect": "align", "align": "fit_model", "fit_model": "train_ppo",
               "calibrate": "evaluate"}
     if stage in follow:

@@ -131,6 +131,13 @@ def schema_rows(cls: type, prefix: str) -> list[dict[str, str]]:
             rows += schema_rows(nested, name)
             continue
         comment = comments.get(field.name, "")
+        optional = [a for a in typing.get_args(hint) if dataclasses.is_dataclass(a)]
+        if optional:  # a section that may be left out (null), with settings of its own
+            rows.append({"key": name, "type": _type_name(field.type), "default": _show(default),
+                         "unit": "", "description": comment or (
+                             f"optional ({optional[0].__name__}, below); null: none")})
+            rows += schema_rows(optional[0], name)
+            continue
         choices = _choices(hint)
         rows.append({"key": name, "type": _type_name(field.type), "default": _show(default),
                      "unit": _unit(field.name, comment),

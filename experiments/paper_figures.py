@@ -300,6 +300,10 @@ def return_figure(out: Path, base: tuple[str, ...], captions: dict[str, str], se
         durations[agent] = float(summary["compile_seconds"]) + float(summary["train_seconds"])
         cfg = compose(base, *overrides)
         curves = training_curves(artifact)
+        if curves.empty:
+            raise SystemExit(f"Fig. 8: no training episode of {agent} ended within "
+                             f"--ppo-steps={steps} (episodes last {int(cfg.env.max_steps)} "
+                             "periods): give it more steps")
         stats = curves.groupby("timesteps")["return"].agg(["mean", "std"]).reset_index()
         ax.plot(stats["timesteps"], stats["mean"], color=f"C{i}",
                 label=f"{agent} ({curves['seed'].nunique()} seeds)")

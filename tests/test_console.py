@@ -174,3 +174,21 @@ def test_a_warm_run_prints_no_xla_machine_type_errors(tmp_path):
     assert not [line for line in warm.splitlines() if any(n in line for n in XLA_NOISE)]
     if not any(n in stderr(TF_CPP_MIN_LOG_LEVEL="0") for n in XLA_NOISE):
         pytest.skip("this CPU logs no machine-type error on a cache load: nothing was hidden")
+
+
+def test_the_next_command_follows_the_stage_and_the_robot(tmp_path, make_cfg):
+    from types import SimpleNamespace
+
+    from pipeline.evaluation.summary import next_step
+
+    assert next_step("fit_model", {}, make_cfg(), ["model.hidden=32", "stage=fit_model"],
+                     "sim") == ["python -m pipeline stage=train_ppo model.hidden=32"]
+    assert next_step("train_ppo", {}, make_cfg(), [], "sim")[0].startswith(
+        "python -m pipeline stage=evaluate    #")
+    # a policy for a ROS 2 arm is rehearsed on the twin first, named by its file
+    policy = SimpleNamespace(path=tmp_path / "train_ppo" / "abc")
+    steps = next_step("evaluate", {"train_ppo": policy}, make_cfg("robot=ros2"), [], "ros2")
+    assert steps[0].startswith("python -m pipeline stage=twin robot=ros2")
+    assert steps[1].startswith("python -m pipeline stage=control robot=ros2 "
+                               f"control.policy_file={policy.path / 'policy.msgpack'}")
+    assert next_step("guard", {}, make_cfg(), [], "ros2") == []

@@ -8,7 +8,8 @@ gains columns keeps its summary:
   ended within 1 mm, the seeds and episodes (``summary.parquet``, ``episodes.parquet``), and, on
   recorded data, each policy in the model of runs it never saw (``cross_model.parquet``);
 - ``fit_model``: the model's held-out open-loop error next to its baselines (the manifest);
-- ``train_ppo``: per policy, the seeds and training's own final evaluation (the manifest);
+- ``train_ppo``: per policy, the seeds and training's own final evaluation (the manifest: the
+  median final distance, the share of episodes that reached the goal within 1 mm);
 - ``control``: per goal, the final distance, the time to within 1 mm, the steady-state error
   (``goals.parquet``).
 
@@ -189,7 +190,7 @@ def closing_summary(stage: str, results: dict[str, Any], cfg: Any,
                "env": summary.get("env", ""), "seeds": summary.get("num_seeds"),
                "steps_per_seed": summary.get("timesteps_per_seed"),
                "median_final_mm": summary.get("final_eval_median_distance_mm"),
-               WITHIN: (round(100.0 * float(summary["final_eval_success_rate"]))
+               "reached_1mm_%": (round(100.0 * float(summary["final_eval_success_rate"]))
                         if "final_eval_success_rate" in summary else None)}
         lines += ["", "Training's own final evaluation (held-out goals, in its environment):",
                   *text_table(pd.DataFrame([row]))]
@@ -218,7 +219,10 @@ def next_step(stage: str, results: dict[str, Any], cfg: Any, overrides: Sequence
               kind: str) -> list[str]:
     """The command that makes sense after ``stage`` (first line), with what it does."""
     policy = str(cfg.agent.name)
-    if stage in ("all", "evaluate", "train_ppo"):
+    if stage == "train_ppo":
+        return [command("evaluate", overrides)
+                + "    # every policy type and the baselines, on the model and on the plant"]
+    if stage in ("all", "evaluate"):
         align = results.get("align")
         goals = goals_from_data(align.path) if hasattr(align, "path") else None
         if kind == "sim":

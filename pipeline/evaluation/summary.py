@@ -222,7 +222,8 @@ def next_step(stage: str, results: dict[str, Any], cfg: Any, overrides: Sequence
     if stage == "train_ppo":
         return [command("evaluate", overrides)
                 + "    # every policy type and the baselines, on the model and on the plant"]
-    if stage in ("all", "evaluate"):
+    env = str(getattr(cfg.env.name, "value", cfg.env.name))
+    if stage in ("all", "evaluate") and env != "gymnax":  # a gymnax task drives no arm
         align = results.get("align")
         goals = goals_from_data(align.path) if hasattr(align, "path") else None
         if kind == "sim":

@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 EXTRAS ?= dev,ros
 
 .DEFAULT_GOAL := help
-.PHONY: help setup setup-ros run quick test test-all lint bench figures clean
+.PHONY: help setup setup-ros run quick test test-all lint bench figures docs clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-10s %s\n", $$1, $$2}'
@@ -37,8 +37,11 @@ lint: ## ruff
 bench: ## benchmarks: print side-by-side tables (ratios)
 	$(BIN)/python -m bench
 
-clean: ## remove run outputs (artifacts included)
-	rm -rf outputs multirun
+docs: ## build the documentation site into site/ (needs the docs extra: pip install -e ".[docs]")
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
+
+clean: ## remove run outputs (artifacts included) and the built site
+	rm -rf outputs multirun site
 
 figures: ## the paper's Figs. 4-8 from the pipeline's artifacts (minutes on 2 cores) -> outputs/paper_figures/
 	$(BIN)/python -m experiments.paper_figures

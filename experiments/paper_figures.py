@@ -1,7 +1,11 @@
 """The paper's figures (RoboSoft 2024, Figs. 4-8) from this project's own artifacts.
 
     python -m experiments.paper_figures [--seeds 20] [--ppo-steps 102400] [--out DIR]
+                                        [--set KEY=VALUE ...]
     make figures
+
+``--set`` adds Hydra overrides to every stage the figures run (a shrunk run for the tests:
+fewer model steps, fewer recordings).
 
 Each figure is made from the artifacts of the pipeline (``pipeline.__main__.run``: reused when
 they are there, produced when they are missing), sized to run in minutes on two CPU cores. What
@@ -16,6 +20,11 @@ says so.
 - Fig. 7: open-loop reconstruction of a training run and an unseen run (real runs).
 - Fig. 8: episodic return of feed-forward and recurrent PPO in the model of the real runs,
   mean ± one std over seeds.
+
+Figs. 6 and 7 show one split of the runs into training and validation runs (``dataset.protocol=
+split``): the loss curves need a validation set, which the leave-one-run-out protocol (the default
+for recorded data) has per fold only. Fig. 8 trains in the model that ``experiment=real_arm``
+trains in (the default protocol: the model fitted to all runs).
 """
 
 from __future__ import annotations
@@ -38,19 +47,37 @@ EMA_WEIGHT = 0.025  # the paper's smoothing of the loss curves (weight of the ne
 CLAIM_FIG6 = "permuted windows generalise better than sequential ones (lower validation loss)"
 
 
-def compose(output_dir: Path, *overrides: str) -> Any:
-    """The pipeline's config with ``overrides``, writing under ``output_dir``."""
+# Figs. 6 and 7: one seeded split of the runs, so that the losses have validation rows
+SPLIT_PROTOCOL = "dataset.protocol=split"
+
+
+def base_overrides(output_dir: Path, settings: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """What every config of the figures gets: ``paths.output_dir`` and the ``--set`` overrides."""
+    return (f"paths.output_dir={output_dir}", *settings)
+
+
+def compose(base: tuple[str, ...], *overrides: str) -> Any:
+    """The pipeline's config with ``overrides`` after the ``base`` overrides (``base_overrides``).
+
+    The ``base`` ones come last, so that a shrunk run's settings hold in every figure."""
     from pipeline.config import compose as compose_config
 
-    return compose_config(f"paths.output_dir={output_dir}", *overrides)
+    return compose_config(*overrides, *base)
 
 
-def run_stage(output_dir: Path, stage: str, *overrides: str) -> dict[str, Any]:
+def reference(*overrides: str) -> Any:
+    """A config as the project defines it (no ``--set``): what a shrunk figure is compared to."""
+    from pipeline.config import compose as compose_config
+
+    return compose_config(*overrides)
+
+
+def run_stage(base: tuple[str, ...], stage: str, *overrides: str) -> dict[str, Any]:
     """Run ``stage`` (after what it needs upstream) through the pipeline's router."""
     from pipeline.__main__ import run
 
     started = time.perf_counter()
-    results = run(compose(output_dir, f"stage={stage}", *overrides))
+    results = run(compose(base, f"stage={stage}", *overrides))
     log.info("%s %s: %.0f s", stage, " ".join(overrides), time.perf_counter() - started)
     return results
 
@@ -102,16 +129,16 @@ def _image_figure(png: Path, width_in: float = 11.0):
 # ---------------------------------------------------------------------------------------------
 # Figs. 4 and 5: the exploration walk and the arm it drives
 # ---------------------------------------------------------------------------------------------
-def exploration_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> None:
+def exploration_figures(out: Path, base: tuple[str, ...], captions: dict[str, str]) -> None:
     import matplotlib.pyplot as plt
 
-    cfg = compose(output_dir, "robot=sim")
+    cfg = compose(base, "robot=sim")
     alphas = [float(a) for a in cfg.exploration.figure_alphas]
     seconds = int(cfg.exploration.num_steps) / float(cfg.robot.control_hz)
     positions = {}
     walk_png = None
     for alpha in alphas:
-        results = run_stage(output_dir, "collect", "robot=sim", "robot.num_runs=1",
+        results = run_stage(base, "collect", "robot=sim", "robot.num_runs=1",
                             f"exploration.alpha={alpha}")
         artifact = results["collect"]
         mocap = pd.read_parquet(artifact.file("mocap.parquet"))
@@ -166,7 +193,7 @@ def exploration_figures(out: Path, output_dir: Path, captions: dict[str, str]) -
 # ---------------------------------------------------------------------------------------------
 # Figs. 6 and 7: the dynamics model on the real runs
 # ---------------------------------------------------------------------------------------------
-def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
+def model_figures(out: Path, base: tuple[str, ...], captions: dict[str, str]) -> Any:
     import matplotlib.pyplot as plt
 
     from pipeline.data.alignment import runs_at_model_rate
@@ -178,12 +205,13 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
     fits, durations = {}, {}
     for order in ("permuted", "sequential"):
         started = time.perf_counter()
-        fits[order] = run_stage(output_dir, "fit_model", "robot=sorolex_csv",
+        fits[order] = run_stage(base, "fit_model", "robot=sorolex_csv", SPLIT_PROTOCOL,
                                 f"dataset.order={order}")
         durations[order] = time.perf_counter() - started
-    cfg = compose(output_dir, "robot=sorolex_csv")
+    cfg = compose(base, "robot=sorolex_csv", SPLIT_PROTOCOL)
     model, data = cfg.model, cfg.dataset
-    paper = compose(output_dir, "experiment=paper")  # the paper's model and windows
+    cell = str(model.cell.value).upper()
+    paper = reference("experiment=paper")  # the paper's model and windows
 
     fig, (ax_loss, ax_mm) = plt.subplots(1, 2, figsize=(11, 4))
     final = {}
@@ -193,6 +221,9 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
         ax_loss.semilogy(losses["step"], smooth, color=f"C{i}", lw=1.4,
                          label=f"{order}: train (EMA {EMA_WEIGHT})")
         val = losses.dropna(subset=["val_loss"])
+        if val.empty:
+            raise RuntimeError(f"{results['fit_model'].path}/losses.parquet has no validation rows "
+                               f"(dataset.protocol={cfg.dataset.protocol}): Fig. 6 needs a split")
         ax_loss.semilogy(val["step"], val["val_loss"], "o--", color=f"C{i}", ms=4,
                          label=f"{order}: validation")
         ax_mm.plot(val["step"], val["val_mean_mm"], "o-", color=f"C{i}", ms=4, label=order)
@@ -209,15 +240,15 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
                f"{final['permuted'][0]:.3g} vs sequential {final['sequential'][0]:.3g}, "
                f"open-loop error {final['permuted'][1]:.2f} vs {final['sequential'][1]:.2f} mm.")
     _save(fig, out / "fig6_loss_permuted_vs_sequential.png", (
-        f"Fig. 6. The LSTM dynamics model fitted to the real runs ({len(split['train'])} "
+        f"Fig. 6. The {cell} dynamics model fitted to the real runs ({len(split['train'])} "
         f"training runs, validation on {len(split['test'])} held-out: {', '.join(split['test'])}) "
         "with windows drawn in permuted or in sequential order; training loss smoothed by an "
         f"EMA of weight {EMA_WEIGHT}, validation over the entire held-out runs every "
         f"{int(model.eval_every)} steps. Run: python -m pipeline stage=fit_model "
-        "robot=sorolex_csv dataset.order=permuted|sequential "
+        f"robot=sorolex_csv {SPLIT_PROTOCOL} dataset.order=permuted|sequential "
         f"({_seconds(durations['permuted'])} and {_seconds(durations['sequential'])} here). "
-        f"Smaller than the paper: {int(model.hidden)} units instead of "
-        f"{int(paper.model.hidden)}, {int(model.num_steps):,} steps instead of "
+        f"Smaller than the paper: a {cell} of {int(model.hidden)} units instead of the paper's "
+        f"{str(paper.model.cell.value).upper()} of {int(paper.model.hidden)}, {int(model.num_steps):,} steps instead of "
         f"{int(paper.model.num_steps):,}, at {float(data.model_hz):g} Hz with windows of "
         f"{int(data.window)} instead of {float(paper.dataset.model_hz):g} Hz and "
         f"{int(paper.dataset.window)} (the project's default model). {verdict}"), captions)
@@ -243,7 +274,7 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
         "predicted from the commands alone over the entire run (red) against motion capture "
         "(black), for a training run and an unseen real run, the error |predicted - measured| "
         "below, and a 30 s zoom beside each. Run: python -m pipeline stage=fit_model "
-        f"robot=sorolex_csv. Measured: {numbers}. The unseen run's error is what the policies "
+        f"robot=sorolex_csv {SPLIT_PROTOCOL}. Measured: {numbers}. The unseen run's error is what the policies "
         "meet when the model stands in for the arm."), captions)
     return fits["permuted"]
 
@@ -251,7 +282,7 @@ def model_figures(out: Path, output_dir: Path, captions: dict[str, str]) -> Any:
 # ---------------------------------------------------------------------------------------------
 # Fig. 8: PPO in the learned model of the real runs
 # ---------------------------------------------------------------------------------------------
-def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: int,
+def return_figure(out: Path, base: tuple[str, ...], captions: dict[str, str], seeds: int,
                   steps: int) -> None:
     import matplotlib.pyplot as plt
 
@@ -265,11 +296,15 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
     for i, agent in enumerate(("ppo_ff", "ppo_rnn")):
         overrides = ("experiment=real_arm", *paper_task, f"agent={agent}",
                      f"agent.num_seeds={seeds}", *budget_overrides(steps))
-        artifact = run_stage(output_dir, "train_ppo", *overrides)["train_ppo"]
+        artifact = run_stage(base, "train_ppo", *overrides)["train_ppo"]
         summary = artifact.manifest["summary"]
         durations[agent] = float(summary["compile_seconds"]) + float(summary["train_seconds"])
-        cfg = compose(output_dir, *overrides)
+        cfg = compose(base, *overrides)
         curves = training_curves(artifact)
+        if curves.empty:
+            raise SystemExit(f"Fig. 8: no training episode of {agent} ended within "
+                             f"--ppo-steps={steps} (episodes last {int(cfg.env.max_steps)} "
+                             "periods): give it more steps")
         stats = curves.groupby("timesteps")["return"].agg(["mean", "std"]).reset_index()
         ax.plot(stats["timesteps"], stats["mean"], color=f"C{i}",
                 label=f"{agent} ({curves['seed'].nunique()} seeds)")
@@ -277,7 +312,8 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
                         stats["mean"] + stats["std"], color=f"C{i}", alpha=0.25)
         last = curves[curves["timesteps"] == curves["timesteps"].max()]["return"]
         finals[agent] = (float(last.mean()), float(last.std()), len(last))
-    ax.set(xlabel="environment steps per seed", title="PPO in the LSTM fitted to the real runs")
+    cell = str(cfg.model.cell.value).upper()
+    ax.set(xlabel="environment steps per seed", title=f"PPO in the {cell} fitted to the real runs")
     ax.set_ylabel(RETURN_LABEL)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -288,7 +324,7 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
     else:
         comparison = f"{'ppo_ff' if ff > rnn else 'ppo_rnn'} ahead by more than two standard " \
                      "errors over seeds at this budget"
-    full = compose(output_dir, "experiment=real_arm").agent  # the experiment as configured
+    full = reference("experiment=real_arm").agent  # the experiment as configured
     budget = f"{int(full.total_timesteps):,}"
     if full.recurrent_total_timesteps is not None:
         budget += f" (ppo_rnn {int(full.recurrent_total_timesteps):,})"
@@ -297,8 +333,8 @@ def return_figure(out: Path, output_dir: Path, captions: dict[str, str], seeds: 
         shrunk.append(f"{seeds} seeds instead of {int(full.num_seeds)}")
     _save(fig, out / "fig8_returns_ff_vs_rnn.png", (
         "Fig. 8. Episodic return during PPO training of the feed-forward (ppo_ff) and the "
-        "recurrent GRU (ppo_rnn) policy in the learned environment of the real runs (the "
-        "permuted-order model of Fig. 6), mean ± one std over seeds; the return of an update "
+        f"recurrent GRU (ppo_rnn) policy in the learned environment of the real runs (the {cell} "
+        "fitted to all of them, as experiment=real_arm trains in), mean ± one std over seeds; the return of an update "
         "is the mean over the training episodes that ended in it, the first updates (no episode "
         f"could yet have lasted {int(cfg.env.max_steps)} periods) left out. Run: python -m "
         f"pipeline stage=train_ppo experiment=real_arm {' '.join(paper_task)} agent=ppo_ff|ppo_rnn "
@@ -321,16 +357,19 @@ def main(argv: list[str] | None = None) -> None:
                         help="PPO environment steps per seed")
     parser.add_argument("--only", nargs="*", default=["4", "5", "6", "7", "8"],
                         help="figures to make (4 and 5 go together, 6 and 7 too)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", dest="settings",
+                        help="Hydra overrides for every stage run (e.g. model.num_steps=50)")
     args = parser.parse_args(argv)
+    base = base_overrides(args.output_dir, tuple(args.settings))
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
     args.out.mkdir(parents=True, exist_ok=True)
     captions: dict[str, str] = {}
     if {"4", "5"} & set(args.only):
-        exploration_figures(args.out, args.output_dir, captions)
+        exploration_figures(args.out, base, captions)
     if {"6", "7"} & set(args.only):
-        model_figures(args.out, args.output_dir, captions)
+        model_figures(args.out, base, captions)
     if "8" in args.only:
-        return_figure(args.out, args.output_dir, captions, args.seeds, args.ppo_steps)
+        return_figure(args.out, base, captions, args.seeds, args.ppo_steps)
     text = ["# The paper's figures, from this project's artifacts", ""]
     text += [f"![{name}]({name})\n\n{caption}\n" for name, caption in sorted(captions.items())]
     (args.out / "captions.md").write_text("\n".join(text))

@@ -29,7 +29,8 @@ from typing import Any
 # XLA's C++ log below FATAL stays quiet (errors that matter reach Python as exceptions). On
 # AVX-512 CPUs every load from the compilation cache logs a spurious "machine type doesn't
 # match" error for tuning flags of the same machine (jax-ml/jax#38445); set
-# TF_CPP_MIN_LOG_LEVEL=0 to see everything.
+# TF_CPP_MIN_LOG_LEVEL=0 to see everything. main() applies it to jaxlib as well
+# (pipeline.infra.compile_cache.quiet_xla_log): the variable alone does not hide them here.
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 import hydra
@@ -43,7 +44,7 @@ from pipeline.data.importers import RecordingNotFoundError
 from pipeline.data.raw import CollectionInterrupted
 from pipeline.data.schemas import DataError
 from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
-from pipeline.infra.compile_cache import use_compilation_cache
+from pipeline.infra.compile_cache import quiet_xla_log, use_compilation_cache
 from pipeline.infra.devices import configure_cpu_devices
 from pipeline.ros2.node import ArmRefused, RosUnavailableError
 
@@ -160,13 +161,29 @@ cli.register_help({stage: spec.runs for stage, spec in STAGES.items()})  # the s
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     use_compilation_cache(cfg.paths.compile_cache_dir)
+    if Stage(cfg.stage) is not Stage.guard:  # the guard never compiles: it starts without JAX
+        quiet_xla_log()
     try:
-        run(cfg)
+        results = run(cfg)
     except KNOWN_ERRORS as err:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise
         log.error("%s: %s", type(err).__name__, err)
         sys.exit(1)
+    print_summary(cfg, results)
+
+
+def print_summary(cfg: Any, results: dict[str, Any]) -> None:
+    """The closing summary (:mod:`pipeline.evaluation.summary`) on stdout: the tables of what
+    ran, the artifact and report paths, the next command (with this run's overrides)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from pipeline.evaluation.summary import closing_summary
+
+    overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    lines = closing_summary(str(Stage(cfg.stage).value), results, cfg, overrides)
+    if lines:
+        print("\n".join(lines), flush=True)
 
 
 def console() -> None:

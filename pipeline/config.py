@@ -230,7 +230,7 @@ class RobotConfig:
     workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
     # runs start from a settled rest pose, so the first observed pose is the rest pose and the
     # model predicts the displacement from it (model.predict_displacement follows this). False
-    # for the paper's recordings, which settle in their first second (experiments/MODEL_RESULTS.md).
+    # for the paper's recordings, which settle in their first second (docs/results/MODEL_RESULTS.md).
     settled_start: bool = False
 
 
@@ -484,7 +484,7 @@ class ModelConfig:
     head: list[int] = field(default_factory=list)
     condition_on_initial_pose: bool = False  # initial carry from the observed pose at reset
     # predict the displacement from the run's initial pose (default: robot.settled_start; it
-    # helps on settled starts and hurts on the real runs: experiments/MODEL_RESULTS.md)
+    # helps on settled starts and hurts on the real runs: docs/results/MODEL_RESULTS.md)
     predict_displacement: bool = False
     batch_size: int = 32
     learning_rate: float = 3.0e-3
@@ -493,7 +493,7 @@ class ModelConfig:
     final_lr_fraction: float = 0.05
     max_grad_norm: float = 1.0
     # 3000: leave-one-run-out on the real runs the GRU gains to about 3000 steps and not after
-    # (2.71 mm at 3000, 2.67 at 6000, 2.79 at 1500; experiments/MODEL_RESULTS.md)
+    # (2.71 mm at 3000, 2.67 at 6000, 2.79 at 1500; docs/results/MODEL_RESULTS.md)
     num_steps: int = 3000
     eval_every: int = 250
     checkpoint_every: int = 500
@@ -504,7 +504,7 @@ class ModelConfig:
     cell: Cell = Cell.gru
     # input features (pipeline/model_features.py); empty / false: off
     # default: the last command step and the time since it (leave-one-run-out on the real runs
-    # 3.08 mm mean over 3 seeds against 3.20 without; experiments/MODEL_RESULTS.md)
+    # 3.08 mm mean over 3 seeds against 3.20 without; docs/results/MODEL_RESULTS.md)
     pressure_delta: bool = False  # p_t - p_{t-1} per chamber
     step_size: bool = True  # the pressure change at the last command step, held
     # exp(-model steps since the last command step / tau), one input per tau
@@ -515,7 +515,7 @@ class ModelConfig:
     input_noise_std: float = 0.0  # on the standardized inputs
     loss: ModelLoss = ModelLoss.mse
     # one mask on h per window; 0.3: leave-one-run-out on the real runs 2.83 / 6.28 mm (mean /
-    # p95) against 3.09 / 7.40 without, better on every fold (experiments/MODEL_RESULTS.md)
+    # p95) against 3.09 / 7.40 without, better on every fold (docs/results/MODEL_RESULTS.md)
     recurrent_dropout: float = 0.3
     weight_decay: float = 0.0  # AdamW, decoupled
 
@@ -623,7 +623,7 @@ class AgentConfig:
     num_seeds: int = 4  # seeds trained at once (vmap); seed i uses fold_in(PRNGKey(seed), i)
     num_envs: int = 64
     num_steps: int = 32  # rollout length per update
-    total_timesteps: int = 1_200_000  # per seed (its results: experiments/PPO_RESULTS.md)
+    total_timesteps: int = 1_200_000  # per seed (its results: docs/results/PPO_RESULTS.md)
     # the recurrent policy's budget per seed where it needs another (None: total_timesteps)
     recurrent_total_timesteps: int | None = None
     update_epochs: int = 4
@@ -643,7 +643,7 @@ class AgentConfig:
     rnn_skip: bool = False  # heads read the current embedding beside the GRU output
     activation: Activation = Activation.tanh
     # initial log std of the Gaussian policy ([-1, 1] units): -2 (std 0.14); -1 explores too
-    # much on the arm and ends less precise (see experiments/PPO_RESULTS.md)
+    # much on the arm and ends less precise (see docs/results/PPO_RESULTS.md)
     log_std_init: float = -2.0
     state_dependent_std: bool = False  # the actor outputs the log std (else one learned vector)
     reward_scale: float = 0.1  # rewards are multiplied by this for the update only
@@ -1136,3 +1136,27 @@ def register_configs() -> None:
     cs.store(group="control", name="base_control", node=ControlConfig)
     cs.store(group="logger", name="base_logger", node=LoggerConfig)
     cs.store(group="paths", name="base_paths", node=PathsConfig)
+    adopt_launcher_schemas()
+
+
+# Hydra's sweep launchers (hydra/launcher=joblib|submitit_local|submitit_slurm): the plugins
+# register their schemas under the options' own names, and a YAML of the same name is then
+# matched to its schema automatically, which Hydra deprecated (a warning on every composition).
+# Each schema moves to base_<name>, which conf/hydra/launcher/<name>.yaml names first, as the
+# other groups name theirs.
+LAUNCHER_OPTIONS = ("joblib", "submitit_local", "submitit_slurm")
+
+
+def adopt_launcher_schemas() -> list[str]:
+    """Store each installed launcher plugin's schema as ``hydra/launcher/base_<name>`` in place of
+    the entry of the option's own name; returns the options whose schema is there."""
+    from hydra.core.plugins import Plugins
+
+    Plugins.instance()  # Hydra's one scan of the plugins, which registers their schemas
+    entries = ConfigStore.instance().repo.setdefault("hydra", {}).setdefault("launcher", {})
+    for name in LAUNCHER_OPTIONS:
+        entry = entries.pop(f"{name}.yaml", None)
+        if entry is not None:
+            ConfigStore.instance().store(group="hydra/launcher", name=f"base_{name}",
+                                         node=entry.node, provider=entry.provider)
+    return [name for name in LAUNCHER_OPTIONS if f"base_{name}.yaml" in entries]

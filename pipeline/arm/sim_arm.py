@@ -17,7 +17,7 @@ Model (all parameters in :class:`pipeline.config.SimPhysics`, units SI unless kP
    ``e``. Pressurising chamber k (at angle ``a_k`` around the axis, gain ``g_k``) bends the arm
    away from it: ``b* = -bend_gain * exp(-s (mean_k pe_k - c)) * sum_k g_k f(pe_k) (cos a_k,
    sin a_k)``, ``e* = elong_gain * mean_k pe_k``. Two measured nonlinearities of the real arm
-   (experiments/CALIBRATION_RESULTS.md): each chamber's strain saturates, ``f(p) = c +
+   (docs/results/CALIBRATION_RESULTS.md): each chamber's strain saturates, ``f(p) = c +
    tanh(a (p - c)) / a`` (``a = saturation_per_kpa``, ``c = saturation_center_kpa``; linear for
    ``a = 0``), and the whole arm stiffens as its mean pressure rises (``s =
    mean_stiffening_per_kpa``): the real arm bends 2-3 times more per kPa of pressure difference

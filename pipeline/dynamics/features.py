@@ -1,7 +1,7 @@
 """Causal input features of the learned dynamics, computed from the pressure sequence.
 
 The open-loop error of the real-arm model lies in the transients after each command step
-(``experiments/MODEL_RESULTS.md``). These features carry what such a transient depends on, and
+(``docs/results/MODEL_RESULTS.md``). These features carry what such a transient depends on, and
 each is a recurrence over model steps with a small state, so that a model stepped one pressure at
 a time (an environment) computes exactly what training computed over whole runs:
 

@@ -14,7 +14,7 @@ so ``predict_sequence(params, p[0:T], x_0_observed)[t] == x_t`` depends on ``p_0
 observed initial pose only (open loop).
 
 Initial pose. Rest poses differ by a few mm between runs. Two switches let the model use the pose
-observed at reset (both are measured in ``experiments/MODEL_RESULTS.md``):
+observed at reset (both are measured in ``docs/results/MODEL_RESULTS.md``):
 
 * ``predict_displacement``: the network predicts ``x_t - x_0_observed`` and the observed pose is
   added back, so a run-to-run offset of the rest pose passes straight through.

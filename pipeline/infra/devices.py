@@ -8,7 +8,7 @@ PPO seeds (``pipeline.rl.ppo.train_seeds``) and the evaluation's episodes
 (``pipeline.evaluation.closed_loop``). Each part computes what it computed in the whole batch,
 to float rounding: XLA may order a sum differently for a smaller batch, and over a long PPO
 training such last-bit differences grow into a different draw of the same seeds' noise
-(``tests/test_devices.py``; ``experiments/PPO_RESULTS.md``). On a GPU machine the devices are the
+(``tests/test_devices.py``; ``docs/results/PPO_RESULTS.md``). On a GPU machine the devices are the
 GPUs, and a batch is split over several only where there are several.
 
 JAX is not imported at module import: the entry point sets the device count before JAX starts.

@@ -97,9 +97,9 @@ def test_the_readmes_make_commands_exist(command):
 @pytest.mark.parametrize("command", [c for c in _readme_commands()
                                      if c.startswith("python -m pipeline")])
 def test_the_readmes_pipeline_commands_compose(tmp_path, command):
-    from pipeline.cli import unknown_key_message
+    from pipeline.cli import dry_run_flag, unknown_key_message
 
-    overrides = shlex.split(command)[3:]
+    overrides = dry_run_flag(shlex.split(command)[3:])
     if overrides == ["--help"]:
         result = subprocess.run([sys.executable, "-m", "pipeline", "--help"], cwd=PROJECT_ROOT,
                                 capture_output=True, text=True, timeout=120)

@@ -19,7 +19,7 @@ backend, where a step of a small GRU is dominated by the number and shape of its
   instead of adding a ``[H, 3H]`` product into a loop-carried gradient at every step.
 
 ``python -m bench gru_kernel`` compares it with flax's ``GRUCell`` scanned: about 1.5 times
-faster for a PPO gradient step, the same for acting (experiments/PPO_RESULTS.md).
+faster for a PPO gradient step, the same for acting (docs/results/PPO_RESULTS.md).
 
 The results are GRUCell's to float rounding (``tests/test_ppo.py`` checks values and gradients
 against the cell: outputs, and gradients by autodiff through it).

@@ -39,23 +39,33 @@ def assert_safe_wire(rows: list[dict], limits: dict = LIMITS) -> None:
     assert pressures.sum(axis=1).max() <= limits["sum_max"] + 1e-9
 
 
+def stopped_5_s(pipe, process, stage: str, ready: str, timeout_s: float, running_s: float
+                ) -> tuple[int, int]:
+    """Once ``stage`` logs ``ready`` and has run ``running_s`` more, SIGSTOP it for 5 s, then
+    SIGCONT: ``(its exit code, time.time_ns() at the SIGCONT)``; killed if still running."""
+    try:
+        pipe.wait_for_log(stage, ready, timeout_s=timeout_s)
+        time.sleep(running_s)
+        process.send_signal(signal.SIGSTOP)
+        time.sleep(5.0)
+        resumed_ns = time.time_ns()
+        process.send_signal(signal.SIGCONT)
+        code = process.wait(timeout=60)
+        time.sleep(0.3)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    return code, resumed_ns
+
+
 def test_collect_stopped_5_s_ends_at_the_preload_without_a_burst(tmp_path, ros_domain):
     pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=200")
     record = tmp_path / "twin.jsonl"
     twin = pipe.start_twin(record)
     try:
-        collect = pipe.start("collect")
-        pipe.wait_for_log("collect", "run ros2-000 started", timeout_s=120)
-        time.sleep(1.0)
-        collect.send_signal(signal.SIGSTOP)
-        time.sleep(5.0)
-        resumed_ns = time.time_ns()
-        collect.send_signal(signal.SIGCONT)
-        code = collect.wait(timeout=60)
-        time.sleep(0.3)
+        code, resumed_ns = stopped_5_s(pipe, pipe.start("collect"), "collect",
+                                       "run ros2-000 started", timeout_s=120, running_s=1.0)
     finally:
-        if collect.poll() is None:
-            collect.kill()
         assert stop(twin) == 0, pipe.log("twin")
     log = pipe.log("collect")
     assert code != 0, log
@@ -78,18 +88,10 @@ def test_control_stopped_5_s_ends_at_the_preload_without_a_burst(tmp_path, ros_d
     record = tmp_path / "twin.jsonl"
     twin = pipe.start_twin(record)
     try:
-        run = pipe.start("control", *control_overrides(sim_cfg, policy_file))
-        pipe.wait_for_log("control", "arm ready", timeout_s=240)
-        time.sleep(1.5)
-        run.send_signal(signal.SIGSTOP)
-        time.sleep(5.0)
-        resumed_ns = time.time_ns()
-        run.send_signal(signal.SIGCONT)
-        code = run.wait(timeout=60)
-        time.sleep(0.3)
+        code, resumed_ns = stopped_5_s(
+            pipe, pipe.start("control", *control_overrides(sim_cfg, policy_file)), "control",
+            "arm ready", timeout_s=240, running_s=1.5)
     finally:
-        if run.poll() is None:
-            run.kill()
         assert stop(twin) == 0, pipe.log("twin")
     log = pipe.log("control")
     assert code != 0, log

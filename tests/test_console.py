@@ -189,6 +189,6 @@ def test_the_next_command_follows_the_stage_and_the_robot(tmp_path, make_cfg):
     policy = SimpleNamespace(path=tmp_path / "train_ppo" / "abc")
     steps = next_step("evaluate", {"train_ppo": policy}, make_cfg("robot=ros2"), [], "ros2")
     assert steps[0].startswith("python -m pipeline stage=twin robot=ros2")
-    assert steps[1].startswith("python -m pipeline stage=control robot=ros2 "
+    assert steps[1].startswith("python -m pipeline stage=control robot=ros2 robot.rehearsal=true "
                                f"control.policy_file={policy.path / 'policy.msgpack'}")
     assert next_step("guard", {}, make_cfg(), [], "ros2") == []

@@ -235,7 +235,7 @@ def next_step(stage: str, results: dict[str, Any], cfg: Any, overrides: Sequence
         extra = ([f"control.policy_file={_relative(policy_file.path / 'policy.msgpack')}"]
                  if policy_file is not None and hasattr(policy_file, "path") else [])
         return ["python -m pipeline stage=twin robot=ros2    # shell 1: the digital twin",
-                command("control", ["robot=ros2"], *extra,
+                command("control", ["robot=ros2", "robot.rehearsal=true"], *extra,
                         *([f"control.goals={goals}"] if goals else []))
                 + "    # shell 2: rehearse on the twin before the arm (docs: real-arm workflow)"]
     control = results.get("control")
@@ -243,7 +243,7 @@ def next_step(stage: str, results: dict[str, Any], cfg: Any, overrides: Sequence
         policy = _manifest(control.path).get("summary", {}).get("policy")
         if policy:
             return ["python -m pipeline stage=twin robot=ros2    # shell 1: the digital twin",
-                    command("control", ["robot=ros2"],
+                    command("control", ["robot=ros2", "robot.rehearsal=true"],
                             f"control.policy_file={_relative(Path(policy) / 'policy.msgpack')}",
                             *[o for o in overrides if o.startswith("control.goals")])
                     + "    # shell 2: the same policy over ROS 2 (docs: real-arm workflow)"]

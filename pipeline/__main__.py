@@ -173,6 +173,15 @@ def main(cfg: DictConfig) -> None:
     print_summary(cfg, results)
 
 
+def run_facts(cfg: Any) -> Any:
+    """What the closing summary reads of the config (:class:`RunFacts`)."""
+    from pipeline.evaluation.summary import RunFacts
+
+    value = lambda v: str(getattr(v, "value", v))  # noqa: E731  (an enum or its string)
+    return RunFacts(robot=str(cfg.robot.name), robot_kind=value(cfg.robot.kind),
+                    agent=str(cfg.agent.name), env=value(cfg.env.name))
+
+
 def print_summary(cfg: Any, results: dict[str, Any]) -> None:
     """The closing summary (:mod:`pipeline.evaluation.summary`) on stdout: the tables of what
     ran, the artifact and report paths, the next command (with this run's overrides)."""
@@ -181,7 +190,7 @@ def print_summary(cfg: Any, results: dict[str, Any]) -> None:
     from pipeline.evaluation.summary import closing_summary
 
     overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
-    lines = closing_summary(str(Stage(cfg.stage).value), results, cfg, overrides)
+    lines = closing_summary(str(Stage(cfg.stage).value), results, run_facts(cfg), overrides)
     if lines:
         print("\n".join(lines), flush=True)
 

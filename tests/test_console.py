@@ -103,6 +103,7 @@ def test_closing_summary_of_the_chain(tmp_path, make_cfg, monkeypatch):
 
     import pandas as pd
 
+    from pipeline.__main__ import run_facts
     from pipeline.evaluation.summary import closing_summary
 
     monkeypatch.chdir(tmp_path)
@@ -118,7 +119,8 @@ def test_closing_summary_of_the_chain(tmp_path, make_cfg, monkeypatch):
     pd.DataFrame({"x": [0.03], "y": [0.35], "z": [0.2]}).to_parquet(align / "aligned.parquet")
     results = {"align": SimpleNamespace(path=align), "fit_model": SimpleNamespace(path=fit),
                "evaluate": SimpleNamespace(path=evaluate)}
-    lines = closing_summary("all", results, make_cfg(), ["experiment=quick", "force=true"])
+    lines = closing_summary("all", results, run_facts(make_cfg()),
+                            ["experiment=quick", "force=true"])
     text = "\n".join(lines)
     assert "held-out runs sim-001" in text
     assert "learned           1.75    4.16" in text
@@ -179,16 +181,18 @@ def test_a_warm_run_prints_no_xla_machine_type_errors(tmp_path):
 def test_the_next_command_follows_the_stage_and_the_robot(tmp_path, make_cfg):
     from types import SimpleNamespace
 
+    from pipeline.__main__ import run_facts
     from pipeline.evaluation.summary import next_step
 
-    assert next_step("fit_model", {}, make_cfg(), ["model.hidden=32", "stage=fit_model"],
-                     "sim") == ["python -m pipeline stage=train_ppo model.hidden=32"]
-    assert next_step("train_ppo", {}, make_cfg(), [], "sim")[0].startswith(
+    assert next_step("fit_model", {}, run_facts(make_cfg()),
+                     ["model.hidden=32", "stage=fit_model"]) == [
+        "python -m pipeline stage=train_ppo model.hidden=32"]
+    assert next_step("train_ppo", {}, run_facts(make_cfg()), [])[0].startswith(
         "python -m pipeline stage=evaluate    #")
     # a policy for a ROS 2 arm is rehearsed on the twin first, named by its file
     policy = SimpleNamespace(path=tmp_path / "train_ppo" / "abc")
-    steps = next_step("evaluate", {"train_ppo": policy}, make_cfg("robot=ros2"), [], "ros2")
+    steps = next_step("evaluate", {"train_ppo": policy}, run_facts(make_cfg("robot=ros2")), [])
     assert steps[0].startswith("python -m pipeline stage=twin robot=ros2")
     assert steps[1].startswith("python -m pipeline stage=control robot=ros2 robot.rehearsal=true "
                                f"control.policy_file={policy.path / 'policy.msgpack'}")
-    assert next_step("guard", {}, make_cfg(), [], "ros2") == []
+    assert next_step("guard", {}, run_facts(make_cfg("robot=ros2")), []) == []

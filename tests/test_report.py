@@ -116,8 +116,6 @@ def test_tail_episodes_are_the_arrivals_that_ended_furthest_away():
 
 
 def test_after_arrival_figure_draws_each_plant_with_an_arrival(tmp_path):
-    from types import SimpleNamespace
-
     goals = np.zeros((2, 3))
     arrives = np.zeros((2, 5, 3))
     arrives[:, :, 0] = np.array([4.0, 0.8, 1.5, 2.0, 2.5]) / 1000  # arrives, drifts away
@@ -127,9 +125,8 @@ def test_after_arrival_figure_draws_each_plant_with_an_arrival(tmp_path):
                                          ("plant", "ppo_ff", 0): never},
                "commands": {("learned", "ppo_ff", 0): commands,
                             ("plant", "ppo_ff", 0): commands}}
-    cfg = SimpleNamespace(robot=SimpleNamespace(control_hz=2.0))
-    figure = after_arrival_figure(tmp_path / "after.png", cfg, results, "ppo_ff")
+    figure = after_arrival_figure(tmp_path / "after.png", 2.0, results, "ppo_ff")
     assert figure is not None and figure.path.stat().st_size > 10_000
     assert "ended furthest from the goal" in figure.caption
     results["paths"] = {("plant", "ppo_ff", 0): never}
-    assert after_arrival_figure(tmp_path / "none.png", cfg, results, "ppo_ff") is None
+    assert after_arrival_figure(tmp_path / "none.png", 2.0, results, "ppo_ff") is None

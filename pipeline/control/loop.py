@@ -40,6 +40,7 @@ from omegaconf import OmegaConf
 from pipeline.control.goals import GoalSchedule, workspace_problem
 from pipeline.control.policy import MM_PER_M, Deployment
 from pipeline.control.records import PeriodRecorder
+from pipeline.infra.stalls import MissedPeriods
 from pipeline.ros2.gate import CommandGate
 
 log = logging.getLogger(__name__)
@@ -99,9 +100,7 @@ class ControlLoop:
         self.max_jump_m = float(control.max_pose_jump_mm) / MM_PER_M
         self.margin_mm = float(control.workspace_margin_mm)
         self.flush_every_s = float(control.flush_every_s)
-        self.max_missed = int(robot.get("max_missed_periods", 2))
-        self.missed_in_row = 0
-        self.missed_total = 0
+        self.missed = MissedPeriods(self.period_s, int(robot.get("max_missed_periods", 2)))
         self.holds = 0
         self._fresh_after: float | None = None  # a pose stamped after this, before acting again
         self._latest: Frame | None = None
@@ -176,23 +175,22 @@ class ControlLoop:
                 self.recorder.flush()
         if outcome.periods == 0:
             outcome.periods = self.recorder.periods
-        outcome.missed_periods, outcome.holds = self.missed_total, self.holds
+        outcome.missed_periods, outcome.holds = self.missed.total, self.holds
         return outcome
 
     def _late(self, period: int, now: float) -> int:
         """Periods missed when the loop wakes at ``now`` for ``period`` (0: on time); more than
         ``max_missed_periods`` in a row raise :class:`ControlFault`."""
         late = now - period * self.period_s
-        if late <= self.period_s:
+        missed = self.missed.count(late)
+        if not missed:
             return 0
-        missed = int(late // self.period_s)
-        self.missed_in_row += missed
-        self.missed_total += missed
-        if self.missed_in_row > self.max_missed:
+        if self.missed.exceeded:
             raise ControlFault(
                 f"the control loop woke {late:.2f} s after the tick of period {period}: "
-                f"{self.missed_in_row} periods missed in a row, more than robot.max_missed_periods"
-                f"={self.max_missed} (the process stalled or its clock jumped)")
+                f"{self.missed.in_row} periods missed in a row, more than "
+                f"robot.max_missed_periods={self.missed.max_in_row} (the process stalled or its "
+                f"clock jumped)")
         log.warning("control: woke %.3f s after the tick of period %d: %d period(s) skipped, "
                     "holding the last command", late, period, missed)
         return missed
@@ -240,7 +238,7 @@ class ControlLoop:
                 safe = self.gate.check(self.gate.preload)
                 self.arm.publish(safe)
                 last_pressure = safe
-                self.missed_in_row = 0
+                self.missed.reset()
                 period += 1
                 continue
             if self._fresh_after is not None and frame[0] <= self._fresh_after:
@@ -248,7 +246,7 @@ class ControlLoop:
                 period += 1
                 continue
             self._fresh_after = None
-            self.missed_in_row = 0
+            self.missed.reset()
             index, goal = current
             hidden, obs, action, pressure = deployment.act(hidden, first, frame[2], goal,
                                                            last_pressure)

@@ -143,7 +143,8 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
     if len(all_seeds) > len(drawn_seeds):
         seed_words += f" of {len(all_seeds)}"
     for name in policies:
-        drawn = after_arrival_figure(folder / f"after_arrival_{name}.png", cfg, results, name)
+        drawn = after_arrival_figure(folder / f"after_arrival_{name}.png",
+                                     float(cfg.robot.control_hz), results, name)
         if drawn is not None:
             figures[f"after_arrival/{name}"] = drawn
     figures["trajectories"] = Figure(path, (
@@ -153,7 +154,8 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
     return figures
 
 
-def after_arrival_figure(path: Path, cfg, results, controller: str) -> Figure | None:
+def after_arrival_figure(path: Path, control_hz: float, results, controller: str
+                         ) -> Figure | None:
     """What happens after the first arrival within 1 mm, for ``controller``'s tail episodes of
     each plant (:func:`tail_episodes` over every seed's episodes): distance to the goal, position
     minus goal per axis and the command per valve over time. None when it never arrived."""
@@ -175,11 +177,10 @@ def after_arrival_figure(path: Path, cfg, results, controller: str) -> Figure | 
         return None
     fig, axes = plt.subplots(3, len(picked), figsize=(5.5 * len(picked), 8), squeeze=False,
                              sharex=True)
-    hz = float(cfg.robot.control_hz)
     axis_styles = ["-", "--", ":"]
     for col, (plant, (chosen, per_seed, distance, positions, commands, episode_goals)) in (
             enumerate(picked.items())):
-        t = np.arange(distance.shape[1]) / hz
+        t = np.arange(distance.shape[1]) / control_hz
         for i, e in enumerate(chosen):
             colour = f"C{i}"
             first = int(first_step_within(distance[e:e + 1], ARRIVAL_MM)[0])

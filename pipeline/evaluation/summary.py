@@ -23,7 +23,7 @@ import math
 import shlex
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import pandas as pd
 
@@ -165,14 +165,23 @@ def goals_from_data(align_path: Path, quantiles: Sequence[float] = (0.35, 0.5, 0
     return "[" + ",".join("[" + ",".join(f"{v:.1f}" for v in goal) + "]" for goal in goals) + "]"
 
 
-def closing_summary(stage: str, results: dict[str, Any], cfg: Any,
+class RunFacts(NamedTuple):
+    """What the closing summary needs of a run's config: the robot option and its kind (``sim``,
+    ``ros2``, an importer), the run's agent option and env name."""
+
+    robot: str
+    robot_kind: str
+    agent: str
+    env: str
+
+
+def closing_summary(stage: str, results: dict[str, Any], run: RunFacts,
                     overrides: Sequence[str] = ()) -> list[str]:
     """The lines a run of ``stage`` (``all`` for the chain) ends with: per stage that ran, its
     table; the last artifact and its report; the next command (``overrides``: the run's own
     command-line overrides, kept in it). ``results``: the router's stage name -> artifact."""
     lines: list[str] = []
-    robot = str(cfg.robot.name)
-    kind = str(getattr(cfg.robot.kind, "value", cfg.robot.kind))
+    robot = run.robot
     fit = results.get("fit_model")
     if fit is not None and hasattr(fit, "path"):
         summary = _manifest(fit.path).get("summary", {})
@@ -186,7 +195,7 @@ def closing_summary(stage: str, results: dict[str, Any], cfg: Any,
     train = results.get("train_ppo")
     if train is not None and hasattr(train, "path") and "evaluate" not in results:
         summary = _manifest(train.path).get("summary", {})
-        row = {"policy": summary.get("agent", str(cfg.agent.name)),
+        row = {"policy": summary.get("agent", run.agent),
                "env": summary.get("env", ""), "seeds": summary.get("num_seeds"),
                "steps_per_seed": summary.get("timesteps_per_seed"),
                "median_final_mm": summary.get("final_eval_median_distance_mm"),
@@ -209,21 +218,20 @@ def closing_summary(stage: str, results: dict[str, Any], cfg: Any,
         lines += ["", f"artifact: {_relative(last.path)}"]
         if (last.path / "report.html").is_file():
             lines.append(f"report:   {_relative(last.path / 'report.html')}")
-    step = next_step(stage, results, cfg, overrides, kind)
+    step = next_step(stage, results, run, overrides)
     if step:
         lines += [f"next:     {step[0]}", *(f"          {s}" for s in step[1:])]
     return lines
 
 
-def next_step(stage: str, results: dict[str, Any], cfg: Any, overrides: Sequence[str],
-              kind: str) -> list[str]:
+def next_step(stage: str, results: dict[str, Any], run: RunFacts, overrides: Sequence[str]
+              ) -> list[str]:
     """The command that makes sense after ``stage`` (first line), with what it does."""
-    policy = str(cfg.agent.name)
+    policy, kind = run.agent, run.robot_kind
     if stage == "train_ppo":
         return [command("evaluate", overrides)
                 + "    # every policy type and the baselines, on the model and on the plant"]
-    env = str(getattr(cfg.env.name, "value", cfg.env.name))
-    if stage in ("all", "evaluate") and env != "gymnax":  # a gymnax task drives no arm
+    if stage in ("all", "evaluate") and run.env != "gymnax":  # a gymnax task drives no arm
         align = results.get("align")
         goals = goals_from_data(align.path) if hasattr(align, "path") else None
         if kind == "sim":

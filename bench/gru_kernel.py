@@ -23,8 +23,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from pipeline.config import AgentConfig
 from pipeline.rl.networks import ResettingGRU
+from pipeline.schemas import AgentConfig
 
 
 class FlaxScannedGRU(nn.Module):

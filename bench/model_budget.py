@@ -19,11 +19,11 @@ import jax
 import numpy as np
 import pandas as pd
 
-from pipeline.config import AlignConfig, ModelConfig
 from pipeline.data.alignment import align_tables, runs_at_model_rate
 from pipeline.data.importers import read_sorolex_csv
 from pipeline.dynamics.scoring import evaluate_open_loop
 from pipeline.dynamics.training import fit
+from pipeline.schemas import AlignConfig, ModelConfig
 
 LIMITS = argparse.Namespace(p_min=-3.0, p_max=7.0, sum_max=13.0, preload=2.0)
 CHUNK = 10  # training steps between checks of the clock

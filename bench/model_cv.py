@@ -23,11 +23,11 @@ import numpy as np
 import pandas as pd
 
 from bench.model_budget import load_runs
-from pipeline.config import ModelConfig
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.dynamics.cv import cv_members, fit_members
 from pipeline.dynamics.scoring import evaluate_open_loop
 from pipeline.dynamics.training import fit
+from pipeline.schemas import ModelConfig
 
 
 def held_out_error(runs: list[dict], members, params) -> float:

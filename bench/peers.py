@@ -28,11 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pipeline.config import AgentConfig, compose
+from pipeline.config import compose
 from pipeline.rl.envs.factory import make_sim_env
 from pipeline.rl.evaluation import evaluate_policy
 from pipeline.rl.networks import make_network
 from pipeline.rl.ppo import make_train, seed_keys
+from pipeline.schemas import AgentConfig
 
 MM_PER_M = 1000.0
 

@@ -25,11 +25,11 @@ import jax.numpy as jnp
 from omegaconf import OmegaConf
 
 from pipeline.arm.safety import SafeSet
-from pipeline.config import AgentConfig, DatasetConfig, ModelConfig
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.training import ModelTrainConfig
 from pipeline.rl.envs import SoftArmReachEnv, learned_plant, make_env_params
 from pipeline.rl.ppo import make_train, seed_keys
+from pipeline.schemas import AgentConfig, DatasetConfig, ModelConfig
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 REST_POSE = jnp.array([0.032, 0.353, 0.202])

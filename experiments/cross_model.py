@@ -88,7 +88,7 @@ def variant_overrides(variant: str, ensemble_seeds: int,
                       goal_agreement_mm: float = GOAL_AGREEMENT_MM) -> list[str]:
     """The overrides of ``variant`` on top of ``experiment=real_arm`` (incremental, randomized,
     command changes priced): the variants before the price went without it."""
-    from pipeline.config import no_randomization_overrides
+    from pipeline.schemas import no_randomization_overrides
 
     unpriced = ["env.command_change_cost=0"]
     absolute = ["env.action_mode=absolute", *unpriced]
@@ -175,7 +175,8 @@ def print_table(table: pd.DataFrame) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from pipeline.config import PROJECT_ROOT, budget_overrides, sorolex_dir
+    from pipeline.config import PROJECT_ROOT, sorolex_dir
+    from pipeline.schemas import budget_overrides
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--output-dir", type=Path, default=PROJECT_ROOT / "outputs",

@@ -57,9 +57,9 @@ PUBLISHED_CLOCK10 = {  # mean mm per held-out run, from the brief (not measured 
 
 
 def load_aligned() -> pd.DataFrame:
-    from pipeline.config import AlignConfig
     from pipeline.data.alignment import align_tables
     from pipeline.data.importers import read_sorolex_csv
+    from pipeline.schemas import AlignConfig
 
     limits = SimpleNamespace(p_min=-3, p_max=7, sum_max=13, preload=2)
     commands, mocap = [], []

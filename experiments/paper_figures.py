@@ -286,8 +286,8 @@ def return_figure(out: Path, base: tuple[str, ...], captions: dict[str, str], se
                   steps: int) -> None:
     import matplotlib.pyplot as plt
 
-    from pipeline.config import budget_overrides, no_randomization_overrides
     from pipeline.rl.results import RETURN_LABEL, training_curves
+    from pipeline.schemas import budget_overrides, no_randomization_overrides
 
     fig, ax = plt.subplots(figsize=(8, 4.2))
     finals, durations, cfg = {}, {}, None

@@ -29,9 +29,9 @@ import optax
 from gymnax.environments.classic_control.pendulum import EnvState
 
 from experiments.pendulum_optimal import greedy_torque, optimal_returns, policy_returns, solve
-from pipeline.config import AgentConfig
 from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import save_policy
+from pipeline.schemas import AgentConfig
 
 
 def pendulum_agent(overrides: list[str]) -> AgentConfig:

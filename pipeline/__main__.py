@@ -9,7 +9,7 @@ except data from a real arm: with
 ``robot=ros2`` a stage of :data:`DRIVES_ARM` runs only when it is the stage asked for, never as
 another stage's upstream (nor in ``stage=all``).
 
-The composed config is validated (:func:`pipeline.config.validate_config`) before any work.
+The composed config is validated (:func:`pipeline.validation.validate_config`) before any work.
 Known errors (:data:`KNOWN_ERRORS`: bad data, bad config, an unsafe command, a missing artifact,
 an interrupted recording) print one message and exit with status 1; ``HYDRA_FULL_ERROR=1`` shows
 the traceback instead.
@@ -39,7 +39,7 @@ from omegaconf import DictConfig
 from pipeline import cli, keys
 from pipeline.arm.limits import UnsafeCommandError
 from pipeline.chain import STAGES, Job, plan
-from pipeline.config import ConfigError, Stage, register_configs, validate_config
+from pipeline.config import register_configs
 from pipeline.data.importers import RecordingNotFoundError
 from pipeline.data.raw import CollectionInterrupted
 from pipeline.data.schemas import DataError
@@ -47,6 +47,8 @@ from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
 from pipeline.infra.compile_cache import quiet_xla_log, use_compilation_cache
 from pipeline.infra.devices import configure_cpu_devices
 from pipeline.ros2.node import ArmRefused, RosUnavailableError
+from pipeline.schemas import ConfigError, Stage
+from pipeline.validation import validate_config
 
 log = logging.getLogger("pipeline")
 

@@ -17,8 +17,9 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from pipeline.config import PROJECT_ROOT, ConfigError, EnvName, RobotKind, Stage
+from pipeline.config import PROJECT_ROOT
 from pipeline.data.importers import list_recordings
+from pipeline.schemas import ConfigError, EnvName, RobotKind, Stage
 
 
 @dataclass(frozen=True)

@@ -104,7 +104,7 @@ def missing_key(cfg: DictConfig, key: str) -> str | None:
         prefix = ".".join(parts[:depth])
         where = f"in {prefix}" if prefix else "at the top level"
         schema = OmegaConf.get_type(node)
-        schema_name = (f" (schema {schema.__name__} in pipeline/config.py)"
+        schema_name = (f" (schema {schema.__name__} in pipeline/schemas/)"
                        if schema is not None and schema is not dict else "")
         rest = ".".join(parts[depth + 1:])
         matches = [".".join(p for p in (prefix, m, rest) if p) for m in _close(part, node.keys())

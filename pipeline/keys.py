@@ -22,15 +22,9 @@ from pipeline.chain import (
     ensemble_configs,
     policy_configs,
 )
-from pipeline.config import (
-    ConfigError,
-    EnvName,
-    ModelProtocol,
-    RobotKind,
-    incremental_actions,
-)
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
+from pipeline.schemas import ConfigError, EnvName, ModelProtocol, RobotKind, incremental_actions
 
 Spec = tuple[dict[str, Any], dict[str, str]]
 

@@ -9,11 +9,11 @@ import numpy as np
 import pandas as pd
 
 from pipeline import chain, keys
-from pipeline.config import AgentConfig
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.rl.envs.factory import environment
 from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import save_policy
+from pipeline.schemas import AgentConfig
 
 # a small simulated-arm environment and network: seconds to build
 SMALL = ["env=sim", "env.num_goals=64", "env.reset_bank_size=2", "env.include_error=true",

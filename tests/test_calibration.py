@@ -16,9 +16,9 @@ from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
 from pipeline.arm.twins import load_physics
 from pipeline.chain import stages_to_run
-from pipeline.config import SimPhysics, Stage
 from pipeline.data.schemas import read_table
 from pipeline.dynamics.calibration_report import PARAMETERS, fold_weights
+from pipeline.schemas import SimPhysics, Stage
 
 INIT = calib.sim_physics_values(SimPhysics())
 INIT.pop("substeps")

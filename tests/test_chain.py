@@ -8,7 +8,8 @@ import sys
 from pipeline import keys
 from pipeline.__main__ import plan_table, run
 from pipeline.chain import DRIVES_ARM, STAGES, Job, plan
-from pipeline.config import PROJECT_ROOT, Stage
+from pipeline.config import PROJECT_ROOT
+from pipeline.schemas import Stage
 
 
 def train_key(cfg):

@@ -323,7 +323,7 @@ def test_live_goals_take_effect_at_the_next_period_and_bad_ones_are_refused(poli
 
 def test_control_is_routed_alone_and_never_by_the_chain(make_cfg):
     from pipeline.chain import CHAIN, STAGES, stages_to_run
-    from pipeline.config import Stage
+    from pipeline.schemas import Stage
 
     assert Stage.control in STAGES and Stage.control not in CHAIN
     assert stages_to_run(make_cfg("stage=control", "robot=ros2")) == [Stage.control]

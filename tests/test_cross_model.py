@@ -5,7 +5,7 @@ import pytest
 
 from experiments.cross_model import VARIANTS, variant_overrides
 from pipeline.chain import policy_configs
-from pipeline.config import AgentConfig, ConfigError, RandomizationConfig, budget_overrides
+from pipeline.schemas import AgentConfig, ConfigError, RandomizationConfig, budget_overrides
 
 RANDOMIZED = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
               "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5}

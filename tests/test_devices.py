@@ -13,8 +13,9 @@ import textwrap
 
 import pytest
 
-from pipeline.config import PROJECT_ROOT, ConfigError
+from pipeline.config import PROJECT_ROOT
 from pipeline.infra.devices import configure_cpu_devices, usable_cores
+from pipeline.schemas import ConfigError
 
 
 def run_python(code: str, **env: str) -> dict:
@@ -59,7 +60,7 @@ def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
         import jax, jax.numpy as jnp, numpy as np
         import pipeline.evaluation.closed_loop as closed_loop
         import pipeline.rl.ppo as ppo
-        from pipeline.config import AgentConfig
+        from pipeline.schemas import AgentConfig
         from pipeline.evaluation import rollouts
         from pipeline.infra.devices import batch_split
         from test_ppo import toy_reaching

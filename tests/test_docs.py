@@ -107,7 +107,7 @@ def test_the_readmes_pipeline_commands_compose(tmp_path, command):
         return
     assert unknown_key_message(overrides) is None
     cfg = _compose(tmp_path, *overrides)
-    from pipeline.config import validate_config
+    from pipeline.validation import validate_config
 
     validate_config(cfg)  # the checks the run makes before any work
 

@@ -15,8 +15,10 @@ import pipeline.__main__ as router
 from pipeline.__main__ import run
 from pipeline.arm.limits import UnsafeCommandError
 from pipeline.chain import DRIVES_ARM, stages_to_run
-from pipeline.config import PROJECT_ROOT, ConfigError, Stage, validate_config
+from pipeline.config import PROJECT_ROOT
 from pipeline.ros2.gate import CommandGate
+from pipeline.schemas import ConfigError, Stage
+from pipeline.validation import validate_config
 
 
 def refused(cfg, match: str | None = None, choice: str | None = None) -> str:
@@ -175,11 +177,11 @@ def test_hydra_full_error_shows_the_traceback(tmp_path):
     result = pipeline(tmp_path, "exploration.alpha=1.5", full_error=True)
     assert result.returncode == 1
     assert "Traceback" in result.stderr
-    assert "pipeline.config.ConfigError: exploration.alpha=1.5 must lie in [0, 1]" in result.stderr
+    assert "pipeline.schemas.values.ConfigError: exploration.alpha=1.5 must lie in [0, 1]" in result.stderr
 
 
 def test_a_lab_arm_config_extending_ros2_inherits_its_rating(tmp_path):
-    from pipeline.config import rating_from_file
+    from pipeline.validation import rating_from_file
 
     robot = tmp_path / "robot"
     robot.mkdir()

@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pipeline.config import AgentConfig
 from pipeline.rl.losses import ppo_loss
 from pipeline.rl.minibatches import sequence_minibatches, step_minibatches
 from pipeline.rl.ppo import Transition
+from pipeline.schemas import AgentConfig
 
 
 class FixedNetwork:

@@ -13,10 +13,11 @@ import pytest
 
 from pipeline.__main__ import run
 from pipeline.chain import stages_to_run
-from pipeline.config import PROJECT_ROOT, Stage
+from pipeline.config import PROJECT_ROOT
 from pipeline.data.schemas import ALIGNED, COMMANDS, MOCAP, RUNS, DataError, read_table, write_table
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.keys import key
+from pipeline.schemas import Stage
 
 
 def pipeline_cmd(output_dir, *overrides):

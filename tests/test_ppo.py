@@ -9,7 +9,6 @@ import pytest
 from omegaconf import OmegaConf
 
 from pipeline.arm.safety import SafeSet
-from pipeline.config import AgentConfig
 from pipeline.rl.envs import (
     SoftArmReachEnv,
     default_linear_lag_params,
@@ -26,6 +25,7 @@ from pipeline.rl.ppo import (
     seed_keys,
     train_seeds,
 )
+from pipeline.schemas import AgentConfig
 from tests.conftest import compose_config
 
 GAMMA, LAMBDA = 0.9, 0.8

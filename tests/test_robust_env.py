@@ -19,7 +19,6 @@ from omegaconf import OmegaConf
 from pipeline import chain, keys
 from pipeline.__main__ import run
 from pipeline.arm.safety import SafeSet, project
-from pipeline.config import ConfigError, validate_config
 from pipeline.dynamics import model as dynamics
 from pipeline.rl.envs import (
     SoftArmReachEnv,
@@ -33,6 +32,8 @@ from pipeline.rl.envs import (
     stack_members,
 )
 from pipeline.rl.envs import observation as observation_module
+from pipeline.schemas import ConfigError
+from pipeline.validation import validate_config
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 REST_POSE = jnp.array([0.032, 0.353, 0.202])

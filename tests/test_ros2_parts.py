@@ -13,7 +13,6 @@ import pytest
 
 from pipeline.arm import sim_arm
 from pipeline.chain import CHAIN, STAGES
-from pipeline.config import Stage
 from pipeline.data.ros_messages import read_pressures, read_stamp_ns, set_field, write_stamp_ns
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.keys import key
@@ -22,6 +21,7 @@ from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.node import RosUnavailableError
 from pipeline.ros2.recorder import ChunkedRecorder
 from pipeline.ros2.twin import ArmSimulator
+from pipeline.schemas import Stage
 from pipeline.stages.collect import STAGE, _set_aside_incomplete
 from pipeline.stages.twin import twin
 

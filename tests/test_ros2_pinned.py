@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.config import PROJECT_ROOT, ConfigError, validate_config
+from pipeline.config import PROJECT_ROOT
+from pipeline.schemas import ConfigError
+from pipeline.validation import validate_config
 from tests.test_envelope import pipeline
 
 ROS2_YAML = PROJECT_ROOT / "conf/robot/ros2.yaml"

@@ -9,7 +9,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from pipeline.arm import sim_arm
-from pipeline.config import SimRobotConfig
+from pipeline.schemas import SimRobotConfig
 
 ROBOT = OmegaConf.structured(SimRobotConfig)
 PARAMS = sim_arm.SimParams.from_config(ROBOT)

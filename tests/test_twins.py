@@ -12,10 +12,11 @@ from omegaconf import OmegaConf
 
 from pipeline.arm.safety import SafeSet
 from pipeline.arm.twins import twin_physics, twin_sim_params
-from pipeline.config import PROJECT_ROOT, ConfigError, SimPhysics
+from pipeline.config import PROJECT_ROOT
 from pipeline.dynamics import model as dynamics
 from pipeline.infra.artifacts import MissingArtifactError
 from pipeline.rl.envs import SoftArmReachEnv, learned_plant, make_env_params
+from pipeline.schemas import ConfigError, SimPhysics
 
 LIMITS = OmegaConf.create({"p_min": -1.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 

@@ -1,10 +1,10 @@
-"""The configuration reference, generated from the schemas (``pipeline/config.py``) and the
+"""The configuration reference, generated from the schemas (``pipeline/schemas/``) and the
 config groups (``conf/``) when the site is built: an MkDocs hook adds ``reference/configuration.md``
 to the site, so there is no hand-kept copy to drift.
 
 For every group: its options (the YAML files) and what each sets over the schema; for every
 setting: its type, default, unit, description (the comment beside the field, or the docstring of
-its schema) and the validation rules that name it (the messages of ``pipeline.config``'s checks).
+its schema) and the validation rules that name it (the messages of ``pipeline.validation``'s checks and the schemas' own).
 
 ``python docs/hooks/config_reference.py`` prints the page.
 """
@@ -145,12 +145,12 @@ def schema_rows(cls: type, prefix: str) -> list[dict[str, str]]:
     return rows
 
 
-def validation_rules(source: Path) -> dict[str, list[str]]:
-    """The messages of every ``ConfigError``/``ValueError`` raised in ``source``, by the setting
+def validation_rules(*sources: Path) -> dict[str, list[str]]:
+    """The messages of every ``ConfigError``/``ValueError`` raised in ``sources``, by the setting
     they name first (``group.key`` or ``key``); f-string values shown as ``…``."""
-    tree = ast.parse(source.read_text())
     rules: dict[str, list[str]] = {}
-    for node in ast.walk(tree):
+    nodes = (node for source in sources for node in ast.walk(ast.parse(source.read_text())))
+    for node in nodes:
         if not (isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call)
                 and getattr(node.exc.func, "id", "") in ("ConfigError", "ValueError")
                 and node.exc.args):
@@ -243,9 +243,10 @@ def reference_markdown() -> str:
     """The configuration reference page (Markdown)."""
     config = _import_config()
     conf = ROOT / "conf"
-    rules = validation_rules(ROOT / "pipeline" / "config.py")
+    rules = validation_rules(ROOT / "pipeline" / "validation.py",
+                             *sorted((ROOT / "pipeline" / "schemas").glob("*.py")))
     lines = ["# Configuration reference", "",
-             "Generated from the schemas in `pipeline/config.py` and the options in `conf/` each "
+             "Generated from the schemas in `pipeline/schemas/` and the options in `conf/` each "
              "time the site is built (`docs/hooks/config_reference.py`). Set any value on the "
              "command line (`python -m pipeline model.hidden=64`), pick an option of a group "
              "(`robot=sorolex_csv`), or sweep (`-m agent=ppo_ff,ppo_rnn`). A mistyped key fails "
@@ -253,7 +254,7 @@ def reference_markdown() -> str:
              "whole composed config.", "",
              "Units: pressures in kPa, positions in metres, times in seconds, rates in Hz, unless "
              "a setting's name or description says otherwise. The *validation* column lists the "
-             "messages of the checks run before any work (`pipeline.config.validate_config` and "
+             "messages of the checks run before any work (`pipeline.validation.validate_config` and "
              "the schemas' own checks); `…` stands for the value in the message.", ""]
     lines += ["## Top-level settings", ""]
     top = [r for r in schema_rows(config.Config, "") if "." not in r["key"]

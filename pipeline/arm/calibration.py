@@ -7,7 +7,7 @@ between simulated and recorded marker positions, per run, averaged over runs.
 
 - **Bounds.** Each fitted parameter ``v`` lives in ``[lower, upper]`` through ``v = lower +
   (upper - lower) sigmoid(z)``; the optimizer moves the unconstrained ``z``, so no step can leave
-  the bounds (:data:`BOUNDS`, SI units and kPa, as in :class:`pipeline.config.SimPhysics`).
+  the bounds (:data:`BOUNDS`, SI units and kPa, as in :class:`pipeline.schemas.SimPhysics`).
 - **Nuisance offsets.** The arm's rest pose differs by a few mm between runs: each training run
   gets its own offset ``[3]`` (m), fitted with the physics; the base position is not fitted (the
   offsets carry it). A run that is not trained on (held out) gets the mean of the training runs'

@@ -4,7 +4,7 @@ It stands in for the real arm of the paper (``shared/data/sorolex``) as the defa
 the ground-truth plant that policies are evaluated on. Everything is pure JAX: ``vmap`` it over
 many arms, ``jit`` it, and it runs on simulated time, never the wall clock.
 
-Model (all parameters in :class:`pipeline.config.SimPhysics`, units SI unless kPa):
+Model (all parameters in :class:`pipeline.schemas.SimPhysics`, units SI unless kPa):
 
 1. **Valves to chambers.** Each chamber pressure follows its valve command with a first-order lag
    ``dp/dt = (p_cmd - p) / pressure_tau_s``.
@@ -90,8 +90,8 @@ class SimParams:
 
     @classmethod
     def from_config(cls, robot: Any) -> SimParams:
-        """The parameters of ``robot.physics`` (:class:`pipeline.config.SimPhysics`) and
-        ``robot.mocap`` (:class:`pipeline.config.MocapConfig`)."""
+        """The parameters of ``robot.physics`` (:class:`pipeline.schemas.SimPhysics`) and
+        ``robot.mocap`` (:class:`pipeline.schemas.MocapConfig`)."""
         mocap = robot.mocap
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         values = {k: _plain(robot.physics[k]) for k in PHYSICS_VALUES}

@@ -17,8 +17,9 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from pipeline.config import PROJECT_ROOT, ConfigError, MocapConfig, SimPhysics
+from pipeline.config import PROJECT_ROOT
 from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
+from pipeline.schemas import ConfigError, MocapConfig, SimPhysics
 
 CALIBRATE_STAGE = "calibrate"
 ROBOT_CONFIGS = PROJECT_ROOT / "conf" / "robot"
@@ -41,7 +42,7 @@ def load_physics(source: str, artifact_dir: str | Path, setting: str = "robot.ph
 
 def robot_config_physics(name: str) -> dict[str, Any] | None:
     """The physics of the simulated robot config ``conf/robot/<name>.yaml`` over the
-    :class:`~pipeline.config.SimPhysics` defaults, without its per-session spread; None where
+    :class:`~pipeline.schemas.SimPhysics` defaults, without its per-session spread; None where
     there is no such config. An error where the config has no physics (not a simulated arm)."""
     path = ROBOT_CONFIGS / f"{name}.yaml"
     if "/" in name or not path.is_file():
@@ -80,7 +81,7 @@ def twin_physics(entry: str, artifact_dir: str | Path, setting: str = "evaluatio
 def twin_sim_params(physics: dict[str, Any]) -> Any:
     """The simulator's :class:`~pipeline.arm.sim_arm.SimParams` of ``physics`` (SimPhysics
     values), integrated at the default motion-capture rate
-    (:class:`~pipeline.config.MocapConfig`)."""
+    (:class:`~pipeline.schemas.MocapConfig`)."""
     from pipeline.arm import sim_arm  # JAX only where a twin is simulated, not to find one
 
     robot = OmegaConf.create({"physics": physics,

@@ -21,7 +21,6 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from pipeline import keys
-from pipeline.config import ConfigError, EnvName
 from pipeline.evaluation.rollouts import policy_controller
 from pipeline.infra.artifacts import Artifact, ArtifactStore
 from pipeline.keys import SPEC_VERSIONS
@@ -30,6 +29,7 @@ from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 from pipeline.rl.envs.observation import observe, update_error_integral
 from pipeline.rl.networks import initial_hidden
 from pipeline.rl.policy_io import best_seed, load_policy
+from pipeline.schemas import ConfigError, EnvName
 
 log = logging.getLogger(__name__)
 MM_PER_M = 1000.0

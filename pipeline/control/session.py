@@ -29,7 +29,6 @@ import numpy as np
 
 from pipeline import keys
 from pipeline.arm.limits import validate_limits
-from pipeline.config import RobotKind, validate_config
 from pipeline.control.goals import GoalError, GoalSchedule, goal_schedule
 from pipeline.control.loop import ControlLoop, Outcome, SimArm
 from pipeline.control.policy import MM_PER_M, Deployment, load_deployment
@@ -44,6 +43,8 @@ from pipeline.data.raw import CollectionInterrupted
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.node import StopSignals
+from pipeline.schemas import RobotKind
+from pipeline.validation import validate_config
 
 log = logging.getLogger(__name__)
 STAGE = "control"

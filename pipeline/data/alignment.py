@@ -29,13 +29,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.config import GapPolicy
 from pipeline.data.schemas import (
     CMD_COLUMNS,
     P_COLUMNS,
     XYZ,
     DataError,
 )
+from pipeline.schemas import GapPolicy
 
 log = logging.getLogger(__name__)
 COUNT_FIELDS = (

@@ -18,13 +18,13 @@ import pandas as pd
 
 from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
-from pipeline.config import SimPhysics
 from pipeline.data.schemas import XYZ, Column, TableSchema
 from pipeline.dynamics.scoring import (
     baseline_linear_lagged,
     baseline_mean_position,
     position_errors_mm,
 )
+from pipeline.schemas import SimPhysics
 
 ALL_RUNS = "all"  # the fold trained on every run
 

@@ -33,13 +33,13 @@ import optax
 import pandas as pd
 from tqdm.auto import tqdm
 
-from pipeline.config import ModelConfig, ModelLoss, dataclass_values, frozen_twin
 from pipeline.data.windows import gather_windows, make_windows, sample_batch
 from pipeline.dynamics import checkpoints
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.checkpoints import TrainState
 from pipeline.dynamics.model import DynamicsConfig, DynamicsParams, Normalizer
 from pipeline.dynamics.scoring import validation_errors
+from pipeline.schemas import ModelConfig, ModelLoss, dataclass_values, frozen_twin
 
 LOSS_TABLE_COLUMNS = ["step", "train_loss", "val_loss", "val_mean_mm", "val_p95_mm"]
 

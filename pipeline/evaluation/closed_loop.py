@@ -19,7 +19,6 @@ import numpy as np
 import pandas as pd
 
 from pipeline.arm.twins import twin_sim_params
-from pipeline.config import ConfigError, RobotKind
 from pipeline.evaluation import mpc, rollouts
 from pipeline.evaluation.metrics import MM_PER_M, episode_metrics, plant_gap, summarize
 from pipeline.infra.artifacts import Artifact
@@ -34,6 +33,7 @@ from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv, make_env_params
 from pipeline.rl.envs.plants import SimPlantParams, learned_plant, sim_plant
 from pipeline.rl.networks import initial_hidden
 from pipeline.rl.policy_io import load_policy
+from pipeline.schemas import ConfigError, RobotKind
 
 
 def _sim_env(cfg: Any, learned_env: SoftArmReachEnv, mocap_hz: float) -> SoftArmReachEnv:

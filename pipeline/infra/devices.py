@@ -21,7 +21,7 @@ import os
 import sys
 from typing import Any, NamedTuple
 
-from pipeline.config import ConfigError
+from pipeline.schemas import ConfigError
 
 log = logging.getLogger(__name__)
 

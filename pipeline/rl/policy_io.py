@@ -17,10 +17,10 @@ import numpy as np
 import pandas as pd
 from flax import serialization
 
-from pipeline.config import AgentConfig
 from pipeline.infra.artifacts import Artifact
 from pipeline.infra.parquet import atomic_write
 from pipeline.rl.networks import make_network
+from pipeline.schemas import AgentConfig
 
 
 # ---------------------------------------------------------------------------------------------

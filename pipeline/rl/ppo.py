@@ -41,7 +41,6 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
-from pipeline.config import AgentConfig
 from pipeline.infra.devices import batch_split
 from pipeline.rl.evaluation import evaluate_policy
 from pipeline.rl.losses import compute_gae, ppo_loss
@@ -49,6 +48,7 @@ from pipeline.rl.minibatches import sequence_minibatches, step_minibatches
 from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import NETWORK_FIELDS
 from pipeline.rl.spaces import action_bounds, to_env_action
+from pipeline.schemas import AgentConfig
 
 
 # ---------------------------------------------------------------------------------------------

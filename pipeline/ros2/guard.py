@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 
 from pipeline.arm.limits import UnsafeCommandError, assert_safe
-from pipeline.config import RobotKind
 from pipeline.data.ros_messages import message_class, read_pressures, write_pressures
 from pipeline.ros2.handshake import HandshakeAnswer
 from pipeline.ros2.node import StopSignals, arm_domain, qos_profile, require_rclpy, ros_node
+from pipeline.schemas import RobotKind
 
 log = logging.getLogger(__name__)
 _SPIN_SLICE_S = 0.005  # wall: longest wait inside the executor

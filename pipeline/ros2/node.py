@@ -8,7 +8,7 @@ import signal
 from collections.abc import Iterator
 from typing import Any
 
-from pipeline.config import QosDurability, QosReliability
+from pipeline.schemas import QosDurability, QosReliability
 
 log = logging.getLogger(__name__)
 

@@ -43,7 +43,6 @@ import numpy as np
 
 from pipeline.arm import sim_arm
 from pipeline.arm.limits import UnsafeCommandError, validate_limits
-from pipeline.config import RobotKind
 from pipeline.data.ros_messages import (
     NS_PER_S,
     message_class,
@@ -55,6 +54,7 @@ from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.guard import Deadman, SinglePublisher, rating_preload
 from pipeline.ros2.handshake import HandshakeAnswer
 from pipeline.ros2.node import StopSignals, qos_profile, require_rclpy, ros_node
+from pipeline.schemas import RobotKind
 
 log = logging.getLogger(__name__)
 NODE_NAME = "sorolearn_twin"

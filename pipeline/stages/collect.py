@@ -28,11 +28,11 @@ from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.arm.limits import validate_limits
-from pipeline.config import RobotKind
 from pipeline.data.importers import READERS, list_recordings, recording_id
 from pipeline.data.raw import CollectionInterrupted, write_raw
 from pipeline.data.schemas import CMD_COLUMNS, XYZ
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
+from pipeline.schemas import RobotKind
 
 log = logging.getLogger(__name__)
 STAGE = "collect"

@@ -36,7 +36,6 @@ from typing import Any
 import pandas as pd
 
 from pipeline import chain, keys
-from pipeline.config import EnvName
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
@@ -47,6 +46,7 @@ from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.rl.envs.factory import environment
 from pipeline.rl.policy_io import best_seed
+from pipeline.schemas import EnvName
 
 log = logging.getLogger(__name__)
 STAGE = "evaluate"

@@ -33,13 +33,13 @@ from typing import Any
 import numpy as np
 
 from pipeline import keys
-from pipeline.config import AgentConfig, EnvName
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.tracking import tracking
 from pipeline.rl.envs.factory import environment
 from pipeline.rl.policy_io import save_policy, warm_start_params
 from pipeline.rl.ppo import action_bounds, train_seeds
 from pipeline.rl.results import evaluation_tables, metrics_table, plot_returns, write_results
+from pipeline.schemas import AgentConfig, EnvName
 
 log = logging.getLogger(__name__)
 STAGE = "train_ppo"

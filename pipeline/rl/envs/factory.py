@@ -34,15 +34,6 @@ from gymnax.wrappers.purerl import GymnaxWrapper
 from pipeline.arm import sim_arm
 from pipeline.arm.limits import validate_limits
 from pipeline.arm.safety import SafeSet, project
-from pipeline.config import (
-    ConfigError,
-    EnvConfig,
-    EnvName,
-    GoalSource,
-    RandomizationConfig,
-    dataclass_values,
-    incremental_actions,
-)
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, read_table
 from pipeline.dynamics.checkpoints import load_dynamics
@@ -63,6 +54,15 @@ from pipeline.rl.envs.plants import (
     learned_plant,
     sim_plant,
     stack_members,
+)
+from pipeline.schemas import (
+    ConfigError,
+    EnvConfig,
+    EnvName,
+    GoalSource,
+    RandomizationConfig,
+    dataclass_values,
+    incremental_actions,
 )
 
 # ensembles up to this size step every member and keep the episode's (shared weights); larger

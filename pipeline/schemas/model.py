@@ -1,0 +1,55 @@
+"""The dynamics model's schema: architecture, input features and training.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from pipeline.schemas.choices import Cell, LrSchedule, ModelLoss, ReferencePose
+
+
+@dataclass
+class ModelConfig:
+    """The recurrent forward-dynamics model (``cell``: GRU or LSTM) and its training (see
+    ``pipeline/dynamics/training.py``)."""
+
+    name: str = "recurrent"  # the model family (a recurrent network; which cell: ``cell``)
+    hidden: int = 64
+    layers: int = 1
+    head: list[int] = field(default_factory=list)
+    condition_on_initial_pose: bool = False  # initial carry from the observed pose at reset
+    # predict the displacement from the run's initial pose (default: robot.settled_start; it
+    # helps on settled starts and hurts on the real runs: docs/results/MODEL_RESULTS.md)
+    predict_displacement: bool = False
+    batch_size: int = 32
+    learning_rate: float = 3.0e-3
+    lr_schedule: LrSchedule = LrSchedule.cosine
+    warmup_steps: int = 100
+    final_lr_fraction: float = 0.05
+    max_grad_norm: float = 1.0
+    # 3000: leave-one-run-out on the real runs the GRU gains to about 3000 steps and not after
+    # (2.71 mm at 3000, 2.67 at 6000, 2.79 at 1500; docs/results/MODEL_RESULTS.md)
+    num_steps: int = 3000
+    eval_every: int = 250
+    checkpoint_every: int = 500
+    seed: int = 0
+    reference_pose: ReferencePose = ReferencePose.run_start
+    # gru at 3000 steps with the default dropout: leave-one-run-out on the real runs 2.72 / 6.17
+    # mm (mean / p95, 3 seeds) against 2.82 / 6.30 for the LSTM at 1500, at 4/5 of its CPU
+    cell: Cell = Cell.gru
+    # input features (pipeline/model_features.py); empty / false: off
+    # default: the last command step and the time since it (leave-one-run-out on the real runs
+    # 3.08 mm mean over 3 seeds against 3.20 without; docs/results/MODEL_RESULTS.md)
+    pressure_delta: bool = False  # p_t - p_{t-1} per chamber
+    step_size: bool = True  # the pressure change at the last command step, held
+    # exp(-model steps since the last command step / tau), one input per tau
+    step_decays: list[float] = field(default_factory=lambda: [1.0, 3.0, 10.0])
+    play_widths_kpa: list[float] = field(default_factory=list)  # play operators per chamber
+    step_threshold_kpa: float = 0.05  # a command step: some chamber changed by more
+    # regularization (training only)
+    input_noise_std: float = 0.0  # on the standardized inputs
+    loss: ModelLoss = ModelLoss.mse
+    # one mask on h per window; 0.3: leave-one-run-out on the real runs 2.83 / 6.28 mm (mean /
+    # p95) against 3.09 / 7.40 without, better on every fold (docs/results/MODEL_RESULTS.md)
+    recurrent_dropout: float = 0.3
+    weight_decay: float = 0.0  # AdamW, decoupled

@@ -1,0 +1,115 @@
+"""The schemas of a run: evaluation, control, logging, paths, and the root config that
+holds every group.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from pipeline.schemas.agent import AgentConfig
+from pipeline.schemas.choices import Stage
+from pipeline.schemas.data import CalibrationConfig, DatasetConfig, ExplorationConfig
+from pipeline.schemas.env import EnvConfig
+from pipeline.schemas.model import ModelConfig
+from pipeline.schemas.values import MISSING
+
+
+@dataclass
+class EvaluationConfig:
+    """The evaluate stage: which policies, how many episodes, which baselines."""
+
+    policies: list[str] = field(default_factory=lambda: ["ppo_ff", "ppo_rnn"])  # agent configs
+    baselines: list[str] = field(default_factory=lambda: ["preload", "random", "mpc"])
+    num_episodes: int = 64  # held-out goals, the same for every seed, controller and plant
+    num_consecutive_goals: int = 5  # goals reached one after another without reset
+    consecutive_episodes: int = 8
+    plant: bool = True  # also run on the ground-truth plant (the simulated arm for robot=sim)
+    # other fitted models to evaluate every controller in (cross-model): fit_model artifact
+    # folders or keys of this artifact store; observed like the training env, same goals
+    models: list[str] = field(default_factory=list)
+    # calibrated twins to evaluate every controller on: the simulated arm with the physics of a
+    # simulated robot config (by name, e.g. sim_sorolex: calibrated to the paper's runs) or of a
+    # calibrate artifact (key or folder); observed like the training env, same goals, settled
+    # at the preload from the same rest poses
+    twins: list[str] = field(default_factory=list)
+    # The cross-model protocol, for recorded data: the recordings split into two disjoint groups
+    # (A: cross_model_group_a, by name; empty: every other of the sorted names; B: the rest),
+    # each with its own fit_model; every policy type trained in each group's model (this
+    # config's env and agent) and rolled out on its held-out goals in its own model and in the
+    # other group's (A->B, B->A). null: on for recorded data of at least two runs a group.
+    cross_model: bool | None = None
+    cross_model_group_a: list[str] = field(default_factory=list)
+    mpc_horizon: int = 2  # control periods a candidate command is held
+    mpc_samples: int = 64
+    mpc_iterations: int = 3
+    seed: int = 0
+
+
+@dataclass
+class ControlConfig:
+    """``stage=control``: a trained policy drives the arm (``pipeline/control``).
+
+    Goals in mm in the mocap frame: ``goals`` (each held ``hold_s``), or ``goals_csv`` (waypoints
+    ``t,x,y,z``, t in s from the start, each in force until the next; the last for ``hold_s``), or
+    live on ``goal_topic`` (``geometry_msgs/msg/PointStamped`` in metres, robot=ros2 only).
+    """
+
+    policy: str = "ppo_ff"  # agent option (conf/agent/<policy>.yaml) of the train_ppo artifact
+    policy_file: str | None = None  # a policy.msgpack inside a train_ppo artifact, instead
+    seed: int | None = None  # seed of the stacked policy; None: best held-out median in training
+    goals: list[Any] = field(default_factory=list)  # [[x, y, z], ...] mm (checked by control)
+    goals_csv: str | None = None
+    goal_topic: str | None = None
+    duration_s: float | None = None  # live goals: stop after this long (None: until Ctrl-C)
+    hold_s: float = 20.0  # arm seconds each goal is held (the last waypoint too)
+    workspace_margin_mm: float = 2.0  # goals this far outside the training goals' box are allowed
+    max_pose_jump_mm: float = 20.0  # between consecutive frames: preload and stop
+    arm_seed: int = 0  # robot=sim: the simulated session (rest pose, mocap noise); as twin.seed
+    flush_every_s: float = 2.0  # wall: rows written to Parquet chunks this often
+    node_name: str = "sorolearn_control"
+
+
+@dataclass
+class LoggerConfig:
+    wandb: bool = False
+    project: str = "sorolearn"
+    mode: str = "offline"  # offline unless the user configures otherwise
+
+
+@dataclass
+class PathsConfig:
+    root_dir: str = "${oc.env:SOROLEARN_ROOT,${project_root:}}"
+    data_dir: str = "${oc.env:SOROLEX_DIR,${paths.root_dir}/../shared/data/sorolex}"
+    output_dir: str = "${paths.root_dir}/outputs"
+    artifact_dir: str = "${paths.output_dir}/artifacts"
+    # JAX's persistent compilation cache, shared by runs, sweep jobs and tests; null: off
+    compile_cache_dir: str | None = "${oc.env:SOROLEARN_COMPILE_CACHE,${paths.output_dir}/jax_cache}"
+
+
+@dataclass
+class Config:
+    stage: Stage = Stage.all
+    seed: int = 0
+    force: bool = False  # recompute artifacts even when one with the same key exists
+    # print what the run would do (every job, its artifact key, reused or to run) and stop
+    dry_run: bool = False
+    # policy types the chain trains at once (threads; each training is one compiled program).
+    # 1: each training already runs on every core (cpu_devices); 2 was not faster on 2 cores
+    train_workers: int = 1
+    # JAX's CPU devices (null: JAX_NUM_CPU_DEVICES where set, else one per core this process
+    # may use; 1: JAX's own default). PPO's seeds and the evaluation's episodes are split over
+    # them and the parts run in parallel (pipeline/infra/devices.py); a GPU machine splits
+    # them over its GPUs where it has several
+    cpu_devices: int | None = None
+    robot: Any = MISSING  # one of the RobotConfig subclasses, chosen by the robot group
+    exploration: ExplorationConfig = MISSING
+    dataset: DatasetConfig = MISSING
+    calibration: CalibrationConfig = MISSING
+    model: ModelConfig = MISSING
+    env: EnvConfig = MISSING
+    agent: AgentConfig = MISSING
+    evaluation: EvaluationConfig = MISSING
+    control: ControlConfig = MISSING
+    logger: LoggerConfig = MISSING
+    paths: PathsConfig = MISSING

@@ -1,0 +1,291 @@
+"""Validation of a composed config (the router runs :func:`validate_config` before any work).
+
+Values the schemas' types allow but a run cannot use (NaN, a non-finite timeout,
+``exploration.alpha`` outside [0, 1], limits outside the arm's rating, a real arm's rating changed
+by an override) fail with a :class:`~pipeline.schemas.ConfigError` naming the setting and its
+value.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from pipeline.config import PROJECT_ROOT
+from pipeline.schemas import (
+    ConfigError,
+    EnvConfig,
+    EnvName,
+    PressureRating,
+    RobotKind,
+    SafetyBounds,
+    incremental_actions,
+)
+
+# robot settings that are durations and must be finite and positive [s]
+_ROBOT_DURATIONS = ("watchdog_s", "command_timeout_s", "startup_timeout_s", "flush_every_s",
+                    "stop_timeout_s", "time_scale", "control_hz")
+
+
+def _walk_numbers(node: Any, path: str) -> Iterator[tuple[str, float]]:
+    """Every float in ``node`` (an OmegaConf node, mapping or list) with its dotted path."""
+    if OmegaConf.is_config(node):
+        if OmegaConf.is_list(node):
+            items = ((str(i), node[i]) for i in range(len(node)))
+        else:
+            items = ((str(k), node[k]) for k in node.keys()
+                     if not OmegaConf.is_missing(node, k))
+    elif isinstance(node, Mapping):
+        items = ((str(k), v) for k, v in node.items())
+    elif isinstance(node, list | tuple):
+        items = ((str(i), v) for i, v in enumerate(node))
+    else:
+        if isinstance(node, float):
+            yield path, node
+        return
+    for key, value in items:
+        yield from _walk_numbers(value, f"{path}.{key}" if path else key)
+
+
+def _check_inside_rating(robot: Any) -> None:
+    limits, rating, n = robot.limits, robot.rating, int(robot.n_valves)
+    if not float(rating.p_min) < float(rating.p_max):
+        raise ConfigError(f"robot.rating: p_min={rating.p_min} must be below "
+                          f"p_max={rating.p_max} kPa")
+    if not float(limits.p_min) < float(limits.p_max):
+        raise ConfigError(f"robot.limits: p_min={limits.p_min} must be below "
+                          f"p_max={limits.p_max} kPa")
+    if not n * float(limits.p_min) < float(limits.sum_max):
+        raise ConfigError(f"robot.limits: sum_max={limits.sum_max} kPa must exceed {n} x "
+                          f"p_min={limits.p_min} kPa")
+    for name, inside in (("p_min", float(limits.p_min) >= float(rating.p_min)),
+                         ("p_max", float(limits.p_max) <= float(rating.p_max)),
+                         ("sum_max", float(limits.sum_max) <= float(rating.sum_max))):
+        if not inside:
+            raise ConfigError(
+                f"robot.limits.{name}={limits[name]} kPa lies outside the arm's rating "
+                f"robot.rating.{name}={rating[name]} kPa (the limits may only tighten the rating)")
+    for what, values in (("robot.limits", limits), ("robot.rating", rating)):
+        preload = float(values.preload)
+        if not (float(values.p_min) <= preload <= float(values.p_max)
+                and n * preload <= float(values.sum_max)):
+            raise ConfigError(f"{what}.preload={preload} kPa is outside {what}: "
+                              f"[{values.p_min}, {values.p_max}] per valve, sum <= "
+                              f"{values.sum_max}")
+    if not (float(rating.p_min) <= float(limits.preload) <= float(rating.p_max)
+            and n * float(limits.preload) <= float(rating.sum_max)):
+        raise ConfigError(f"robot.limits.preload={limits.preload} kPa lies outside the arm's "
+                          f"rating robot.rating: [{rating.p_min}, {rating.p_max}] per valve, "
+                          f"sum <= {rating.sum_max}")
+
+
+def robot_file(choice: str, search_dirs: list[Path] | None = None) -> Path | None:
+    """The YAML file of robot group option ``choice`` (``conf/robot/<choice>.yaml``)."""
+    for folder in [*(search_dirs or []), PROJECT_ROOT / "conf"]:
+        path = Path(folder) / "robot" / f"{choice}.yaml"
+        if path.is_file():
+            return path
+    return None
+
+
+def _section_from_file(path: Path, section: str, schema: type,
+                       search_dirs: list[Path] | None = None) -> dict[str, Any]:
+    """The values a robot's YAML file sets for ``section`` over ``schema``'s defaults, following
+    the robot options its defaults list extends (``defaults: [ros2, _self_]``)."""
+    text = OmegaConf.load(path)
+    values = OmegaConf.structured(schema)
+    for entry in text.get("defaults") or []:
+        parent = robot_file(entry, search_dirs) if isinstance(entry, str) else None
+        if parent is not None and parent != path:
+            values = OmegaConf.merge(values, _section_from_file(parent, section, schema,
+                                                                search_dirs))
+    values = OmegaConf.merge(values, text.get(section) or {})
+    return dict(OmegaConf.to_container(values))
+
+
+def rating_from_file(path: Path, search_dirs: list[Path] | None = None) -> dict[str, float]:
+    """The pressure rating [kPa] a robot's YAML file sets over the schema's defaults, following
+    the robot options its defaults list extends (``defaults: [ros2, _self_]``)."""
+    values = _section_from_file(path, "rating", PressureRating, search_dirs)
+    return {k: float(v) for k, v in values.items() if k != "n_valves"}
+
+
+# what a real arm's YAML file pins: an override of these is refused
+_PINNED_SECTIONS = {"rating": PressureRating, "safety_bounds": SafetyBounds}
+
+
+def check_rating_source(robot: Any, choice: str | None,
+                        search_dirs: list[Path] | None = None) -> None:
+    """A real arm's rating and safety bounds must be those its YAML file sets: an override
+    cannot change them."""
+    if RobotKind(robot.kind) is not RobotKind.ros2:
+        return
+    choice = choice or str(robot.name)
+    path = robot_file(choice, search_dirs)
+    if path is None:
+        raise ConfigError(f"robot={choice}: no conf/robot/{choice}.yaml to read the arm's rating "
+                          f"from; a real arm's rating comes from its robot config file")
+    for section, schema in _PINNED_SECTIONS.items():
+        expected = _section_from_file(path, section, schema, search_dirs)
+        for name, value in expected.items():
+            got = float(robot[section][name])
+            if got != float(value) and not (math.isnan(got) and math.isnan(float(value))):
+                unit = " kPa" if section == "rating" and name != "n_valves" else ""
+                raise ConfigError(
+                    f"robot.{section}.{name}={robot[section][name]}{unit} differs from {value}"
+                    f"{unit} in {path}: the {section.replace('_', ' ')} of a real arm "
+                    f"(robot=ros2) cannot be overridden; edit {path} to change it (an override "
+                    f"may tighten robot.limits and the timeouts instead)")
+
+
+def _check_real_arm(cfg: Any) -> None:
+    """A real arm's settings against its pinned rating and safety bounds (``robot=ros2``)."""
+    robot = cfg.robot
+    if RobotKind(robot.kind) is not RobotKind.ros2:
+        return
+    rating, bounds = robot.rating, robot.safety_bounds
+    rehearsal, scale = bool(robot.rehearsal), float(robot.time_scale)
+    if int(robot.n_valves) != int(rating.n_valves):
+        raise ConfigError(f"robot.n_valves={robot.n_valves} differs from the arm's rating "
+                          f"robot.rating.n_valves={rating.n_valves}: the number of valves comes "
+                          f"from the rating")
+    if float(robot.limits.preload) != float(rating.preload):
+        raise ConfigError(f"robot.limits.preload={robot.limits.preload} kPa differs from the "
+                          f"arm's rating robot.rating.preload={rating.preload} kPa: a fault "
+                          f"returns the arm to the rating's preload, so the limits must use it")
+    if str(robot.command_topic) == str(robot.guard.output_topic):
+        raise ConfigError(f"robot.command_topic={robot.command_topic} is the guard's output "
+                          f"(robot.guard.output_topic): commands must go through the guard, not "
+                          f"around it")
+    stage = str(cfg.get("stage", ""))
+    if scale != 1.0 and not rehearsal and stage != "twin":
+        raise ConfigError(f"robot.time_scale={robot.time_scale}: a real arm runs in real time "
+                          f"(time_scale=1); only a rehearsal on the digital twin "
+                          f"(robot.rehearsal=true) may run faster")
+    wall = scale if rehearsal or stage == "twin" else 1.0
+    for name in ("watchdog_s", "command_timeout_s"):
+        value, bound = float(robot[name]), float(bounds[name])
+        if value / wall > bound:
+            where = f" ({value / wall:g} wall s at robot.time_scale={scale:g})" if wall != 1 else ""
+            raise ConfigError(f"robot.{name}={robot[name]} s{where} exceeds its bound "
+                              f"robot.safety_bounds.{name}={bound} s, set in the arm's robot "
+                              f"config file: a real arm's timeouts may only be shortened")
+    if not 1 <= int(robot.max_missed_periods) <= int(bounds.max_missed_periods):
+        raise ConfigError(f"robot.max_missed_periods={robot.max_missed_periods} must lie in "
+                          f"[1, robot.safety_bounds.max_missed_periods="
+                          f"{bounds.max_missed_periods}]")
+    latency = float(robot.max_pose_latency_s)
+    if not 0 < latency <= float(bounds.max_pose_latency_s):
+        raise ConfigError(f"robot.max_pose_latency_s={robot.max_pose_latency_s} s must lie in "
+                          f"(0, robot.safety_bounds.max_pose_latency_s="
+                          f"{bounds.max_pose_latency_s}] s")
+
+
+def validate_config(cfg: Any, robot_choice: str | None = None,
+                    search_dirs: list[Path] | None = None) -> None:
+    """Refuse a composed config that cannot run safely or sensibly, naming setting and value.
+
+    NaN anywhere numeric; robot durations that are not finite and positive; limits outside the
+    rating (or a real arm's rating differing from its YAML file); exploration settings outside
+    their ranges. ``robot_choice`` is the robot group option (default: ``robot.name``).
+    """
+    for path, value in _walk_numbers(cfg, ""):
+        if math.isnan(value):
+            raise ConfigError(f"{path}=nan: a number is required")
+    robot = cfg.robot
+    for name in _ROBOT_DURATIONS:
+        if name in robot:
+            value = float(robot[name])
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"robot.{name}={robot[name]} must be finite and positive")
+    if "command_timeout_s" in robot:
+        period = 1.0 / float(robot.control_hz)
+        if float(robot.command_timeout_s) <= period:
+            raise ConfigError(
+                f"robot.command_timeout_s={robot.command_timeout_s} s must exceed one control "
+                f"period (1 / robot.control_hz = {period:g} s), or the arm falls back to the "
+                f"preload between commands")
+    check_rating_source(robot, robot_choice, search_dirs)
+    _check_inside_rating(robot)
+    _check_real_arm(cfg)
+    low, high = list(robot.workspace.low_m), list(robot.workspace.high_m)
+    if len(low) != 3 or len(high) != 3 or not all(a < b for a, b in zip(low, high)):
+        raise ConfigError(f"robot.workspace: low_m={low} must lie below high_m={high} (x, y, z)")
+    _check_env(cfg)
+    exploration = cfg.get("exploration")
+    if exploration is not None:
+        alpha = float(exploration.alpha)
+        if not 0.0 <= alpha <= 1.0:
+            raise ConfigError(f"exploration.alpha={exploration.alpha} must lie in [0, 1] (1 keeps "
+                              f"the last pressure, 0 draws afresh)")
+        for name in ("beta", "noise_std", "p_max"):
+            if not math.isfinite(float(exploration[name])):
+                raise ConfigError(f"exploration.{name}={exploration[name]} must be finite")
+        if float(exploration.noise_std) < 0:
+            raise ConfigError(f"exploration.noise_std={exploration.noise_std} must be >= 0")
+        if float(exploration.p_max) > float(robot.rating.sum_max):
+            raise ConfigError(f"exploration.p_max={exploration.p_max} kPa exceeds the arm's "
+                              f"rating robot.rating.sum_max={robot.rating.sum_max} kPa")
+
+
+def _check_env(cfg: Any) -> None:
+    """The robustness settings of ``env``: counts, magnitudes and the environments they fit; the
+    incremental action's step and the price of a command change."""
+    env = cfg.get("env")
+    if env is None:
+        return
+    name = EnvName(env.name)
+    seeds, models = int(env.get("ensemble_seeds", 1)), list(env.get("models") or [])
+    if seeds < 1:
+        raise ConfigError(f"env.ensemble_seeds={seeds} must be >= 1 (1: no ensemble)")
+    if (seeds > 1 or models) and name is not EnvName.learned:
+        raise ConfigError(f"env.ensemble_seeds={seeds}, env.models={models}: an ensemble of "
+                          f"fitted models needs env=learned, not env={name}")
+    agreement = env.get("goal_agreement_mm")
+    if agreement is not None:
+        if not (math.isfinite(float(agreement)) and float(agreement) > 0):
+            raise ConfigError(f"env.goal_agreement_mm={agreement} must be finite and > 0 (null: "
+                              f"every goal)")
+        if seeds == 1 and not models:
+            raise ConfigError(f"env.goal_agreement_mm={agreement} keeps the goals an ensemble "
+                              f"agrees on: it needs one (env.ensemble_seeds > 1 or env.models)")
+    randomization = env.get("randomization") or {}
+    for field_name, value in randomization.items():
+        if not (math.isfinite(float(value)) and float(value) >= 0):
+            raise ConfigError(f"env.randomization.{field_name}={value} must be finite and >= 0")
+    if name is EnvName.gymnax and any(float(v) for v in randomization.values()):
+        raise ConfigError("env.randomization: env=gymnax has no plant to randomize")
+    cost = float(env.get("command_change_cost", EnvConfig.command_change_cost))
+    if not (math.isfinite(cost) and cost >= 0):
+        raise ConfigError(f"env.command_change_cost={cost} must be finite and >= 0 (mm of reward "
+                          f"per kPa of command change)")
+    step = float(env.get("action_step_kpa", EnvConfig.action_step_kpa))
+    if incremental_actions(env) and not (math.isfinite(step) and step > 0):
+        raise ConfigError(f"env.action_step_kpa={step} must be finite and > 0 (the change of a "
+                          f"command per control period at action 1, env.action_mode=incremental)")
+    hold = env.get("hold_periods", EnvConfig.hold_periods)
+    if isinstance(hold, bool) or not isinstance(hold, int) or hold < 1:
+        raise ConfigError(f"env.hold_periods={hold} must be an integer >= 1 (consecutive control "
+                          f"periods at the goal that end an episode; 1: the first arrival)")
+    if hold > int(env.max_steps):
+        raise ConfigError(f"env.hold_periods={hold} must be at most env.max_steps="
+                          f"{env.max_steps} (an episode could never end at the goal)")
+    bonus = float(env.get("hold_bonus_mm", EnvConfig.hold_bonus_mm))
+    if not (math.isfinite(bonus) and bonus >= 0):
+        raise ConfigError(f"env.hold_bonus_mm={bonus} must be finite and >= 0 (mm of reward per "
+                          f"control period at the goal)")
+    decay = float(env.get("error_integral_decay", EnvConfig.error_integral_decay))
+    if not 0.0 <= decay < 1.0:
+        raise ConfigError(f"env.error_integral_decay={decay} must lie in [0, 1) (the accumulated "
+                          f"error's weight on its past per control period)")
+    period = 1.0 / float(cfg.robot.control_hz)
+    delay = float(randomization.get("max_delay_s", 0.0))
+    if delay > period + 1e-9:
+        raise ConfigError(f"env.randomization.max_delay_s={delay} s must be at most one control "
+                          f"period (1 / robot.control_hz = {period:g} s)")
+
+

@@ -27,7 +27,7 @@ from bench.ppo_throughput import DEFAULT_MODEL, LIMITS, REST_POSE, random_model
 from pipeline.arm.safety import SafeSet
 from pipeline.rl.envs import SoftArmReachEnv, ensemble_plant, learned_plant, make_env_params
 from pipeline.rl.envs.plants import stack_members
-from pipeline.schemas import DatasetConfig
+from pipeline.schemas import DatasetConfig, EnvConfig, GoalMode
 
 
 def rollout_program(env: SoftArmReachEnv, num_envs: int, num_steps: int):
@@ -61,9 +61,10 @@ def measure(selection: str | None, members: int, num_envs: int, num_steps: int) 
     else:
         plant, plant_params = ensemble_plant(plant, selection), stack_members(models)
     env = SoftArmReachEnv(plant, 2.0, settle_seconds=5.0, include_last_action=True)
-    params = make_env_params(env, plant_params, key=jax.random.PRNGKey(0),
-                             safe_set=SafeSet.from_limits(LIMITS), preload=2.0,
-                             rest_pose=REST_POSE, goal_mode="perturb", reset_bank_size=16)
+    params = make_env_params(env, plant_params,
+                             EnvConfig(goal_mode=GoalMode.perturb, reset_bank_size=16),
+                             key=jax.random.PRNGKey(0), safe_set=SafeSet.from_limits(LIMITS),
+                             preload=2.0, rest_pose=REST_POSE)
     program = rollout_program(env, num_envs, num_steps)
     key = jax.random.PRNGKey(1)
     jax.block_until_ready(program(key, params))  # compile

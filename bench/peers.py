@@ -29,11 +29,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from pipeline.config import compose
-from pipeline.rl.envs.factory import make_sim_env
 from pipeline.rl.evaluation import evaluate_policy
 from pipeline.rl.networks import make_network
 from pipeline.rl.ppo import make_train, seed_keys
 from pipeline.schemas import AgentConfig
+from pipeline.stages._environment import config_environment
 
 MM_PER_M = 1000.0
 
@@ -201,7 +201,7 @@ def main(argv: list[str]) -> None:
     cfg = compose("env=sim", *args.overrides)
     agent = AgentConfig.from_any(cfg.agent, num_seeds=1, total_timesteps=args.timesteps,
                                  progress=False, num_evals=1, eval_envs=0)
-    env, train_params, eval_params = make_sim_env(cfg)
+    env, train_params, eval_params = config_environment(cfg)
     rows = {"sorolearn PPO (JAX)": ours(agent, env, train_params, eval_params, args.eval_envs)}
     seconds = rows["sorolearn PPO (JAX)"]["wall_s"]
     rows["Stable-Baselines3 PPO (torch)"] = stable_baselines(

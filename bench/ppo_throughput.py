@@ -29,7 +29,7 @@ from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.training import ModelTrainConfig
 from pipeline.rl.envs import SoftArmReachEnv, learned_plant, make_env_params
 from pipeline.rl.ppo import make_train, seed_keys
-from pipeline.schemas import AgentConfig, DatasetConfig, ModelConfig
+from pipeline.schemas import AgentConfig, DatasetConfig, EnvConfig, GoalMode, ModelConfig
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 REST_POSE = jnp.array([0.032, 0.353, 0.202])
@@ -56,9 +56,10 @@ def measure(name: str, updates: int, seeds: int) -> dict:
     architecture, model_hz, num_envs, recurrent = SETTINGS[name]
     env = SoftArmReachEnv(learned_plant(model_hz), CONTROL_HZ, settle_seconds=5.0,
                           include_last_action=True)
-    params = make_env_params(env, random_model(architecture), key=jax.random.PRNGKey(0),
-                             safe_set=SafeSet.from_limits(LIMITS), preload=2.0,
-                             rest_pose=REST_POSE, goal_mode="perturb", reset_bank_size=16)
+    params = make_env_params(env, random_model(architecture),
+                             EnvConfig(goal_mode=GoalMode.perturb, reset_bank_size=16),
+                             key=jax.random.PRNGKey(0), safe_set=SafeSet.from_limits(LIMITS),
+                             preload=2.0, rest_pose=REST_POSE)
     agent = AgentConfig(num_seeds=seeds, num_envs=num_envs, num_steps=32, recurrent=recurrent,
                         rnn_skip=recurrent,
                         total_timesteps=updates * num_envs * 32, num_evals=1, eval_envs=8,

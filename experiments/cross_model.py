@@ -18,7 +18,7 @@ rolls it out on the training group's held-out goals in its own model (``own``) a
 group's model (``cross``, through ``evaluation.models``). Variants, made of
 ``experiment=real_arm``'s robustness settings (its incremental actions, its per-episode
 randomization of the plant, ``env.randomization``, and its price on command changes,
-``env.command_change_cost``, which only the ``incremental_randomized`` variants keep):
+``env.command_change_cost_mm_per_kpa``, which only the ``incremental_randomized`` variants keep):
 
 - ``plain``: absolute actions, no randomization (the model as it is);
 - ``ensemble``: plain, in an ensemble of ``--ensemble-seeds`` model seeds (``env.ensemble_seeds``);
@@ -90,7 +90,7 @@ def variant_overrides(variant: str, ensemble_seeds: int,
     command changes priced): the variants before the price went without it."""
     from pipeline.schemas import no_randomization_overrides
 
-    unpriced = ["env.command_change_cost=0"]
+    unpriced = ["env.command_change_cost_mm_per_kpa=0"]
     absolute = ["env.action_mode=absolute", *unpriced]
     no_randomization = no_randomization_overrides()
     ensemble, single = [f"env.ensemble_seeds={ensemble_seeds}"], ["env.ensemble_seeds=1"]

@@ -18,7 +18,6 @@ from omegaconf import OmegaConf
 from pipeline.config import PROJECT_ROOT
 from pipeline.schemas import (
     ConfigError,
-    EnvConfig,
     EnvName,
     PressureRating,
     RobotKind,
@@ -239,13 +238,13 @@ def _check_env(cfg: Any) -> None:
     if env is None:
         return
     name = EnvName(env.name)
-    seeds, models = int(env.get("ensemble_seeds", 1)), list(env.get("models") or [])
+    seeds, models = int(env.ensemble_seeds), list(env.models)
     if seeds < 1:
         raise ConfigError(f"env.ensemble_seeds={seeds} must be >= 1 (1: no ensemble)")
     if (seeds > 1 or models) and name is not EnvName.learned:
         raise ConfigError(f"env.ensemble_seeds={seeds}, env.models={models}: an ensemble of "
                           f"fitted models needs env=learned, not env={name}")
-    agreement = env.get("goal_agreement_mm")
+    agreement = env.goal_agreement_mm
     if agreement is not None:
         if not (math.isfinite(float(agreement)) and float(agreement) > 0):
             raise ConfigError(f"env.goal_agreement_mm={agreement} must be finite and > 0 (null: "
@@ -253,37 +252,37 @@ def _check_env(cfg: Any) -> None:
         if seeds == 1 and not models:
             raise ConfigError(f"env.goal_agreement_mm={agreement} keeps the goals an ensemble "
                               f"agrees on: it needs one (env.ensemble_seeds > 1 or env.models)")
-    randomization = env.get("randomization") or {}
+    randomization = env.randomization
     for field_name, value in randomization.items():
         if not (math.isfinite(float(value)) and float(value) >= 0):
             raise ConfigError(f"env.randomization.{field_name}={value} must be finite and >= 0")
     if name is EnvName.gymnax and any(float(v) for v in randomization.values()):
         raise ConfigError("env.randomization: env=gymnax has no plant to randomize")
-    cost = float(env.get("command_change_cost", EnvConfig.command_change_cost))
+    cost = float(env.command_change_cost_mm_per_kpa)
     if not (math.isfinite(cost) and cost >= 0):
-        raise ConfigError(f"env.command_change_cost={cost} must be finite and >= 0 (mm of reward "
+        raise ConfigError(f"env.command_change_cost_mm_per_kpa={cost} must be finite and >= 0 (mm of reward "
                           f"per kPa of command change)")
-    step = float(env.get("action_step_kpa", EnvConfig.action_step_kpa))
+    step = float(env.action_step_kpa)
     if incremental_actions(env) and not (math.isfinite(step) and step > 0):
         raise ConfigError(f"env.action_step_kpa={step} must be finite and > 0 (the change of a "
                           f"command per control period at action 1, env.action_mode=incremental)")
-    hold = env.get("hold_periods", EnvConfig.hold_periods)
+    hold = env.hold_periods
     if isinstance(hold, bool) or not isinstance(hold, int) or hold < 1:
         raise ConfigError(f"env.hold_periods={hold} must be an integer >= 1 (consecutive control "
                           f"periods at the goal that end an episode; 1: the first arrival)")
     if hold > int(env.max_steps):
         raise ConfigError(f"env.hold_periods={hold} must be at most env.max_steps="
                           f"{env.max_steps} (an episode could never end at the goal)")
-    bonus = float(env.get("hold_bonus_mm", EnvConfig.hold_bonus_mm))
+    bonus = float(env.hold_bonus_mm)
     if not (math.isfinite(bonus) and bonus >= 0):
         raise ConfigError(f"env.hold_bonus_mm={bonus} must be finite and >= 0 (mm of reward per "
                           f"control period at the goal)")
-    decay = float(env.get("error_integral_decay", EnvConfig.error_integral_decay))
+    decay = float(env.error_integral_decay)
     if not 0.0 <= decay < 1.0:
         raise ConfigError(f"env.error_integral_decay={decay} must lie in [0, 1) (the accumulated "
                           f"error's weight on its past per control period)")
     period = 1.0 / float(cfg.robot.control_hz)
-    delay = float(randomization.get("max_delay_s", 0.0))
+    delay = float(randomization.max_delay_s)
     if delay > period + 1e-9:
         raise ConfigError(f"env.randomization.max_delay_s={delay} s must be at most one control "
                           f"period (1 / robot.control_hz = {period:g} s)")

@@ -10,10 +10,10 @@ import pandas as pd
 
 from pipeline import chain, keys
 from pipeline.infra.artifacts import ArtifactStore
-from pipeline.rl.envs.factory import environment
 from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import save_policy
 from pipeline.schemas import AgentConfig
+from pipeline.stages._environment import config_environment
 
 # a small simulated-arm environment and network: seconds to build
 SMALL = ["env=sim", "env.num_goals=64", "env.reset_bank_size=2", "env.include_error=true",
@@ -28,7 +28,7 @@ def write_policy(cfg, medians_mm=(3.0, 2.0), scale: float = 1.0):
     variant = chain.control_policy_config(cfg)
     spec, inputs = keys.train_ppo_spec(variant)
     store = ArtifactStore(cfg.paths.artifact_dir)
-    env, train_params, _ = environment(variant)
+    env, train_params, _ = config_environment(variant)
     agent = AgentConfig.from_any(variant.agent)
     network = make_network(agent, 3)
     obs_dim = int(env.obs_dim)

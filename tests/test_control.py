@@ -38,7 +38,7 @@ def test_observation_by_hand_and_identical_in_the_env():
     class Params:
         obs_mean = np.array([0.03, 0.35, 0.20], np.float32)
         obs_scale = np.array([0.01, 0.001, 0.01], np.float32)
-        error_scale = np.float32(0.005)
+        error_scale_m = np.float32(0.005)
         safe_set = SafeSet(np.zeros(3, np.float32), np.full(3, 7.0, np.float32), np.float32(13))
 
     measured = np.array([0.04, 0.351, 0.19], np.float32)
@@ -54,8 +54,8 @@ def test_observation_by_hand_and_identical_in_the_env():
     env = SoftArmReachEnv(linear_lag_plant(4.0), 2.0, include_error=True,
                           include_last_action=True)
     params = type("P", (), {**{k: getattr(Params, k) for k in
-                               ("obs_mean", "obs_scale", "error_scale", "safe_set")},
-                            "obs_noise_std": np.float32(0.0)})
+                               ("obs_mean", "obs_scale", "error_scale_m", "safe_set")},
+                            "obs_noise_std_m": np.float32(0.0)})
     state = EnvState(None, measured, goal, last, np.int32(0))
     import jax
 
@@ -198,7 +198,7 @@ def test_the_arm_accumulates_the_error_as_the_environment_does(tmp_path):
     commanded = periods[periods["goal_index"] >= 0]
     error = commanded.filter(like="obs_").to_numpy()[:, 6:9]  # (goal - measured) / scale
     measured = (commanded[GOAL_COLUMNS].to_numpy() - commanded[["x", "y", "z"]].to_numpy())
-    np.testing.assert_allclose(error, measured / float(train_params.error_scale), rtol=1e-4,
+    np.testing.assert_allclose(error, measured / float(train_params.error_scale_m), rtol=1e-4,
                                atol=1e-4)
     integral = commanded.filter(like="obs_").to_numpy()[:, 9:12]
     expected = [np.zeros(3)]

@@ -9,7 +9,7 @@ from pipeline.schemas import AgentConfig, ConfigError, RandomizationConfig, budg
 
 RANDOMIZED = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
               "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5}
-PRICE = 10.0  # experiment=real_arm's env.command_change_cost
+PRICE = 10.0  # experiment=real_arm's env.command_change_cost_mm_per_kpa
 
 
 def test_experiment_real_arm_trains_incremental_and_randomized(make_cfg):
@@ -32,7 +32,7 @@ def test_each_variant_sets_what_its_name_says(make_cfg, variant):
     assert env.ensemble_seeds == (3 if "ensemble" in variant or variant == "both" else 1)
     assert env.goal_agreement_mm == (1.0 if variant.endswith("agreed") else None)
     priced = variant.startswith("incremental_randomized")
-    assert env.command_change_cost == (PRICE if priced else 0)
+    assert env.command_change_cost_mm_per_kpa == (PRICE if priced else 0)
 
 
 def test_experiment_real_arm_trains_the_gru_twice_as_long(make_cfg):

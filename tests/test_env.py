@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,11 +22,13 @@ from pipeline.rl.envs import (
     sim_plant,
 )
 from pipeline.rl.envs.factory import sim_plant_params, sim_rest_pose
+from pipeline.schemas import EnvConfig, GoalMode
 from tests.conftest import compose_config
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 REST_POSE = jnp.array([0.032, 0.353, 0.202])
 NUM_ENVS = 8
+ENV_FIELDS = {f.name for f in dataclasses.fields(EnvConfig)}
 
 
 def toy_env(**overrides):
@@ -37,8 +41,8 @@ def toy_env(**overrides):
     settings = {"safe_set": SafeSet.from_limits(LIMITS), "preload": 2.0, "rest_pose": REST_POSE,
                 "goal_set": goals, "max_steps": 5, "reset_bank_size": 4}
     settings.update(overrides)
-    params = make_env_params(env, default_linear_lag_params(), key=jax.random.PRNGKey(0),
-                             **settings)
+    params = make_env_params(env, default_linear_lag_params(), EnvConfig(**{k: settings.pop(k) for k in list(settings) if k in ENV_FIELDS}),
+                             key=jax.random.PRNGKey(0), **settings)
     return env, params
 
 
@@ -256,9 +260,9 @@ def test_one_compiled_env_serves_a_batch_of_models():
     env, params = toy_env()
     plant = default_linear_lag_params()
     stronger = make_env_params(
-        env, plant.replace(gain=2 * plant.gain), key=jax.random.PRNGKey(0),
-        safe_set=params.safe_set, preload=2.0, rest_pose=REST_POSE, goal_set=params.goal_set,
-        max_steps=5, reset_bank_size=4)
+        env, plant.replace(gain=2 * plant.gain), EnvConfig(max_steps=5, reset_bank_size=4),
+        key=jax.random.PRNGKey(0), safe_set=params.safe_set, preload=2.0, rest_pose=REST_POSE,
+        goal_set=params.goal_set)
     both = jax.tree.map(lambda a, b: jnp.stack([a, b]), params, stronger)
     _, state = jax.vmap(env.reset, in_axes=(None, 0))(jax.random.PRNGKey(0), both)
     action = jnp.array([1.0, -1.0, -1.0])
@@ -276,9 +280,9 @@ def test_learned_model_plant_runs_in_the_env():
                                      0.01 * ones)
     model = dynamics.DynamicsParams(network, normalizer, config)
     env = SoftArmReachEnv(learned_plant(10.0), 2.0, settle_seconds=1.0)
-    params = make_env_params(env, model, key=jax.random.PRNGKey(0),
-                             safe_set=SafeSet.from_limits(LIMITS), preload=2.0,
-                             rest_pose=REST_POSE, goal_mode="perturb", reset_bank_size=2)
+    params = make_env_params(env, model, EnvConfig(goal_mode=GoalMode.perturb, reset_bank_size=2),
+                             key=jax.random.PRNGKey(0), safe_set=SafeSet.from_limits(LIMITS),
+                             preload=2.0, rest_pose=REST_POSE)
     _, step, _, state = batched(env, params, num=4)
     out = step(jax.random.split(jax.random.PRNGKey(1), 4), state, jnp.zeros((4, 3)), params)
     assert np.all(np.isfinite(np.asarray(out[0])))
@@ -286,7 +290,7 @@ def test_learned_model_plant_runs_in_the_env():
 
 def test_simulated_arm_plant_reaches_by_feedback_and_rests_at_the_rest_pose(tmp_path):
     cfg = compose_config(tmp_path, "env=sim")
-    plant_params = sim_plant_params(cfg)
+    plant_params = sim_plant_params(cfg.robot)
     env = SoftArmReachEnv(sim_plant(100.0, 10), 2.0, settle_seconds=1.0)
     rest = sim_rest_pose(plant_params)
     carry, position = env.settle(plant_params, rest + jnp.array([0.001, 0.0, 0.0]),

@@ -15,12 +15,12 @@ from pipeline.evaluation import closed_loop, rollouts
 from pipeline.evaluation.closed_loop import rollout_program
 from pipeline.evaluation.metrics import episode_metrics
 from pipeline.infra.parquet import read_metadata
-from pipeline.rl.envs.factory import make_sim_env
+from pipeline.stages._environment import config_environment
 
 
 def test_plant_rollouts_under_vmap_match_single_ones(make_cfg):
     cfg = make_cfg("env=sim", "env.num_goals=16", "env.reset_bank_size=4", "env.max_steps=6")
-    env, _, params = make_sim_env(cfg)
+    env, _, params = config_environment(cfg)
     goals = jnp.broadcast_to(params.goal_set[:3, None], (3, 6, 3))
     starts = (jax.tree.map(lambda x: x[:3], params.reset_carries), params.reset_positions[:3])
     keys = jax.random.split(jax.random.key(0), 3)

@@ -195,11 +195,11 @@ def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
     from pipeline.data.schemas import ALIGNED
     from pipeline.infra.artifacts import ArtifactStore
     from pipeline.keys import key
-    from pipeline.rl.envs.factory import environment
+    from pipeline.stages._environment import config_environment
 
     store = ArtifactStore(cfg.paths.artifact_dir)
     aligned_artifact = store.require("align", key("align", cfg))
-    _, train_params, eval_params = environment(cfg, artifact, aligned_artifact)
+    _, train_params, eval_params = config_environment(cfg, artifact, aligned_artifact)
     aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
     measured = np.concatenate([r["pos"] for r in runs_at_model_rate(aligned, 10.0)])
     np.testing.assert_allclose(np.asarray(eval_params.goal_set), measured, atol=1e-7)

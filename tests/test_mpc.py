@@ -12,6 +12,7 @@ from pipeline.arm.safety import SafeSet
 from pipeline.evaluation import mpc, rollouts
 from pipeline.rl.envs.learned import SoftArmReachEnv, make_env_params
 from pipeline.rl.envs.plants import default_linear_lag_params, hold, linear_lag_plant
+from pipeline.schemas import EnvConfig, GoalMode
 
 SAFE = SafeSet.from_limits(SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0))
 PLANT = linear_lag_plant(model_hz=10.0)
@@ -20,9 +21,9 @@ ENV = SoftArmReachEnv(PLANT, control_hz=2.0, settle_seconds=2.0)
 
 
 def reach(plant_params, model_params, goal, periods=8):
-    env_params = make_env_params(ENV, plant_params, key=jax.random.key(0), safe_set=SAFE,
-                                 preload=2.0, rest_pose=REST, goal_mode="perturb",
-                                 reset_bank_size=2)
+    env_params = make_env_params(ENV, plant_params,
+                                 EnvConfig(goal_mode=GoalMode.perturb, reset_bank_size=2),
+                                 key=jax.random.key(0), safe_set=SAFE, preload=2.0, rest_pose=REST)
     start_carry = jax.tree.map(lambda x: x[0], env_params.reset_carries)
     start = env_params.reset_positions[0]
     model_carry, model_start = ENV.settle(model_params, REST, env_params.preload)

@@ -25,7 +25,8 @@ from pipeline.rl.ppo import (
     seed_keys,
     train_seeds,
 )
-from pipeline.schemas import AgentConfig
+from pipeline.schemas import AgentConfig, EnvConfig
+from pipeline.stages._environment import env_settings
 from tests.conftest import compose_config
 
 GAMMA, LAMBDA = 0.9, 0.8
@@ -235,10 +236,10 @@ def toy_reaching():
     rest = jnp.array([0.03, 0.35, 0.2])
     goals = rest + jax.random.uniform(jax.random.PRNGKey(1), (64, 3), minval=-0.01,
                                       maxval=0.01) * jnp.array([1.0, 0.0, 1.0])
-    params = make_env_params(env, default_linear_lag_params(), key=jax.random.PRNGKey(0),
-                             safe_set=SafeSet.from_limits(limits), preload=2.0, rest_pose=rest,
-                             goal_set=goals, max_steps=10, reset_bank_size=2,
-                             goal_tolerance_m=0.002)
+    settings = EnvConfig(max_steps=10, reset_bank_size=2, goal_tolerance_m=0.002)
+    params = make_env_params(env, default_linear_lag_params(), settings,
+                             key=jax.random.PRNGKey(0), safe_set=SafeSet.from_limits(limits),
+                             preload=2.0, rest_pose=rest, goal_set=goals)
     return env, params
 
 
@@ -405,7 +406,7 @@ def test_ppo_learns_pendulum_within_reach_of_the_optimum(make_cfg):
     # (experiments/pendulum_optimal.py); 8 seeds of this config scored -135 ... -153 on 256
     # random starts each (-144 on 2048 common ones)
     cfg = make_cfg("experiment=pendulum", "agent.num_seeds=2", "agent.progress=false")
-    env, params, _ = make_gymnax_env(cfg)  # as train_ppo builds it (options included)
+    env, params, _ = make_gymnax_env(env_settings(cfg))  # as train_ppo builds it (options included)
     output = train_seeds(AgentConfig.from_any(cfg.agent), env, params)
     final = np.asarray(output.evaluation["mean_return"])[:, -1]
     assert np.all(final > -200), final

@@ -8,6 +8,7 @@ defaults unchanged bit for bit, the config and keys, and a shrunk train_ppo in a
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -32,13 +33,14 @@ from pipeline.rl.envs import (
     stack_members,
 )
 from pipeline.rl.envs import observation as observation_module
-from pipeline.schemas import ConfigError
+from pipeline.schemas import ConfigError, EnvConfig
 from pipeline.validation import validate_config
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 REST_POSE = jnp.array([0.032, 0.353, 0.202])
 GOALS = REST_POSE + jnp.array([[0.005, 0.0, 0.0], [0.0, 0.0, -0.005], [-0.004, 0.0, 0.003]])
 PRELOAD = jnp.full(3, 2.0)
+ENV_FIELDS = {f.name for f in dataclasses.fields(EnvConfig)}
 
 
 def toy(plant=None, plant_params=None, **overrides):
@@ -49,6 +51,7 @@ def toy(plant=None, plant_params=None, **overrides):
                 "goal_set": GOALS, "max_steps": 5, "reset_bank_size": 4}
     settings.update(overrides)
     params = make_env_params(env, plant_params or default_linear_lag_params(),
+                             EnvConfig(**{k: settings.pop(k) for k in list(settings) if k in ENV_FIELDS}),
                              key=jax.random.PRNGKey(0), **settings)
     return env, params
 
@@ -73,7 +76,7 @@ def nominal_reset(env, key, params):
     bank, goal_index = jax.random.randint(index_key, (2,), 0, jnp.array(
         [params.reset_positions.shape[0], params.goal_set.shape[0]]))
     position = params.reset_positions[bank]
-    perturbed = position + params.goal_perturbation * jax.random.normal(perturb_key, (3,))
+    perturbed = position + params.goal_perturbation_m * jax.random.normal(perturb_key, (3,))
     goal = jnp.where(params.goal_from_data, params.goal_set[goal_index], perturbed)
     carry = jax.tree.map(lambda leaf: leaf[bank], params.reset_carries)
     return carry, position, goal, obs_key
@@ -82,7 +85,7 @@ def nominal_reset(env, key, params):
 def nominal_step(env, key, carry, position, goal, last, action, params):
     """The step as it was before randomization existed: noise, projection, zero-order hold."""
     noise_key, obs_key = jax.random.split(key)
-    pressure = env.pressure_command(action, params) + params.action_noise_std * jax.random.normal(
+    pressure = env.pressure_command(action, params) + params.action_noise_std_kpa * jax.random.normal(
         noise_key, (3,))
     pressure = project(pressure, params.safe_set)
     carry, positions = hold(env.plant, params.plant, carry, pressure, env.steps_per_action)
@@ -90,7 +93,7 @@ def nominal_step(env, key, carry, position, goal, last, action, params):
 
 
 def nominal_obs(key, position, goal, last, params):
-    measured = position + params.obs_noise_std * jax.random.normal(key, (3,))
+    measured = position + params.obs_noise_std_m * jax.random.normal(key, (3,))
     return observation_module.observe(measured, goal, last, params, include_error=True,
                                       include_last_action=True)
 
@@ -399,8 +402,9 @@ def incremental_toy(step_kpa=0.5, **overrides):
                 "goal_set": GOALS, "max_steps": 5, "reset_bank_size": 4,
                 "action_step_kpa": step_kpa}
     settings.update(overrides)
-    return env, make_env_params(env, default_linear_lag_params(), key=jax.random.PRNGKey(0),
-                                **settings)
+    return env, make_env_params(env, default_linear_lag_params(),
+                                EnvConfig(**{k: settings.pop(k) for k in list(settings) if k in ENV_FIELDS}),
+                                key=jax.random.PRNGKey(0), **settings)
 
 
 def test_incremental_actions_change_the_last_command_by_hand():
@@ -450,7 +454,9 @@ def test_action_for_inverts_the_command(incremental):
 
 
 def test_incremental_actions_are_part_of_the_keys_and_reach_the_environment(make_cfg):
-    from pipeline.rl.envs.factory import common_params, observation_options
+    from pipeline.rl.envs.factory import observation_options
+    from pipeline.rl.envs.learned import setting_values
+    from pipeline.stages._environment import env_settings
 
     base = make_cfg("experiment=quick")
     assert keys.train_ppo_spec(base)[0]["env"]["action_mode"] == "absolute"
@@ -460,9 +466,9 @@ def test_incremental_actions_are_part_of_the_keys_and_reach_the_environment(make
     incremental = make_cfg("experiment=quick", "env.action_mode=incremental")
     wider = make_cfg("experiment=quick", "env.action_mode=incremental", "env.action_step_kpa=2")
     assert len({keys.key("train_ppo", c) for c in (base, incremental, wider)}) == 3
-    assert observation_options(wider.env)["incremental_actions"] is True
-    assert common_params(wider)["action_step_kpa"] == 2.0
-    assert observation_options(base.env)["incremental_actions"] is False
+    assert observation_options(env_settings(wider))["incremental_actions"] is True
+    assert float(setting_values(env_settings(wider))["action_step_kpa"]) == 2.0
+    assert observation_options(env_settings(base))["incremental_actions"] is False
 
 
 def test_the_command_change_costs_its_price_in_the_reward_by_hand():
@@ -482,8 +488,9 @@ def test_the_command_change_costs_its_price_in_the_reward_by_hand():
 
 
 def test_a_negative_command_change_cost_is_refused(make_cfg):
-    with pytest.raises(ConfigError, match=r"env.command_change_cost=-1.0 must be finite and >= 0"):
-        validate_config(make_cfg("env.command_change_cost=-1"))
+    with pytest.raises(ConfigError,
+                       match=r"env.command_change_cost_mm_per_kpa=-1.0 must be finite and >= 0"):
+        validate_config(make_cfg("env.command_change_cost_mm_per_kpa=-1"))
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -497,7 +504,8 @@ def test_unusable_hold_settings_are_refused(make_cfg, overrides, message):
 
 
 def test_hold_settings_reach_the_env_and_the_key_only_where_set(make_cfg):
-    from pipeline.rl.envs.factory import common_params
+    from pipeline.rl.envs.learned import setting_values
+    from pipeline.stages._environment import env_settings
 
     base = make_cfg()
     assert keys.key("train_ppo", make_cfg("env.hold_periods=1", "env.hold_bonus_mm=0")) == \
@@ -506,8 +514,8 @@ def test_hold_settings_reach_the_env_and_the_key_only_where_set(make_cfg):
     validate_config(held)
     assert keys.train_ppo_spec(held)[0]["env"]["hold_periods"] == 5
     assert keys.key("train_ppo", held) != keys.key("train_ppo", base)
-    options = common_params(held)
-    assert (options["hold_periods"], options["hold_bonus_mm"]) == (5, 2.0)
+    values = setting_values(env_settings(held))
+    assert (int(values["hold_periods"]), float(values["hold_bonus_mm"])) == (5, 2.0)
 
 
 @pytest.mark.parametrize("decay", ["1.0", "-0.1"])
@@ -529,7 +537,7 @@ def test_training_evaluations_run_the_whole_horizon_and_score_its_end():
                            jnp.zeros((1, env.obs_dim)), jnp.zeros((1,), bool))
 
     def evaluate(tolerance):
-        return evaluate_policy(env, params.replace(goal_tolerance=jnp.float32(tolerance)),
+        return evaluate_policy(env, params.replace(goal_tolerance_m=jnp.float32(tolerance)),
                                network, weights, jax.random.PRNGKey(3), num_envs=16,
                                num_steps=5, has_distance=True)
 

@@ -16,7 +16,7 @@ from pipeline.config import PROJECT_ROOT
 from pipeline.dynamics import model as dynamics
 from pipeline.infra.artifacts import MissingArtifactError
 from pipeline.rl.envs import SoftArmReachEnv, learned_plant, make_env_params
-from pipeline.schemas import ConfigError, SimPhysics
+from pipeline.schemas import ConfigError, EnvConfig, SimPhysics
 
 LIMITS = OmegaConf.create({"p_min": -1.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
 
@@ -62,9 +62,9 @@ def test_a_twin_starts_where_the_learned_env_starts_observed_like_it(make_cfg):
         dynamics.Normalizer(2.0 * ones, ones, rest, 0.01 * ones, zeros, 0.01 * ones), config)
     env = SoftArmReachEnv(learned_plant(float(cfg.dataset.model_hz)), 2.0, settle_seconds=1.0)
     goals = rest + jnp.array([[0.004, 0.0, 0.0], [0.0, -0.001, 0.003]])
-    learned = make_env_params(env, model, key=jax.random.PRNGKey(0),
+    learned = make_env_params(env, model, EnvConfig(reset_bank_size=5), key=jax.random.PRNGKey(0),
                               safe_set=SafeSet.from_limits(LIMITS), preload=2.0, rest_pose=rest,
-                              rest_pose_std=0.002, goal_set=goals, reset_bank_size=5)
+                              rest_pose_std=0.002, goal_set=goals)
 
     twin_env, twin = _twin_env(cfg, env, learned, physics, jax.random.PRNGKey(1))
     assert sim.mocap_hz / twin_env.plant.model_hz == 10  # 100 Hz frames, 10 a model step

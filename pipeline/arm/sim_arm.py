@@ -94,8 +94,8 @@ class SimParams:
         ``robot.mocap`` (:class:`pipeline.schemas.MocapConfig`)."""
         mocap = robot.mocap
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-        values = {k: _plain(robot.physics[k]) for k in PHYSICS_VALUES}
-        spread = robot.physics.get("session_std") or {}
+        values = {k: _plain(getattr(robot.physics, k)) for k in PHYSICS_VALUES}
+        spread = getattr(robot.physics, "session_std", None) or {}
         return cls(
             **physics_fields(values),
             session_std=session_spread(values, {k: _plain(v) for k, v in spread.items()}),

@@ -24,12 +24,17 @@ from pipeline import keys
 from pipeline.evaluation.rollouts import policy_controller
 from pipeline.infra.artifacts import Artifact, ArtifactStore
 from pipeline.keys import SPEC_VERSIONS
-from pipeline.rl.envs.factory import environment
+from pipeline.rl.envs.factory import (
+    ArmSettings,
+    LearnedInputs,
+    environment,
+    read_learned_inputs,
+)
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 from pipeline.rl.envs.observation import observe, update_error_integral
 from pipeline.rl.networks import initial_hidden
 from pipeline.rl.policy_io import best_seed, load_policy
-from pipeline.schemas import ConfigError, EnvName
+from pipeline.schemas import ConfigError, EnvConfig, EnvName, PressureLimits, SimRobotConfig
 
 log = logging.getLogger(__name__)
 MM_PER_M = 1000.0
@@ -106,6 +111,25 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
     return config, model, aligned
 
 
+def trained_settings(train_cfg: Any, model: Artifact | None, aligned: Artifact | None
+                     ) -> tuple[EnvConfig, ArmSettings, LearnedInputs | None]:
+    """The arguments of :func:`environment` from :func:`training_config`'s result: the env
+    settings (the spec's, merged onto the schema's defaults: a full object), what the env takes
+    of the robot and dataset, and the learned env's inputs (None for ``env=sim``)."""
+    env = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), train_cfg.env))
+    robot = train_cfg.robot
+    sim = None
+    if EnvName(env.name) is EnvName.sim:
+        sim = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimRobotConfig), robot))
+    arm = ArmSettings(PressureLimits(**OmegaConf.to_container(robot.limits)),
+                      int(robot.n_valves), float(robot.control_hz),
+                      float(train_cfg.dataset.model_hz), sim)
+    if model is None or aligned is None:
+        return env, arm, None
+    return env, arm, read_learned_inputs(
+        model.file("model.msgpack"), model.file("split.json"), aligned.file("aligned.parquet"),
+        float(train_cfg.dataset.model_hz), str(train_cfg.dataset.model_grid))
+
 def make_step(network: Any, env: SoftArmReachEnv) -> Any:
     """The jitted control step: observation (the environment's :func:`observe`), the
     deterministic action (evaluate's policy controller), the pressures (the environment's
@@ -142,7 +166,7 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
         log.warning("control: the policy was trained with limits %s, robot.limits are %s: its "
                     "actions map onto the trained range, the gate then projects onto robot.limits",
                     trained_limits, robot_limits)
-    env, train_params, eval_params = environment(train_cfg, model, aligned)
+    env, train_params, eval_params = environment(*trained_settings(train_cfg, model, aligned))
     network, stacked, meta = load_policy(artifact.file("policy.msgpack"))
     num_seeds = int(meta.get("num_seeds", 1))
     seed = best_seed(artifact) if cfg.control.seed is None else int(cfg.control.seed)

@@ -24,7 +24,6 @@ from pipeline.evaluation.metrics import MM_PER_M, episode_metrics, plant_gap, su
 from pipeline.infra.artifacts import Artifact
 from pipeline.infra.devices import batch_split
 from pipeline.rl.envs.factory import (
-    common_params,
     observation_options,
     sim_plant_params,
     sim_rest_pose,
@@ -55,13 +54,13 @@ def _plant_env(cfg: Any, learned_env: SoftArmReachEnv, learned_params: EnvParams
     if RobotKind(cfg.robot.kind) is not RobotKind.sim or not cfg.evaluation.plant:
         return None
     env = _sim_env(cfg, learned_env, float(cfg.robot.mocap.rate_hz))
-    plant = sim_plant_params(cfg)
+    plant = sim_plant_params(cfg.robot)
     params = make_env_params(
         env, plant, key=key, safe_set=learned_params.safe_set, preload=plant.preload,
         rest_pose=sim_rest_pose(plant),
         rest_pose_std=jnp.asarray(cfg.robot.physics.rest_pose_std_m, jnp.float32),
         goal_set=learned_params.goal_set, obs_mean=learned_params.obs_mean,
-        obs_scale=learned_params.obs_scale, **common_params(cfg))
+        obs_scale=learned_params.obs_scale, settings=cfg.env)
     return env, params
 
 
@@ -173,7 +172,7 @@ def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: An
         env, dynamics_params, key=key, safe_set=eval_params.safe_set,
         preload=eval_params.preload, initial_poses=eval_params.reset_initial_poses,
         goal_set=eval_params.goal_set, obs_mean=eval_params.obs_mean,
-        obs_scale=eval_params.obs_scale, **common_params(cfg))
+        obs_scale=eval_params.obs_scale, settings=cfg.env)
 
 
 def _twin_env(cfg: Any, learned_env: SoftArmReachEnv, eval_params: EnvParams,
@@ -188,7 +187,7 @@ def _twin_env(cfg: Any, learned_env: SoftArmReachEnv, eval_params: EnvParams,
     params = make_env_params(
         env, plant, key=key, safe_set=eval_params.safe_set, preload=eval_params.preload,
         initial_poses=eval_params.reset_initial_poses, goal_set=eval_params.goal_set,
-        obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale, **common_params(cfg))
+        obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale, settings=cfg.env)
     return env, params
 
 

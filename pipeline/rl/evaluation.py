@@ -1,6 +1,6 @@
 """The deterministic evaluation PPO runs during training: one episode per environment.
 
-On a reaching environment (one whose parameters have a ``goal_tolerance``) every episode runs its
+On a reaching environment (one whose parameters have a ``goal_tolerance_m``) every episode runs its
 whole horizon, as in the evaluate stage: the goal tolerance does not end it, its
 ``final_distance_m`` is the distance at the last step and it succeeded if that is within the
 tolerance. A policy that passes through the goal and leaves it again is not counted as there; it
@@ -41,9 +41,9 @@ def evaluate_policy(env: Any, env_params: Any, network: Any, params: Any, key: j
                 "episode_finished": empty.astype(bool), "mean_return": jnp.nan,
                 "median_final_distance_m": jnp.nan, "success_rate": jnp.nan}
     low, high = action_bounds(env, env_params) if bounds is None else bounds
-    tolerance = getattr(env_params, "goal_tolerance", None) if has_distance else None
+    tolerance = getattr(env_params, "goal_tolerance_m", None) if has_distance else None
     if tolerance is not None:  # the whole horizon: reaching the goal does not end an episode
-        env_params = env_params.replace(goal_tolerance=jnp.full_like(tolerance, -jnp.inf))
+        env_params = env_params.replace(goal_tolerance_m=jnp.full_like(tolerance, -jnp.inf))
     reset_key, episode_key = jax.random.split(key)
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(
         jax.random.split(reset_key, num_envs), env_params)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,8 +50,8 @@ class EnvConfig:
     hold_bonus_mm: float = 0.0  # reward [mm] for every control period that ends at the goal
     goal_mode: GoalMode = GoalMode.data
     goal_perturbation_m: float = 0.01
-    obs_noise_std: float = 0.0  # m, on the observed position
-    action_noise_std: float = 0.0  # kPa, on the commanded pressures (before projection)
+    obs_noise_std_m: float = 0.0  # on the observed position
+    action_noise_std_kpa: float = 0.0  # on the commanded pressures (before projection)
     include_last_action: bool = False
     include_error: bool = False  # also observe (goal - position) / error_scale_m
     error_scale_m: float = 0.005
@@ -62,8 +63,9 @@ class EnvConfig:
     # period (integral action: the commands rest only where the policy outputs zero)
     action_mode: ActionMode = ActionMode.absolute
     action_step_kpa: float = 1.0
-    # reward: -(distance mm + command_change_cost x summed |change of the command| kPa) [mm/kPa]
-    command_change_cost: float = 0.0
+    # reward: -(distance mm + command_change_cost_mm_per_kpa x summed |change of the command|
+    # kPa) [mm/kPa]
+    command_change_cost_mm_per_kpa: float = 0.0
     gymnax_name: str = "Pendulum-v1"
     scale_observations: bool = False  # gymnax: observations divided by the space's bounds
     settle_seconds: float = 5.0  # preload held before an episode starts
@@ -94,7 +96,7 @@ def no_randomization_overrides() -> list[str]:
 
 
 def incremental_actions(env: Any) -> bool:
-    """Whether the env config ``env`` acts incrementally (``env.action_mode``; absent, as in a
-    config rebuilt from an artifact's spec where it is the default: absolute)."""
-    mode = ActionMode(str(env.get("action_mode", EnvConfig.action_mode)))
-    return mode is ActionMode.incremental
+    """Whether the env settings ``env`` (the schema's object, or a mapping of its fields) act
+    incrementally (``env.action_mode``)."""
+    mode = env["action_mode"] if isinstance(env, Mapping) else env.action_mode
+    return ActionMode(str(mode)) is ActionMode.incremental

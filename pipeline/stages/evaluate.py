@@ -44,9 +44,9 @@ from pipeline.evaluation.report import write_report
 from pipeline.evaluation.sections import report_sections
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
-from pipeline.rl.envs.factory import environment
 from pipeline.rl.policy_io import best_seed
 from pipeline.schemas import EnvName
+from pipeline.stages._environment import config_environment
 
 log = logging.getLogger(__name__)
 STAGE = "evaluate"
@@ -71,7 +71,7 @@ def evaluate(cfg: Any) -> Artifact:
 
     def build(writer):
         started = time.perf_counter()
-        env, _, eval_params = environment(cfg, upstream["model"], upstream["aligned"])
+        env, _, eval_params = config_environment(cfg, upstream["model"], upstream["aligned"])
         models = {name: load_dynamics(artifact.file("model.msgpack"))
                   for name, artifact in other_models.items()}
         twins = {f"twin {name}": physics
@@ -120,7 +120,7 @@ def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> N
     headline's ``cross_model/<direction>/<controller>`` figures."""
     episodes, summaries = [], []
     for direction, fold in folds.items():
-        env, _, eval_params = environment(fold["cfg"], fold["model"], fold["aligned"])
+        env, _, eval_params = config_environment(fold["cfg"], fold["model"], fold["aligned"])
         other = load_dynamics(fold["other"].file("model.msgpack"))
         rows = cross_model_episodes(fold["cfg"], fold["policies"], env, eval_params, other)
         labels = {"direction": direction, "train_runs": "+".join(fold["cfg"].robot.files),

@@ -35,11 +35,11 @@ import numpy as np
 from pipeline import keys
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.tracking import tracking
-from pipeline.rl.envs.factory import environment
 from pipeline.rl.policy_io import save_policy, warm_start_params
 from pipeline.rl.ppo import action_bounds, train_seeds
 from pipeline.rl.results import evaluation_tables, metrics_table, plot_returns, write_results
 from pipeline.schemas import AgentConfig, EnvName
+from pipeline.stages._environment import config_environment
 
 log = logging.getLogger(__name__)
 STAGE = "train_ppo"
@@ -59,7 +59,7 @@ def train_ppo(cfg: Any) -> Artifact:
                    for entry in keys.ensemble_entries(cfg).values()]
 
     def build(writer):
-        env, train_params, eval_params = environment(cfg, model, aligned, members)
+        env, train_params, eval_params = config_environment(cfg, model, aligned, members)
         low, high = action_bounds(env, train_params)
         obs_dim = int(np.prod(env.observation_space(train_params).shape))
         action_dim = int(np.prod(low.shape))

@@ -1,4 +1,7 @@
-"""Build environments and their parameters from the composed config (``env`` group).
+"""Build environments and their parameters from typed settings: the env schema's object
+(:class:`~pipeline.schemas.EnvConfig`), what they take of the robot and dataset
+(:class:`ArmSettings`) and, for ``env=learned``, the loaded fit_model and align artifacts
+(:class:`LearnedInputs`, read by the stages with :func:`read_learned_inputs`).
 
 ``env.name``:
 
@@ -21,6 +24,8 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import gymnax
@@ -38,7 +43,6 @@ from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, read_table
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.dynamics.scoring import predict_run
-from pipeline.infra.artifacts import Artifact
 from pipeline.rl.envs.learned import (
     Randomization,
     SoftArmReachEnv,
@@ -60,8 +64,8 @@ from pipeline.schemas import (
     EnvConfig,
     EnvName,
     GoalSource,
+    PressureLimits,
     RandomizationConfig,
-    dataclass_values,
     incremental_actions,
 )
 
@@ -72,39 +76,54 @@ ALL_MEMBERS_UP_TO = 4
 log = logging.getLogger(__name__)
 
 
-def common_params(cfg: Any) -> dict[str, Any]:
-    env_cfg = cfg.env
-    return {
-        "goal_mode": str(env_cfg.goal_mode),
-        "goal_perturbation_m": float(env_cfg.goal_perturbation_m),
-        "goal_tolerance_m": float(env_cfg.goal_tolerance_m),
-        "hold_periods": int(env_cfg.get("hold_periods", EnvConfig.hold_periods)),
-        "hold_bonus_mm": float(env_cfg.get("hold_bonus_mm", EnvConfig.hold_bonus_mm)),
-        "obs_noise_std_m": float(env_cfg.obs_noise_std),
-        "error_scale_m": float(env_cfg.error_scale_m),
-        "error_integral_decay": float(
-            env_cfg.get("error_integral_decay", EnvConfig.error_integral_decay)),
-        "action_step_kpa": float(env_cfg.get("action_step_kpa", EnvConfig.action_step_kpa)),
-        "action_noise_std_kpa": float(env_cfg.action_noise_std),
-        "command_change_cost_mm_per_kpa": float(
-            env_cfg.get("command_change_cost", EnvConfig.command_change_cost)),
-        "max_steps": int(env_cfg.max_steps),
-        "reset_bank_size": int(env_cfg.reset_bank_size),
-    }
+@dataclass(frozen=True)
+class ArmSettings:
+    """What the environments take of the robot and dataset settings.
+
+    limits: the pressure limits (``robot.limits``: p_min, p_max, sum_max, preload kPa).
+    n_valves: valves of the arm.
+    control_hz: [Hz] rate of the actions (``robot.control_hz``).
+    model_hz: [Hz] rate the plant runs at (``dataset.model_hz``).
+    sim: ``env=sim`` only: the simulated arm's robot settings (``physics``, ``mocap``, ``limits``).
+    """
+
+    limits: PressureLimits
+    n_valves: int
+    control_hz: float
+    model_hz: float
+    sim: Any = None
 
 
-def randomization_config(env_cfg: Any) -> RandomizationConfig:
-    """``env.randomization`` (absent in a config rebuilt from an artifact's spec, which keeps
-    only settings that differ from the defaults: then none)."""
-    node = env_cfg.get("randomization") if hasattr(env_cfg, "get") else None
-    return RandomizationConfig(**dataclass_values(RandomizationConfig, node or {},
-                                                  "env.randomization"))
+@dataclass(frozen=True)
+class LearnedInputs:
+    """What ``env=learned`` is built from (:func:`read_learned_inputs`).
+
+    dynamics: the fit_model artifact's ``DynamicsParams``.
+    split: its run split (``split.json``: ``protocol``, ``train``/``test`` or ``folds``).
+    runs: the aligned runs at the model rate (``run_id``, ``pos [T, 3]`` m, ...).
+    members: further ``DynamicsParams`` of the same architecture, trained in as an ensemble.
+    """
+
+    dynamics: Any
+    split: dict[str, Any]
+    runs: list[dict[str, Any]]
+    members: tuple[Any, ...] = ()
 
 
-def randomization_params(env_cfg: Any, env: SoftArmReachEnv) -> Randomization:
+def read_learned_inputs(model_file: Path, split_file: Path, aligned_file: Path, model_hz: float,
+                        model_grid: str, member_files: Sequence[Path] = ()) -> LearnedInputs:
+    """:class:`LearnedInputs` from a fit_model artifact's model and split files, the aligned
+    table it was fitted to (resampled at ``model_hz`` on ``model_grid``) and further members'
+    model files."""
+    table, _ = read_table(aligned_file, ALIGNED)
+    return LearnedInputs(load_dynamics(model_file), json.loads(Path(split_file).read_text()),
+                         runs_at_model_rate(table, float(model_hz), str(model_grid)),
+                         tuple(load_dynamics(path) for path in member_files))
+
+
+def randomization_params(spread: RandomizationConfig, env: SoftArmReachEnv) -> Randomization:
     """The training episodes' randomization of ``env.randomization`` on ``env`` (its delay in
     plant steps: ``round(max_delay_s * plant rate)``, at most one control period)."""
-    spread = randomization_config(env_cfg)
     delay = min(round(float(spread.max_delay_s) * env.plant.model_hz), env.steps_per_action)
     return randomization(gain_std=float(spread.gain_std),
                          offset_std_kpa=float(spread.offset_std_kpa), max_delay_steps=delay,
@@ -112,28 +131,28 @@ def randomization_params(env_cfg: Any, env: SoftArmReachEnv) -> Randomization:
                          drift_std_m_per_s=float(spread.drift_std_m_per_s))
 
 
-def observation_options(env_cfg: Any) -> dict[str, Any]:
-    """The :class:`SoftArmReachEnv` arguments of the env config besides plant and rate."""
-    return {"settle_seconds": float(env_cfg.settle_seconds),
-            "include_last_action": bool(env_cfg.include_last_action),
-            "include_error": bool(env_cfg.include_error),
-            "include_error_integral": bool(
-                env_cfg.get("include_error_integral", EnvConfig.include_error_integral)),
-            "incremental_actions": incremental_actions(env_cfg)}
+def observation_options(settings: EnvConfig) -> dict[str, Any]:
+    """The :class:`SoftArmReachEnv` arguments of the env settings besides plant and rate."""
+    return {"settle_seconds": float(settings.settle_seconds),
+            "include_last_action": bool(settings.include_last_action),
+            "include_error": bool(settings.include_error),
+            "include_error_integral": bool(settings.include_error_integral),
+            "incremental_actions": incremental_actions(settings)}
 
 
-def _safe_set(cfg: Any) -> SafeSet:
-    validate_limits(cfg.robot.limits, cfg.robot.n_valves)
-    return SafeSet.from_limits(cfg.robot.limits, cfg.robot.n_valves)
+def _safe_set(arm: ArmSettings) -> SafeSet:
+    validate_limits(arm.limits, arm.n_valves)
+    return SafeSet.from_limits(arm.limits, arm.n_valves)
 
 
 # ---------------------------------------------------------------------------------------------
 # simulated arm
 # ---------------------------------------------------------------------------------------------
-def sim_plant_params(cfg: Any) -> SimPlantParams:
-    """The simulated arm of ``cfg.robot`` (robot=sim physics) resting at the preload."""
-    preload = jnp.full((NUM_VALVES,), float(cfg.robot.limits.preload), jnp.float32)
-    return SimPlantParams(sim_arm.SimParams.from_config(cfg.robot), preload)
+def sim_plant_params(robot: Any) -> SimPlantParams:
+    """The simulated arm of the robot settings ``robot`` (robot=sim: ``physics``, ``mocap``,
+    ``limits``) resting at the preload."""
+    preload = jnp.full((NUM_VALVES,), float(robot.limits.preload), jnp.float32)
+    return SimPlantParams(sim_arm.SimParams.from_config(robot), preload)
 
 
 def sim_reachable_positions(env: SoftArmReachEnv, plant_params: SimPlantParams,
@@ -163,35 +182,34 @@ def sim_rest_pose(plant_params: SimPlantParams) -> jax.Array:
     return sim_arm.tip_position(plant_params.sim, state)
 
 
-def make_sim_env(cfg: Any) -> tuple[SoftArmReachEnv, Any, Any]:
-    """The reaching environment on the simulated arm (``env=sim``)."""
-    env_cfg = cfg.env
-    mocap_hz = float(cfg.robot.mocap.rate_hz)
-    frames_per_step = round(mocap_hz / float(cfg.dataset.model_hz))
-    env = SoftArmReachEnv(sim_plant(mocap_hz, frames_per_step), float(cfg.robot.control_hz),
-                          **observation_options(env_cfg))
-    plant_params = sim_plant_params(cfg)
-    safe_set = _safe_set(cfg)
+def make_sim_env(settings: EnvConfig, arm: ArmSettings) -> tuple[SoftArmReachEnv, Any, Any]:
+    """The reaching environment on the simulated arm ``arm.sim`` (``env=sim``)."""
+    mocap_hz = float(arm.sim.mocap.rate_hz)
+    frames_per_step = round(mocap_hz / float(arm.model_hz))
+    env = SoftArmReachEnv(sim_plant(mocap_hz, frames_per_step), float(arm.control_hz),
+                          **observation_options(settings))
+    plant_params = sim_plant_params(arm.sim)
+    safe_set = _safe_set(arm)
     rest_pose = sim_rest_pose(plant_params)
-    rest_pose_std = jnp.asarray(cfg.robot.physics.rest_pose_std_m, jnp.float32)
+    rest_pose_std = jnp.asarray(arm.sim.physics.rest_pose_std_m, jnp.float32)
     goal_key, held_out_key, train_bank_key, eval_bank_key = jax.random.split(
-        jax.random.PRNGKey(int(env_cfg.env_seed)), 4)
-    num_goals = int(env_cfg.num_goals)
-    num_held_out = max(1, round(float(env_cfg.held_out_fraction) * num_goals))
+        jax.random.PRNGKey(int(settings.env_seed)), 4)
+    num_goals = int(settings.num_goals)
+    num_held_out = max(1, round(float(settings.held_out_fraction) * num_goals))
     train_goals = sim_reachable_positions(env, plant_params, safe_set, rest_pose, goal_key,
                                           num_goals - num_held_out)
     held_out_goals = sim_reachable_positions(env, plant_params, safe_set, rest_pose,
                                              held_out_key, num_held_out)
-    common = common_params(cfg)
     train_params = make_env_params(
-        env, plant_params, key=train_bank_key, safe_set=safe_set,
+        env, plant_params, settings, key=train_bank_key, safe_set=safe_set,
         preload=plant_params.preload, rest_pose=rest_pose, rest_pose_std=rest_pose_std,
-        goal_set=train_goals, randomization_params=randomization_params(env_cfg, env), **common)
+        goal_set=train_goals,
+        randomization_params=randomization_params(settings.randomization, env))
     eval_params = make_env_params(
-        env, plant_params, key=eval_bank_key, safe_set=safe_set,
+        env, plant_params, settings, key=eval_bank_key, safe_set=safe_set,
         preload=plant_params.preload, rest_pose=rest_pose, rest_pose_std=rest_pose_std,
         goal_set=held_out_goals, obs_mean=train_params.obs_mean,
-        obs_scale=train_params.obs_scale, **common)
+        obs_scale=train_params.obs_scale)
     return env, train_params, eval_params
 
 
@@ -250,8 +268,8 @@ def conservative_goals(goals: pd.DataFrame, spread_m: np.ndarray, agreement_m: f
     return goals[agreed | ~training].reset_index(drop=True)
 
 
-def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
-                     held_out_goals: np.ndarray, rest_pose: np.ndarray,
+def make_learned_env(settings: EnvConfig, arm: ArmSettings, dynamics_params: Any,
+                     train_goals: np.ndarray, held_out_goals: np.ndarray, rest_pose: np.ndarray,
                      rest_pose_std: np.ndarray | float = 0.0, members: Sequence[Any] = ()
                      ) -> tuple[SoftArmReachEnv, Any, Any]:
     """The reaching environment on a fitted model (``env=learned``).
@@ -266,29 +284,28 @@ def make_learned_env(cfg: Any, dynamics_params: Any, train_goals: np.ndarray,
         the reset bank rounded up to a multiple of K so that members are drawn uniformly),
         evaluation in ``dynamics_params`` alone. None given: the plain model, no ensemble.
     """
-    env_cfg = cfg.env
-    plant = learned_plant(float(cfg.dataset.model_hz))
-    common = common_params(cfg)
+    plant = learned_plant(float(arm.model_hz))
     train_plant, eval_plant = dynamics_params, dynamics_params
-    eval_common = dict(common)
+    bank_size = int(settings.reset_bank_size)
     if members:
         count = 1 + len(members)
         plant = ensemble_plant(plant, "all" if count <= ALL_MEMBERS_UP_TO else "gather")
         train_plant = stack_members([dynamics_params, *members])
         eval_plant = stack_members([dynamics_params])
-        common["reset_bank_size"] = -(-int(common["reset_bank_size"]) // count) * count
-    env = SoftArmReachEnv(plant, float(cfg.robot.control_hz), **observation_options(env_cfg))
-    safe_set = _safe_set(cfg)
-    preload = float(cfg.robot.limits.preload)
-    train_bank_key, eval_bank_key = jax.random.split(jax.random.PRNGKey(int(env_cfg.env_seed)))
+        bank_size = -(-bank_size // count) * count
+    env = SoftArmReachEnv(plant, float(arm.control_hz), **observation_options(settings))
+    safe_set = _safe_set(arm)
+    preload = float(arm.limits.preload)
+    train_bank_key, eval_bank_key = jax.random.split(jax.random.PRNGKey(int(settings.env_seed)))
     train_params = make_env_params(
-        env, train_plant, key=train_bank_key, safe_set=safe_set, preload=preload,
+        env, train_plant, settings, key=train_bank_key, safe_set=safe_set, preload=preload,
         rest_pose=rest_pose, rest_pose_std=rest_pose_std, goal_set=train_goals,
-        randomization_params=randomization_params(env_cfg, env), **common)
+        randomization_params=randomization_params(settings.randomization, env),
+        reset_bank_size=bank_size)
     eval_params = make_env_params(
-        env, eval_plant, key=eval_bank_key, safe_set=safe_set, preload=preload,
+        env, eval_plant, settings, key=eval_bank_key, safe_set=safe_set, preload=preload,
         rest_pose=rest_pose, rest_pose_std=rest_pose_std, goal_set=held_out_goals,
-        obs_mean=train_params.obs_mean, obs_scale=train_params.obs_scale, **eval_common)
+        obs_mean=train_params.obs_mean, obs_scale=train_params.obs_scale)
     return env, train_params, eval_params
 
 
@@ -328,23 +345,25 @@ class BoundsScaledObservation(GymnaxWrapper):
         return obs / scale, state, reward, terminated, truncated, info
 
 
-def make_gymnax_env(cfg: Any) -> tuple[Any, Any, Any]:
+def make_gymnax_env(settings: EnvConfig) -> tuple[Any, Any, Any]:
     """``gymnax.make(env.gymnax_name)`` with its default parameters (train = eval); with
     ``env.scale_observations`` the observations are divided by the space's bounds."""
-    env, params = gymnax.make(str(cfg.env.gymnax_name))
-    if cfg.env.scale_observations:
+    env, params = gymnax.make(str(settings.gymnax_name))
+    if settings.scale_observations:
         env = BoundsScaledObservation(env)
     return env, params, params
 
 
 __all__ = [
+    "ArmSettings",
     "BoundsScaledObservation",
+    "LearnedInputs",
     "data_goals_and_rest_pose",
     "make_gymnax_env",
     "make_learned_env",
     "make_sim_env",
-    "randomization_config",
     "randomization_params",
+    "read_learned_inputs",
     "sim_plant_params",
     "sim_reachable_positions",
     "sim_rest_pose",
@@ -352,58 +371,63 @@ __all__ = [
 ]
 
 
-def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | None = None,
-                members: Sequence[Artifact] = ()) -> tuple[Any, Any, Any]:
-    """``(env, train_params, eval_params)`` of this config's environment.
+def environment(settings: EnvConfig, arm: ArmSettings, inputs: LearnedInputs | None = None
+                ) -> tuple[Any, Any, Any]:
+    """``(env, train_params, eval_params)`` of the env ``settings``.
 
-    ``env=learned`` reads the ``model`` (a fit_model artifact: the model and its run split) and
-    the ``aligned`` data it was fitted to; the other environments need neither. ``members``:
-    further fit_model artifacts (``pipeline.keys.ensemble_entries``) to train in as an ensemble
-    with ``model`` (goals, rest pose and evaluation stay ``model``'s); none: ``model`` alone.
+    ``env=learned`` is built from ``inputs`` (the fit_model artifact's model and split, the
+    aligned runs it was fitted to and, to train in as an ensemble, further members; goals, rest
+    pose and evaluation stay the model's); the other environments need none.
     """
-    env_name = EnvName(cfg.env.name)
+    env_name = EnvName(settings.name)
     if env_name is EnvName.gymnax:
-        return make_gymnax_env(cfg)
+        return make_gymnax_env(settings)
     if env_name is EnvName.sim:
-        return make_sim_env(cfg)
-    if model is None or aligned is None:
+        return make_sim_env(settings, arm)
+    if inputs is None:
         raise ValueError("env=learned needs the fit_model artifact and its aligned data")
-    dynamics_params = load_dynamics(model.file("model.msgpack"))
-    split = json.loads(model.file("split.json").read_text())
-    table, _ = read_table(aligned.file("aligned.parquet"), ALIGNED)
-    runs = runs_at_model_rate(table, float(cfg.dataset.model_hz), str(cfg.dataset.model_grid))
-    if GoalSource(cfg.env.goal_source) is GoalSource.predicted:
+    data = learned_goals(settings, inputs)
+    return make_learned_env(settings, arm, inputs.dynamics, data["train_goals"],
+                            data["held_out_goals"], data["rest_pose"], data["rest_pose_std"],
+                            members=inputs.members)
+
+
+def _positions(run_id: str, pos: np.ndarray) -> pd.DataFrame:
+    return pd.DataFrame({"run_id": run_id, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
+
+
+def learned_goals(settings: EnvConfig, inputs: LearnedInputs) -> dict[str, np.ndarray]:
+    """The goal sets and rest pose of ``env=learned`` (:func:`data_goals_and_rest_pose`): goals
+    along the runs (``env.goal_source``: the model's open-loop predictions or the measured
+    positions; with an ensemble and ``env.goal_agreement_mm`` only where the members agree),
+    held out as the model's split held its runs out; the rest pose from the runs' first poses."""
+    runs, split, dynamics = inputs.runs, inputs.split, inputs.dynamics
+    if GoalSource(settings.goal_source) is GoalSource.predicted:
         # the model's open-loop predictions along the recorded commands: reachable in its world
-        goal_paths = {run["run_id"]: predict_run(dynamics_params, run) for run in runs}
+        goal_paths = {run["run_id"]: predict_run(dynamics, run) for run in runs}
     else:
         goal_paths = {run["run_id"]: run["pos"] for run in runs}
-    at_model_rate = pd.concat(
-        [pd.DataFrame({"run_id": run["run_id"], "x": goal_paths[run["run_id"]][:, 0],
-                       "y": goal_paths[run["run_id"]][:, 1],
-                       "z": goal_paths[run["run_id"]][:, 2]}) for run in runs],
-        ignore_index=True)
-    member_params = [load_dynamics(member.file("model.msgpack")) for member in members]
-    agreement_mm = cfg.env.get("goal_agreement_mm")
+    at_model_rate = pd.concat([_positions(run["run_id"], goal_paths[run["run_id"]])
+                               for run in runs], ignore_index=True)
+    agreement_mm = settings.goal_agreement_mm
     # without members (evaluation builds the env on the model alone) there is nothing to agree
     # on, and the training goals are not used
-    if agreement_mm is not None and member_params:
-        spread = np.concatenate([prediction_spread([dynamics_params, *member_params], run)
+    if agreement_mm is not None and inputs.members:
+        spread = np.concatenate([prediction_spread([dynamics, *inputs.members], run)
                                  for run in runs])
         held_out = at_model_rate["run_id"].isin(split.get("test") or [])
         at_model_rate = conservative_goals(at_model_rate, spread, float(agreement_mm) / 1000.0,
                                            held_out.to_numpy())
-    first_poses = pd.DataFrame([{"run_id": run["run_id"], "x": run["pos"][0, 0],
-                                 "y": run["pos"][0, 1], "z": run["pos"][0, 2]} for run in runs])
-    every = int(cfg.env.goal_every)
+    first_poses = pd.concat([_positions(run["run_id"], run["pos"][:1]) for run in runs],
+                            ignore_index=True)
+    every = int(settings.goal_every)
     rest = data_goals_and_rest_pose(first_poses, [])  # rest pose from the measured first poses
     if split.get("protocol") == "cv":
         # training goals along every run (the model trained on all of them); evaluation goals
         # the measured positions of each run as recorded when its fold held it out
         held_out_ids = [fold["held_out"] for fold in split["folds"]]
-        measured = pd.concat(
-            [pd.DataFrame({"run_id": run["run_id"], "x": run["pos"][:, 0],
-                           "y": run["pos"][:, 1], "z": run["pos"][:, 2]})
-             for run in runs if run["run_id"] in held_out_ids], ignore_index=True)
+        measured = pd.concat([_positions(run["run_id"], run["pos"]) for run in runs
+                              if run["run_id"] in held_out_ids], ignore_index=True)
         data = {"train_goals": data_goals_and_rest_pose(at_model_rate, [], every)["train_goals"],
                 "held_out_goals": data_goals_and_rest_pose(measured, held_out_ids,
                                                            every)["held_out_goals"]}
@@ -413,5 +437,4 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
         if not split["test"]:
             data["train_goals"] = data["held_out_goals"]
     data["rest_pose"], data["rest_pose_std"] = rest["rest_pose"], rest["rest_pose_std"]
-    return make_learned_env(cfg, dynamics_params, data["train_goals"], data["held_out_goals"],
-                            data["rest_pose"], data["rest_pose_std"], members=member_params)
+    return data

@@ -6,24 +6,24 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
 
 - **Action** ``[3]`` in ``[-1, 1]`` (clipped), mapped linearly onto each valve's range
   ``[p_min, p_max]`` kPa; or, with ``incremental_actions``, the change of each valve's last
-  command, ``action * action_step`` kPa per control period (integral action: the commands stand
+  command, ``action * action_step_kpa`` kPa per control period (integral action: the commands stand
   still only where the policy's output is zero, whatever pressure that takes on this plant).
   Plus Gaussian action noise (kPa), then projected onto the safe set
   (:func:`pipeline.arm.safety.project`) before it reaches the plant.
 - **Observation** ``[6]``: the measured position (plus Gaussian noise, m) and the goal, both
   standardized with ``obs_mean`` / ``obs_scale``; with ``include_error`` ``+3``, the error
-  ``goal - measured`` divided by ``error_scale`` (a few mm, so that the last millimetres are not
+  ``goal - measured`` divided by ``error_scale_m`` (a few mm, so that the last millimetres are not
   a hundredth of an input's range); with ``include_error_integral`` ``+3``, the accumulated
-  error ``I_t = decay * I_(t-1) + (1 - decay) * (goal - measured_t) / error_scale`` after each
+  error ``I_t = decay * I_(t-1) + (1 - decay) * (goal - measured_t) / error_scale_m`` after each
   control period (``EnvState.error_integral``, 0 at a reset; ``EnvParams.error_integral_decay``);
   with ``include_last_action`` ``+3``, the last applied pressure mapped back to ``[-1, 1]``.
 - **Reward** ``-||goal - position||`` in **millimetres** at the end of the control period, minus
-  ``command_change_cost`` (mm per kPa, 0 by default) times the summed absolute change of the
+  ``command_change_cost_mm_per_kpa`` (mm per kPa, 0 by default) times the summed absolute change of the
   applied command ``sum_v |p_t - p_{t-1}|`` kPa: a price on moving the valves, so that a policy
   that can stand still at the goal does so instead of dithering around it.
-  Plus ``hold_bonus`` mm for every control period that ends within ``goal_tolerance`` (0 by
+  Plus ``hold_bonus_mm`` for every control period that ends within ``goal_tolerance_m`` (0 by
   default): a reward for staying at the goal, not only for getting there.
-- **Terminated** when the distance has been within ``goal_tolerance`` (1 mm) at the end of
+- **Terminated** when the distance has been within ``goal_tolerance_m`` (1 mm) at the end of
   ``hold_periods`` consecutive control periods (1 by default: at the first arrival;
   ``EnvState.periods_within`` counts them, a period outside the tolerance sets it back to 0);
   **truncated** by gymnax at ``max_steps_in_episode`` steps. Both are returned separately
@@ -51,6 +51,8 @@ plant's static description and the step counts live on the environment object.
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from typing import Any
 
 import chex
@@ -63,6 +65,7 @@ from gymnax.environments import environment, spaces
 from pipeline.arm.safety import SafeSet, project
 from pipeline.rl.envs import observation
 from pipeline.rl.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
+from pipeline.schemas import EnvConfig
 
 GOAL_MODES = ("data", "perturb")
 MM_PER_M = 1000.0
@@ -167,21 +170,25 @@ class EnvParams:
     reset_initial_poses: [N, 3] m, the pose each of them settled from (before the preload hold).
     goal_set: [G, 3] m, the goals of ``goal_mode=data``.
     goal_from_data: bool scalar, True for ``goal_mode=data``, False for ``perturb``.
-    goal_perturbation: [3] m, std of the ``perturb`` goals around the initial pose.
-    goal_tolerance: m, the distance within which a control period counts as at the goal.
+    goal_perturbation_m: m, std of the ``perturb`` goals around the initial pose (per axis).
+    goal_tolerance_m: m, the distance within which a control period counts as at the goal.
     hold_periods: int32 scalar >= 1, terminate after this many consecutive periods at the goal.
-    hold_bonus: mm of reward for every control period that ends at the goal.
+    hold_bonus_mm: mm of reward for every control period that ends at the goal.
     obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
-    obs_noise_std: m, Gaussian noise on the observed position.
-    error_scale: m, divides ``goal - measured`` in the observation (``include_error``).
+    obs_noise_std_m: m, Gaussian noise on the observed position.
+    error_scale_m: m, divides ``goal - measured`` in the observation (``include_error``).
     error_integral_decay: per control period, the accumulated error's weight on its past
       (``include_error_integral``).
-    action_step: kPa, the change of a command per control period at action 1
+    action_step_kpa: kPa, the change of a command per control period at action 1
       (``incremental_actions`` only).
-    action_noise_std: kPa, Gaussian noise on the commanded pressures (before projection).
-    command_change_cost: mm per kPa, the reward's price on the summed change of the command.
+    action_noise_std_kpa: kPa, Gaussian noise on the commanded pressures (before projection).
+    command_change_cost_mm_per_kpa: mm per kPa, the reward's price on the summed change of the
+      command.
     randomization: magnitudes of the per-episode randomization around the plant.
-    max_steps_in_episode: control periods before truncation.
+    max_steps: control periods before truncation (gymnax reads it as ``max_steps_in_episode``).
+
+    The fields named as settings of the env schema (:class:`pipeline.schemas.EnvConfig`) take
+    their values from it by name (:func:`setting_values`).
     """
 
     plant: Any
@@ -192,20 +199,25 @@ class EnvParams:
     reset_initial_poses: jax.Array
     goal_set: jax.Array
     goal_from_data: jax.Array
-    goal_perturbation: jax.Array
-    goal_tolerance: jax.Array
+    goal_perturbation_m: jax.Array
+    goal_tolerance_m: jax.Array
     hold_periods: jax.Array
-    hold_bonus: jax.Array
+    hold_bonus_mm: jax.Array
     obs_mean: jax.Array
     obs_scale: jax.Array
-    obs_noise_std: jax.Array
-    error_scale: jax.Array
+    obs_noise_std_m: jax.Array
+    error_scale_m: jax.Array
     error_integral_decay: jax.Array
-    action_step: jax.Array
-    action_noise_std: jax.Array
-    command_change_cost: jax.Array
+    action_step_kpa: jax.Array
+    action_noise_std_kpa: jax.Array
+    command_change_cost_mm_per_kpa: jax.Array
     randomization: Randomization
-    max_steps_in_episode: int = struct.field(pytree_node=False)
+    max_steps: int = struct.field(pytree_node=False)
+
+    @property
+    def max_steps_in_episode(self) -> int:
+        """gymnax's name of :attr:`max_steps` (its truncation reads it)."""
+        return self.max_steps
 
 
 class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
@@ -217,9 +229,9 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
       settle_seconds: how long the preload is held before an episode (used by
         :func:`make_env_params` to fill the reset bank).
       include_last_action: append the last applied pressure (in ``[-1, 1]``) to the observation.
-      include_error: append ``(goal - measured) / error_scale`` to the observation.
+      include_error: append ``(goal - measured) / error_scale_m`` to the observation.
       include_error_integral: append the accumulated error (``EnvState.error_integral``).
-      incremental_actions: an action changes the last command (``params.action_step`` kPa at
+      incremental_actions: an action changes the last command (``params.action_step_kpa`` kPa at
         1) instead of setting it.
     """
 
@@ -278,7 +290,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
                                            params.goal_set.shape[0]]))
         carry = jax.tree.map(lambda leaf: leaf[bank_index], params.reset_carries)
         position = params.reset_positions[bank_index]
-        perturbed_goal = position + params.goal_perturbation * jax.random.normal(
+        perturbed_goal = position + params.goal_perturbation_m * jax.random.normal(
             perturb_key, (POSITION_DIM,))
         data_goal = params.goal_set[goal_index]
         goal = jnp.where(params.goal_from_data, data_goal, perturbed_goal)
@@ -315,14 +327,14 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         """One control period: ``action [3]`` in [-1, 1] held for ``steps_per_action`` steps.
 
         Returns ``(obs, state, reward [mm], terminated, info)`` (the reward is <= 0 unless
-        ``params.hold_bonus`` is positive); ``info["distance_m"]`` is
+        ``params.hold_bonus_mm`` is positive); ``info["distance_m"]`` is
         the distance to the goal at the end of the period and ``info["pressure"]`` the applied
         (projected) command in kPa (before the episode's gain, offset and delay).
         """
         chex.assert_shape(action, (NUM_VALVES,))
         action_noise_key, obs_key = jax.random.split(key)
         pressure = self.command(action, state.last_pressure, params)
-        pressure = pressure + params.action_noise_std * jax.random.normal(
+        pressure = pressure + params.action_noise_std_kpa * jax.random.normal(
             action_noise_key, (NUM_VALVES,))
         perturbation = state.perturbation
         received = project(perturbation.gain * pressure + perturbation.offset, params.safe_set)
@@ -337,13 +349,13 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         measured = self.measure(obs_key, position, params)
         integral = observation.update_error_integral(state.error_integral, measured, state.goal,
                                                      params)
-        within = distance <= params.goal_tolerance
+        within = distance <= params.goal_tolerance_m
         periods_within = jnp.where(within, state.periods_within + 1, 0)
         state = EnvState(carry, position, state.goal, pressure, state.time + 1,
                          perturbation.replace(received=received), integral, periods_within)
         terminated = periods_within >= params.hold_periods
-        reward = (-MM_PER_M * distance - params.command_change_cost * change
-                  + params.hold_bonus * within)
+        reward = (-MM_PER_M * distance - params.command_change_cost_mm_per_kpa * change
+                  + params.hold_bonus_mm * within)
         obs = self._observation(measured, state, params)
         obs, state = self._apply_transition_gradient_policy(obs, state)
         return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
@@ -356,8 +368,8 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         return self._observation(self.measure(key, state.position, params), state, params)
 
     def measure(self, key: jax.Array, position: jax.Array, params: EnvParams) -> jax.Array:
-        """``[3]`` m: ``position`` as measured (plus ``N(0, obs_noise_std)`` per axis)."""
-        return position + params.obs_noise_std * jax.random.normal(key, (POSITION_DIM,))
+        """``[3]`` m: ``position`` as measured (plus ``N(0, obs_noise_std_m)`` per axis)."""
+        return position + params.obs_noise_std_m * jax.random.normal(key, (POSITION_DIM,))
 
     def _observation(self, measured: jax.Array, state: EnvState, params: EnvParams
                      ) -> jax.Array:
@@ -370,7 +382,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         """Whether the goal has been held for ``params.hold_periods`` periods (without a count
         in ``state``: whether the position is within the tolerance now)."""
         if state.periods_within is None:
-            return jnp.linalg.norm(state.goal - state.position) <= params.goal_tolerance
+            return jnp.linalg.norm(state.goal - state.position) <= params.goal_tolerance_m
         return state.periods_within >= params.hold_periods
 
     # -----------------------------------------------------------------------------------------
@@ -380,18 +392,18 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
                 ) -> jax.Array:
         """``[..., 3]`` action -> the pressures it commands, kPa (before noise and projection):
         :meth:`pressure_command`, or with ``incremental_actions`` ``last_pressure`` (the last
-        applied command) plus ``clip(action) * action_step``."""
+        applied command) plus ``clip(action) * action_step_kpa``."""
         if self.incremental_actions:
-            return last_pressure + jnp.clip(action, -1.0, 1.0) * params.action_step
+            return last_pressure + jnp.clip(action, -1.0, 1.0) * params.action_step_kpa
         return self.pressure_command(action, params)
 
     def action_for(self, pressure: jax.Array, last_pressure: jax.Array, params: EnvParams
                    ) -> jax.Array:
         """The action that commands ``pressure`` [..., 3] kPa after ``last_pressure``: the
         inverse of :meth:`command`, clipped to ``[-1, 1]`` (an incremental action reaches at
-        most ``action_step`` from the last command)."""
+        most ``action_step_kpa`` from the last command)."""
         if self.incremental_actions:
-            return jnp.clip((pressure - last_pressure) / params.action_step, -1.0, 1.0)
+            return jnp.clip((pressure - last_pressure) / params.action_step_kpa, -1.0, 1.0)
         return self.pressure_to_action(pressure, params)
 
     @staticmethod
@@ -428,9 +440,33 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         return carry, positions[-1]
 
 
+# EnvParams fields of the env schema's name that are not copied: the randomization's magnitudes
+# are set in seconds there and in plant steps here (:func:`randomization`, by the caller)
+_DERIVED = ("randomization",)
+_DTYPES = {float: jnp.float32, int: jnp.int32, bool: jnp.bool_}
+
+
+def setting_values(settings: EnvConfig) -> dict[str, Any]:
+    """The :class:`EnvParams` fields that are settings of the env schema, copied by name from
+    ``settings`` (an :class:`~pipeline.schemas.EnvConfig`): scalars of the schema's type (float32,
+    int32, bool), a static field (``max_steps``) as it is. One name from the YAML to the jitted
+    code: a setting reaches the environment by having the field's name in both."""
+    declared = typing.get_type_hints(EnvConfig)
+    values = {}
+    for f in dataclasses.fields(EnvParams):
+        if f.name not in declared or f.name in _DERIVED:
+            continue
+        value = getattr(settings, f.name)
+        static = not f.metadata.get("pytree_node", True)
+        values[f.name] = declared[f.name](value) if static else jnp.asarray(
+            value, _DTYPES[declared[f.name]])
+    return values
+
+
 def make_env_params(
     env: SoftArmReachEnv,
     plant_params: Any,
+    settings: EnvConfig,
     *,
     key: jax.Array,
     safe_set: SafeSet,
@@ -438,27 +474,17 @@ def make_env_params(
     rest_pose: jax.Array | None = None,
     rest_pose_std: float | jax.Array = 0.0,
     goal_set: jax.Array | None = None,
-    goal_mode: str = "data",
-    goal_perturbation_m: float | jax.Array = 0.01,
-    goal_tolerance_m: float = 0.001,
-    hold_periods: int = 1,
-    hold_bonus_mm: float = 0.0,
-    obs_noise_std_m: float = 0.0,
-    error_scale_m: float = 0.005,
-    error_integral_decay: float = 0.8,
-    action_step_kpa: float = 1.0,
-    action_noise_std_kpa: float = 0.0,
-    command_change_cost_mm_per_kpa: float = 0.0,
-    max_steps: int = 40,
-    reset_bank_size: int = 64,
     obs_mean: jax.Array | None = None,
     obs_scale: jax.Array | None = None,
     randomization_params: Randomization | None = None,
     initial_poses: jax.Array | None = None,
+    reset_bank_size: int | None = None,
 ) -> EnvParams:
-    """Build :class:`EnvParams`, settling ``reset_bank_size`` start states on the plant.
+    """Build :class:`EnvParams`: the settings of ``settings`` (:func:`setting_values`), what the
+    plant and the data supply, and ``reset_bank_size`` start states settled on the plant.
 
     Args:
+      settings: the env settings (``goal_mode``, tolerances, noise, costs, ``max_steps``...).
       rest_pose: [3] m, the pose observed at rest at the preload (e.g. the mean first pose of the
         recorded runs); each bank entry starts from ``rest_pose + rest_pose_std * N(0, 1)``.
         Required unless ``initial_poses`` is given.
@@ -466,70 +492,49 @@ def make_env_params(
       obs_mean, obs_scale: [3] m; default: the goal set's mean and per-axis std (at least 1 mm).
       randomization_params: per-episode randomization around the plant (:func:`randomization`);
         default: none.
-      initial_poses: [N, 3] m, the poses the bank settles from (``N`` replaces
-        ``reset_bank_size``); default: drawn around ``rest_pose``.
-      hold_periods: consecutive control periods within ``goal_tolerance_m`` that end an episode
-        (1: the first arrival).
-      hold_bonus_mm: mm of reward for every control period that ends within the tolerance.
+      initial_poses: [N, 3] m, the poses the bank settles from (``N`` replaces the bank size);
+        default: drawn around ``rest_pose``.
+      reset_bank_size: start states in the bank; default: ``settings.reset_bank_size``.
     """
+    goal_mode = str(settings.goal_mode)
     if goal_mode not in GOAL_MODES:
         raise ValueError(f"goal_mode must be one of {GOAL_MODES}, got {goal_mode!r}")
     if goal_mode == "data" and goal_set is None:
         raise ValueError("goal_mode=data needs a goal_set [G, 3] (positions from the data)")
     if rest_pose is None and initial_poses is None:
         raise ValueError("make_env_params needs a rest_pose [3] or initial_poses [N, 3]")
-    if int(hold_periods) < 1:
+    if int(settings.hold_periods) < 1:
         raise ValueError(f"hold_periods must be >= 1 (1: terminate at the first arrival), got "
-                         f"{hold_periods}")
+                         f"{settings.hold_periods}")
     preload = jnp.broadcast_to(jnp.asarray(preload, jnp.float32), (NUM_VALVES,))
     if initial_poses is None:
         rest_pose = jnp.asarray(rest_pose, jnp.float32)
         chex.assert_shape(rest_pose, (POSITION_DIM,))
+        size = int(settings.reset_bank_size if reset_bank_size is None else reset_bank_size)
         poses = rest_pose + jnp.asarray(rest_pose_std, jnp.float32) * jax.random.normal(
-            key, (reset_bank_size, POSITION_DIM))
+            key, (size, POSITION_DIM))
     else:
         poses = jnp.asarray(initial_poses, jnp.float32)
         chex.assert_shape(poses, (None, POSITION_DIM))
-        reset_bank_size = poses.shape[0]
     bank_params, bank_axes = plant_params, None
     if env.plant.bank_params is not None:  # e.g. an ensemble: entry i settles in member i % K
-        bank_params, bank_axes = env.plant.bank_params(plant_params, reset_bank_size)
+        bank_params, bank_axes = env.plant.bank_params(plant_params, poses.shape[0])
     carries, positions = jax.jit(jax.vmap(env.settle, in_axes=(bank_axes, 0, None)))(
         bank_params, poses, preload)
-    if goal_set is None:
-        goal_set = positions
-    goal_set = jnp.asarray(goal_set, jnp.float32)
+    goal_set = jnp.asarray(positions if goal_set is None else goal_set, jnp.float32)
     chex.assert_shape(goal_set, (None, POSITION_DIM))
     if obs_mean is None:
         obs_mean = goal_set.mean(axis=0)
     if obs_scale is None:
         spread = goal_set.std(axis=0) if goal_set.shape[0] > 1 else jnp.zeros(POSITION_DIM)
         obs_scale = jnp.maximum(spread, 1e-3)
-    f32 = lambda value: jnp.asarray(value, jnp.float32)  # noqa: E731
     return EnvParams(
-        plant=plant_params,
-        safe_set=safe_set,
-        preload=preload,
-        reset_carries=carries,
-        reset_positions=positions,
-        reset_initial_poses=poses,
-        goal_set=goal_set,
+        plant=plant_params, safe_set=safe_set, preload=preload, reset_carries=carries,
+        reset_positions=positions, reset_initial_poses=poses, goal_set=goal_set,
         goal_from_data=jnp.asarray(goal_mode == "data"),
-        goal_perturbation=jnp.broadcast_to(f32(goal_perturbation_m), (POSITION_DIM,)),
-        goal_tolerance=f32(goal_tolerance_m),
-        hold_periods=jnp.asarray(int(hold_periods), jnp.int32),
-        hold_bonus=f32(hold_bonus_mm),
-        obs_mean=f32(obs_mean),
-        obs_scale=f32(obs_scale),
-        obs_noise_std=f32(obs_noise_std_m),
-        error_scale=f32(error_scale_m),
-        error_integral_decay=f32(error_integral_decay),
-        action_step=f32(action_step_kpa),
-        command_change_cost=f32(command_change_cost_mm_per_kpa),
-        action_noise_std=f32(action_noise_std_kpa),
+        obs_mean=jnp.asarray(obs_mean, jnp.float32), obs_scale=jnp.asarray(obs_scale, jnp.float32),
         randomization=randomization() if randomization_params is None else randomization_params,
-        max_steps_in_episode=int(max_steps),
-    )
+        **setting_values(settings))
 
 
 def split_goals(positions: np.ndarray, held_out_fraction: float, seed: int

@@ -22,10 +22,10 @@ def pressure_to_action(pressure: jax.Array, safe_set: Any) -> jax.Array:
 def update_error_integral(integral: jax.Array, measured: jax.Array, goal: jax.Array,
                           params: Any) -> jax.Array:
     """``[3]``: the accumulated error after a control period, ``decay * integral + (1 - decay) *
-    (goal - measured) / error_scale`` (``params.error_integral_decay``, ``params.error_scale``):
+    (goal - measured) / error_scale_m`` (``params.error_integral_decay``, ``params.error_scale_m``):
     a leaky integral of the error on the scale of the observed error, 0 before the first period."""
     decay = params.error_integral_decay
-    return decay * integral + (1.0 - decay) * (goal - measured) / params.error_scale
+    return decay * integral + (1.0 - decay) * (goal - measured) / params.error_scale_m
 
 
 def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, params: Any, *,
@@ -38,16 +38,16 @@ def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, para
       measured: [3] m, the position as measured (the environment adds its observation noise).
       goal: [3] m.
       last_pressure: [3] kPa, the last command applied (the preload before the first).
-      params: anything with ``obs_mean``, ``obs_scale`` ([3] m), ``error_scale`` (m) and
+      params: anything with ``obs_mean``, ``obs_scale`` ([3] m), ``error_scale_m`` (m) and
         ``safe_set`` (an ``EnvParams``).
-      include_error: append ``(goal - measured) / error_scale`` [3].
+      include_error: append ``(goal - measured) / error_scale_m`` [3].
       include_last_action: append the last pressure mapped to ``[-1, 1]`` [3].
       error_integral: [3], appended where given (:func:`update_error_integral`).
     """
     parts = [(measured - params.obs_mean) / params.obs_scale,
              (goal - params.obs_mean) / params.obs_scale]
     if include_error:
-        parts.append((goal - measured) / params.error_scale)
+        parts.append((goal - measured) / params.error_scale_m)
     if error_integral is not None:
         parts.append(error_integral)
     if include_last_action:

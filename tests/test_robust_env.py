@@ -604,3 +604,50 @@ def test_conservative_goals_are_part_of_the_key(make_cfg):
     validate_config(agreed)
     assert keys.train_ppo_spec(base)[0]["env"]["goal_agreement_mm"] is None
     assert keys.key("train_ppo", agreed) != keys.key("train_ppo", base)
+
+
+# ---------------------------------------------------------------------------------------------
+# goals redrawn within an episode
+# ---------------------------------------------------------------------------------------------
+def test_a_goal_is_redrawn_every_k_periods_as_at_a_reset_by_hand():
+    """k = 2, goal_mode=perturb (1 cm): the goal of periods 1-2 is the reset's; after period 2
+    it is the position then plus 1 cm x N(0, 1) drawn from fold_in(step key, 2), and the count
+    of periods at the goal starts again; period 3 keeps it."""
+    env, params = toy(goal_mode="perturb", goal_redraw_periods=2, hold_periods=5,
+                      goal_tolerance_m=1.0)  # every period at the goal: the count shows it
+    _, state = env.reset(jax.random.PRNGKey(1), params)
+    first_goal = state.goal
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    _, one, _, _, _ = env.step_env(keys[0], state, jnp.zeros(3), params)
+    np.testing.assert_array_equal(one.goal, first_goal)
+    assert int(one.periods_within) == 1
+    _, two, reward, _, info = env.step_env(keys[1], one, jnp.zeros(3), params)
+    # the period's reward is the old goal's distance
+    assert float(reward) == pytest.approx(-1000.0 * float(info["distance_m"]), rel=1e-6)
+    assert float(info["distance_m"]) == pytest.approx(
+        float(jnp.linalg.norm(first_goal - two.position)), rel=1e-6)
+    _, perturb_key = jax.random.split(jax.random.fold_in(keys[1], 2))
+    expected = two.position + 0.01 * jax.random.normal(perturb_key, (3,))
+    np.testing.assert_allclose(two.goal, expected, atol=1e-7)
+    assert int(two.periods_within) == 0
+    _, three, _, _, _ = env.step_env(keys[2], two, jnp.zeros(3), params)
+    np.testing.assert_array_equal(three.goal, two.goal)
+    assert int(three.periods_within) == 1
+
+
+def test_goal_redraws_off_leave_every_step_as_it_was_and_a_negative_period_is_refused():
+    """0 (the default) never redraws: over a whole episode the goal stays; from goal_mode=data
+    a redrawn goal is one of the goal set's."""
+    env, params = toy()
+    _, state = env.reset(jax.random.PRNGKey(1), params)
+    goal = state.goal
+    for step_key in jax.random.split(jax.random.PRNGKey(2), 5):
+        _, state, _, _, _ = env.step_env(step_key, state, jnp.ones(3), params)
+        np.testing.assert_array_equal(state.goal, goal)
+    env, params = toy(goal_redraw_periods=1)
+    _, state = env.reset(jax.random.PRNGKey(1), params)
+    for step_key in jax.random.split(jax.random.PRNGKey(2), 5):
+        _, state, _, _, _ = env.step_env(step_key, state, jnp.ones(3), params)
+        assert np.any(np.all(np.isclose(np.asarray(GOALS), np.asarray(state.goal)), axis=1))
+    with pytest.raises(ConfigError, match=r"env.goal_redraw_periods=-1 must be >= 0"):
+        toy(goal_redraw_periods=-1)

@@ -50,6 +50,9 @@ class EnvConfig:
     hold_bonus_mm: float = 0.0  # reward [mm] for every control period that ends at the goal
     goal_mode: GoalMode = GoalMode.data
     goal_perturbation_m: float = 0.01
+    # a new goal every this many control periods, drawn as at a reset (goal_mode=perturb: around
+    # the position then); 0: the episode's goal stays
+    goal_redraw_periods: int = 0
     obs_noise_std_m: float = 0.0  # on the observed position
     action_noise_std_kpa: float = 0.0  # on the commanded pressures (before projection)
     include_last_action: bool = False

@@ -36,6 +36,9 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
   of ``reset_bank_size`` states in ``EnvParams``; a reset draws one of them.
 - **Goal.** ``goal_mode=data``: uniform over ``goal_set`` (positions seen in the data or predicted
   by the model); ``goal_mode=perturb`` (the paper): ``initial_pose + N(0, 1) * perturbation``.
+  With ``goal_redraw_periods = k > 0`` a new goal is drawn after every k-th control period of
+  an episode, in the same way (``perturb``: around the position then); the reward of that period
+  is still the old goal's, the count of periods at the goal starts again.
 - **Randomization around the plant** (:class:`Randomization`, magnitudes in
   ``EnvParams.randomization``, all zero by default: the nominal plant), drawn once per episode at
   reset into ``EnvState.perturbation`` (:class:`Perturbation`): each valve receives
@@ -65,13 +68,16 @@ from gymnax.environments import environment, spaces
 from pipeline.arm.safety import SafeSet, project
 from pipeline.rl.envs import observation
 from pipeline.rl.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
-from pipeline.schemas import EnvConfig
+from pipeline.schemas import ConfigError, EnvConfig
 
 GOAL_MODES = ("data", "perturb")
 MM_PER_M = 1000.0
 # the reset's randomization draws come from fold_in(key, _PERTURBATION_STREAM), so that the
 # reset's other draws (split from the key as before randomization existed) stay as they were
 _PERTURBATION_STREAM = 1
+# and a step's goal redraw from fold_in(key, _REDRAW_STREAM): the step's other draws stay as
+# they were without redraws
+_REDRAW_STREAM = 2
 
 
 @struct.dataclass
@@ -171,6 +177,8 @@ class EnvParams:
     goal_set: [G, 3] m, the goals of ``goal_mode=data``.
     goal_from_data: bool scalar, True for ``goal_mode=data``, False for ``perturb``.
     goal_perturbation_m: m, std of the ``perturb`` goals around the initial pose (per axis).
+    goal_redraw_periods: int32 scalar, a new goal after every this many control periods (0:
+      never).
     goal_tolerance_m: m, the distance within which a control period counts as at the goal.
     hold_periods: int32 scalar >= 1, terminate after this many consecutive periods at the goal.
     hold_bonus_mm: mm of reward for every control period that ends at the goal.
@@ -200,6 +208,7 @@ class EnvParams:
     goal_set: jax.Array
     goal_from_data: jax.Array
     goal_perturbation_m: jax.Array
+    goal_redraw_periods: jax.Array
     goal_tolerance_m: jax.Array
     hold_periods: jax.Array
     hold_bonus_mm: jax.Array
@@ -351,14 +360,28 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
                                                      params)
         within = distance <= params.goal_tolerance_m
         periods_within = jnp.where(within, state.periods_within + 1, 0)
-        state = EnvState(carry, position, state.goal, pressure, state.time + 1,
-                         perturbation.replace(received=received), integral, periods_within)
         terminated = periods_within >= params.hold_periods
         reward = (-MM_PER_M * distance - params.command_change_cost_mm_per_kpa * change
                   + params.hold_bonus_mm * within)
+        period = params.goal_redraw_periods
+        redraw = (period > 0) & ((state.time + 1) % jnp.maximum(period, 1) == 0)
+        goal = jnp.where(redraw, self.draw_goal(jax.random.fold_in(key, _REDRAW_STREAM),
+                                                position, params), state.goal)
+        state = EnvState(carry, position, goal, pressure, state.time + 1,
+                         perturbation.replace(received=received), integral,
+                         jnp.where(redraw, 0, periods_within))
         obs = self._observation(measured, state, params)
         obs, state = self._apply_transition_gradient_policy(obs, state)
         return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
+
+    def draw_goal(self, key: jax.Array, position: jax.Array, params: EnvParams) -> jax.Array:
+        """``[3]`` m: a goal drawn as at a reset, uniform over ``goal_set`` (``goal_mode=data``)
+        or ``position [3]`` m plus ``N(0, goal_perturbation_m)`` per axis (``perturb``)."""
+        index_key, perturb_key = jax.random.split(key)
+        index = jax.random.randint(index_key, (), 0, params.goal_set.shape[0])
+        perturbed = position + params.goal_perturbation_m * jax.random.normal(
+            perturb_key, (POSITION_DIM,))
+        return jnp.where(params.goal_from_data, params.goal_set[index], perturbed)
 
     def observe(self, key: jax.Array, state: EnvState, action: Any, params: EnvParams
                 ) -> jax.Array:
@@ -503,6 +526,9 @@ def make_env_params(
         raise ValueError("goal_mode=data needs a goal_set [G, 3] (positions from the data)")
     if rest_pose is None and initial_poses is None:
         raise ValueError("make_env_params needs a rest_pose [3] or initial_poses [N, 3]")
+    if int(settings.goal_redraw_periods) < 0:
+        raise ConfigError(f"env.goal_redraw_periods={settings.goal_redraw_periods} must be >= 0 "
+                          f"(0: the goal stays for the episode)")
     if int(settings.hold_periods) < 1:
         raise ValueError(f"hold_periods must be >= 1 (1: terminate at the first arrival), got "
                          f"{settings.hold_periods}")

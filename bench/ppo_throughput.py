@@ -40,7 +40,8 @@ SETTINGS = {
     "default": (DEFAULT_MODEL, DatasetConfig().model_hz, AgentConfig().num_envs, False),
     "default, GRU policy": (DEFAULT_MODEL, DatasetConfig().model_hz, AgentConfig().num_envs,
                             True),
-    "paper": (dynamics.DynamicsConfig(hidden=1024), 2.0, 32, False),
+    "paper": (dynamics.DynamicsConfig(hidden=1024, cell="lstm", step_size=False, step_decays=()),
+              2.0, 32, False),
 }
 
 

@@ -31,11 +31,12 @@ def make_params(config: DynamicsConfig, seed=0) -> DynamicsParams:
     )
 
 
+PLAIN_LSTM = {"cell": "lstm", "step_size": False, "step_decays": ()}  # the paper's inputs
 CONFIGS = [
     DynamicsConfig(hidden=8, layers=1, head=(), condition_on_initial_pose=True,
-                   predict_displacement=True),
+                   predict_displacement=True, **PLAIN_LSTM),
     DynamicsConfig(hidden=8, layers=2, head=(6,), condition_on_initial_pose=False,
-                   predict_displacement=False),
+                   predict_displacement=False, **PLAIN_LSTM),
     # a GRU reading every input feature (their state rides in the carry)
     DynamicsConfig(hidden=8, layers=1, cell="gru", condition_on_initial_pose=True,
                    pressure_delta=True, step_size=True, step_decays=(1.0, 5.0),
@@ -181,3 +182,21 @@ def test_recurrent_dropout_rollout_with_all_units_kept_is_the_plain_rollout(cell
     dropped = rollout(params, inputs, pose, jnp.zeros((2, 8)))
     np.testing.assert_allclose(kept, plain, rtol=1e-5, atol=1e-6)
     assert float(jnp.abs(dropped - plain).max()) > 1e-3
+
+
+def test_the_saved_architecture_is_the_model_schema():
+    """One declaration: the model config's architecture fields, their defaults included, are
+    the saved model's config (``DynamicsConfig``), lists frozen to tuples."""
+    import dataclasses
+
+    from pipeline.dynamics.training import ModelTrainConfig
+    from pipeline.schemas import ModelArchitecture, ModelConfig
+
+    names = [f.name for f in dataclasses.fields(ModelArchitecture)]
+    assert [f.name for f in dataclasses.fields(DynamicsConfig)] == names
+    assert set(names) < {f.name for f in dataclasses.fields(ModelConfig)}
+    settings = ModelTrainConfig.from_any(ModelConfig(hidden=12, step_decays=[2.0]))
+    assert settings.architecture() == DynamicsConfig(hidden=12, step_decays=(2.0,))
+    assert DynamicsConfig().cell == "gru" and DynamicsConfig().step_decays == (1.0, 3.0, 10.0)
+    with pytest.raises(ValueError, match="cell must be one of"):
+        DynamicsConfig(cell="rnn")

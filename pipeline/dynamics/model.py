@@ -42,6 +42,7 @@ import numpy as np
 from flax import struct
 
 from pipeline.dynamics import features as model_features
+from pipeline.schemas import ModelArchitecture, frozen_twin
 
 NUM_CHAMBERS = 3
 POSITION_DIM = 3
@@ -53,27 +54,19 @@ CELLS = ("lstm", "gru")
 # configuration and parameters
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
-class DynamicsConfig:
-    """Architecture of the network (hashable: it is static data of :class:`DynamicsParams`)."""
-
-    hidden: int = 64
-    layers: int = 1
-    head: tuple[int, ...] = ()
-    condition_on_initial_pose: bool = False
-    predict_displacement: bool = False
-    cell: str = "lstm"  # lstm | gru
-    # input features (pipeline/model_features.py); all off by default
-    pressure_delta: bool = False
-    step_size: bool = False
-    step_decays: tuple[float, ...] = ()  # time constants in model steps
-    play_widths_kpa: tuple[float, ...] = ()
-    step_threshold_kpa: float = 0.05
+class DynamicsConfig(frozen_twin(ModelArchitecture, "ArchitectureFields")):
+    """The architecture (:class:`pipeline.schemas.ModelArchitecture`, its only declaration) as a
+    frozen dataclass, lists as tuples: hashable, the static data of :class:`DynamicsParams`, and
+    what a saved model stores. Defaults: the project's recipe (a GRU with the command-step
+    features); the paper's network is ``hidden=1024, cell="lstm", step_size=False,
+    step_decays=()``."""
 
     def __post_init__(self):
         object.__setattr__(self, "head", tuple(int(width) for width in self.head))
         object.__setattr__(self, "step_decays", tuple(float(v) for v in self.step_decays))
         object.__setattr__(self, "play_widths_kpa",
                            tuple(float(v) for v in self.play_widths_kpa))
+        object.__setattr__(self, "cell", str(getattr(self.cell, "value", self.cell)))
         if self.cell not in CELLS:
             raise ValueError(f"cell must be one of {CELLS}, got {self.cell!r}")
         if any(v <= 0 for v in self.step_decays):

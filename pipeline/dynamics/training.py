@@ -39,7 +39,13 @@ from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.checkpoints import TrainState
 from pipeline.dynamics.model import DynamicsConfig, DynamicsParams, Normalizer
 from pipeline.dynamics.scoring import validation_errors
-from pipeline.schemas import ModelConfig, ModelLoss, dataclass_values, frozen_twin
+from pipeline.schemas import (
+    ModelArchitecture,
+    ModelConfig,
+    ModelLoss,
+    dataclass_values,
+    frozen_twin,
+)
 
 LOSS_TABLE_COLUMNS = ["step", "train_loss", "val_loss", "val_mean_mm", "val_p95_mm"]
 
@@ -88,19 +94,9 @@ class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
         return cls(**values)
 
     def architecture(self) -> DynamicsConfig:
-        return DynamicsConfig(
-            hidden=self.hidden,
-            layers=self.layers,
-            head=self.head,
-            condition_on_initial_pose=self.condition_on_initial_pose,
-            predict_displacement=self.predict_displacement,
-            cell=self.cell,
-            pressure_delta=self.pressure_delta,
-            step_size=self.step_size,
-            step_decays=self.step_decays,
-            play_widths_kpa=self.play_widths_kpa,
-            step_threshold_kpa=self.step_threshold_kpa,
-        )
+        """The network part of these settings (the saved model's config)."""
+        return DynamicsConfig(**{f.name: getattr(self, f.name)
+                                 for f in dataclasses.fields(ModelArchitecture)})
 
 
 def make_optimizer(config: ModelTrainConfig) -> optax.GradientTransformation:

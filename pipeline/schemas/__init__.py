@@ -42,6 +42,7 @@ from pipeline.schemas.env import (
     no_randomization_overrides,
 )
 from pipeline.schemas.model import (
+    ModelArchitecture,
     ModelConfig,
 )
 from pipeline.schemas.robot import (
@@ -103,6 +104,7 @@ __all__ = [
     "LoggerConfig",
     "LrSchedule",
     "MocapConfig",
+    "ModelArchitecture",
     "ModelConfig",
     "ModelGrid",
     "ModelLoss",

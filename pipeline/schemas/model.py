@@ -9,11 +9,10 @@ from pipeline.schemas.choices import Cell, LrSchedule, ModelLoss, ReferencePose
 
 
 @dataclass
-class ModelConfig:
-    """The recurrent forward-dynamics model (``cell``: GRU or LSTM) and its training (see
-    ``pipeline/dynamics/training.py``)."""
+class ModelArchitecture:
+    """The network and its input features: what a saved model stores and needs to run
+    (``pipeline.dynamics.model.DynamicsConfig`` is this schema frozen, the only declaration)."""
 
-    name: str = "recurrent"  # the model family (a recurrent network; which cell: ``cell``)
     hidden: int = 64
     layers: int = 1
     head: list[int] = field(default_factory=list)
@@ -21,6 +20,26 @@ class ModelConfig:
     # predict the displacement from the run's initial pose (default: robot.settled_start; it
     # helps on settled starts and hurts on the real runs: docs/results/MODEL_RESULTS.md)
     predict_displacement: bool = False
+    # gru at 3000 steps with the default dropout: leave-one-run-out on the real runs 2.72 / 6.17
+    # mm (mean / p95, 3 seeds) against 2.82 / 6.30 for the LSTM at 1500, at 4/5 of its CPU
+    cell: Cell = Cell.gru
+    # input features (pipeline/dynamics/features.py); empty / false: off
+    # default: the last command step and the time since it (leave-one-run-out on the real runs
+    # 3.08 mm mean over 3 seeds against 3.20 without; docs/results/MODEL_RESULTS.md)
+    pressure_delta: bool = False  # p_t - p_{t-1} per chamber
+    step_size: bool = True  # the pressure change at the last command step, held
+    # exp(-model steps since the last command step / tau), one input per tau
+    step_decays: list[float] = field(default_factory=lambda: [1.0, 3.0, 10.0])
+    play_widths_kpa: list[float] = field(default_factory=list)  # play operators per chamber
+    step_threshold_kpa: float = 0.05  # a command step: some chamber changed by more
+
+
+@dataclass
+class ModelConfig(ModelArchitecture):
+    """The recurrent forward-dynamics model (``cell``: GRU or LSTM): its architecture and its
+    training (see ``pipeline/dynamics/training.py``)."""
+
+    name: str = "recurrent"  # the model family (a recurrent network; which cell: ``cell``)
     batch_size: int = 32
     learning_rate: float = 3.0e-3
     lr_schedule: LrSchedule = LrSchedule.cosine
@@ -34,18 +53,6 @@ class ModelConfig:
     checkpoint_every: int = 500
     seed: int = 0
     reference_pose: ReferencePose = ReferencePose.run_start
-    # gru at 3000 steps with the default dropout: leave-one-run-out on the real runs 2.72 / 6.17
-    # mm (mean / p95, 3 seeds) against 2.82 / 6.30 for the LSTM at 1500, at 4/5 of its CPU
-    cell: Cell = Cell.gru
-    # input features (pipeline/model_features.py); empty / false: off
-    # default: the last command step and the time since it (leave-one-run-out on the real runs
-    # 3.08 mm mean over 3 seeds against 3.20 without; docs/results/MODEL_RESULTS.md)
-    pressure_delta: bool = False  # p_t - p_{t-1} per chamber
-    step_size: bool = True  # the pressure change at the last command step, held
-    # exp(-model steps since the last command step / tau), one input per tau
-    step_decays: list[float] = field(default_factory=lambda: [1.0, 3.0, 10.0])
-    play_widths_kpa: list[float] = field(default_factory=list)  # play operators per chamber
-    step_threshold_kpa: float = 0.05  # a command step: some chamber changed by more
     # regularization (training only)
     input_noise_std: float = 0.0  # on the standardized inputs
     loss: ModelLoss = ModelLoss.mse

@@ -17,6 +17,7 @@ from pipeline.dynamics.cv import cv_summary
 from pipeline.dynamics.scoring import LEARNED
 from pipeline.evaluation.metrics import seed_spread
 from pipeline.evaluation.report import Figure, Section, Table, format_number
+from pipeline.evaluation.summary import evaluation_table
 from pipeline.infra.records import ArtifactRecord
 
 PLANT_NAMES = {"learned": "learned model", "plant": "simulated arm"}
@@ -250,7 +251,8 @@ def report_sections(facts: ReportFacts, policies: Mapping[str, ArtifactRecord], 
     summary = tables["summary"]
     names = list(policies)
     order = names + list(facts.baselines)
-    sections = [_summary_section(facts, model, summary, order), _configuration_section(facts),
+    sections = [headline_section(tables), _summary_section(facts, model, summary, order),
+                _configuration_section(facts),
                 _data_section(collect, aligned), _model_section(model),
                 _policy_section(facts, tables, figures, names, order),
                 _baselines_section(summary, names, order),
@@ -273,6 +275,17 @@ def report_sections(facts: ReportFacts, policies: Mapping[str, ArtifactRecord], 
                   "1, 2, ...; the last column: the fraction of all goals (every seed's episodes) ended "
                   "within 3 mm")]))
     return sections
+
+
+def headline_section(tables: Mapping[str, pd.DataFrame]) -> Section:
+    """The table the run printed at its end (:func:`~pipeline.evaluation.summary.
+    evaluation_table` of the evaluation's ``summary``, ``episodes`` and, where it ran,
+    ``cross_model`` tables), the report's first section."""
+    table = evaluation_table(tables["summary"], tables["episodes"], tables.get("cross_model"))
+    return Section("Summary").add(Table(table, (
+        "Closed loop on held-out goals, per controller and plant: the median final distance "
+        "[mm], the share of episodes that ended within 1 mm [%], the seeds and episodes (the "
+        "table the run printed at its end).")))
 
 
 def _configuration_section(facts: ReportFacts) -> Section:

@@ -67,13 +67,14 @@ def test_in_models_only_keeps_the_preload_and_drops_plant_and_consecutive_goals(
 def test_the_opening_table_counts_seeds_and_adds_the_other_models_rows():
     """ppo_ff: 2 seeds of 2 episodes (3 of 4 within 1 mm: 75 %); across models its row in the
     other group's model is added, the one in its own model is not."""
+    from pipeline.evaluation.metrics import CROSS, OWN
     from pipeline.evaluation.summary import WITHIN, evaluation_table
 
     summary = pd.DataFrame({"plant": ["learned"], "controller": ["ppo_ff"], "episodes": [4],
                             "median_final_mm": [0.6], "success_1mm": [0.75]})
     episodes = pd.DataFrame({"plant": ["learned"] * 4, "controller": ["ppo_ff"] * 4,
                              "seed": [0, 0, 1, 1]})
-    cross = pd.DataFrame({"direction": ["A->B", "A->B"], "plant": ["own", "other model"],
+    cross = pd.DataFrame({"direction": ["A->B", "A->B"], "plant": [OWN, CROSS],
                           "controller": ["ppo_ff", "ppo_ff"], "median_final_mm": [0.5, 2.5],
                           "success_1mm": [0.8, 0.25], "seeds": [2, 2], "episodes": [4, 4]})
     table = evaluation_table(summary, episodes, cross)

@@ -17,10 +17,9 @@ from typing import Any
 import pandas as pd
 
 from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, run_evaluation
-from pipeline.evaluation.metrics import summarize
+from pipeline.evaluation.metrics import CROSS, OWN, summarize
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 
-OWN, CROSS = "own", "cross"
 # the figures of each (plant, controller) row beyond summarize's
 SEED_COLUMNS = ("seeds", "seeds_median_within_1mm", "deployed_seed", "deployed_median_final_mm",
                 "deployed_success_1mm")

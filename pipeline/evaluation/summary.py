@@ -28,10 +28,10 @@ from typing import Any, NamedTuple
 
 import pandas as pd
 
+from pipeline.evaluation.metrics import CROSS
 from pipeline.evaluation.report import format_number
 
 WITHIN = "within_1mm_%"  # the share of episodes (or seeds) that ended within 1 mm, in per cent
-CROSS_PLANT = "other model"  # the plant name of cross_model.parquet's rows in the other model
 
 
 def read_evaluation_table(artifact_path: Path) -> pd.DataFrame:
@@ -66,7 +66,7 @@ def evaluation_table(summary: pd.DataFrame, episodes: pd.DataFrame | None = None
                      "episodes": int(row["episodes"])})
     if cross_model is not None:
         for row in cross_model.to_dict("records"):
-            if str(row.get("plant")) != CROSS_PLANT and "direction" in row:
+            if str(row.get("plant")) != CROSS and "direction" in row:
                 continue  # its rows in the group's own model: the learned rows say as much
             rows.append({"controller": row["controller"],
                          "plant": f"model of runs {row.get('direction', '?')}",

@@ -130,7 +130,8 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
         plants[f"twin {Path(twin).name}"] = "twin"
     episodes = episodes[episodes["controller"] == agent].assign(
         plant=lambda frame: frame["plant"].map(plants))
-    seed = best_seed(evaluated["train_ppo"])  # the one stage=control drives the arm with
+    evaluation = evaluated["train_ppo"].file("evaluation.parquet")
+    seed = best_seed(pd.read_parquet(evaluation), evaluation)  # the one stage=control drives
     summary = across_models(episodes, {agent: seed}).set_index("plant")
     row: dict[str, Any] = {"agent": agent, "variant": variant, "train": "+".join(train),
                            "test": "+".join(test), "deployed_seed": seed}

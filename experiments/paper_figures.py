@@ -286,7 +286,7 @@ def return_figure(out: Path, base: tuple[str, ...], captions: dict[str, str], se
                   steps: int) -> None:
     import matplotlib.pyplot as plt
 
-    from pipeline.rl.results import RETURN_LABEL, training_curves
+    from pipeline.rl.results import RETURN_LABEL, return_curves
     from pipeline.schemas import budget_overrides, no_randomization_overrides
 
     fig, ax = plt.subplots(figsize=(8, 4.2))
@@ -300,7 +300,7 @@ def return_figure(out: Path, base: tuple[str, ...], captions: dict[str, str], se
         summary = artifact.manifest["summary"]
         durations[agent] = float(summary["compile_seconds"]) + float(summary["train_seconds"])
         cfg = compose(base, *overrides)
-        curves = training_curves(artifact)
+        curves = return_curves(pd.read_parquet(artifact.file("metrics.parquet")))
         if curves.empty:
             raise SystemExit(f"Fig. 8: no training episode of {agent} ended within "
                              f"--ppo-steps={steps} (episodes last {int(cfg.env.max_steps)} "

@@ -50,9 +50,9 @@ def _evaluate_artifact(folder):
 
 
 def test_evaluation_table_reads_columns_by_name(tmp_path):
-    from pipeline.evaluation.summary import WITHIN, evaluation_table
+    from pipeline.evaluation.summary import WITHIN, read_evaluation_table
 
-    table = evaluation_table(_evaluate_artifact(tmp_path / "evaluate"))
+    table = read_evaluation_table(_evaluate_artifact(tmp_path / "evaluate"))
     assert table["controller"].tolist() == ["ppo_ff", "preload"]
     assert table["median_final_mm"].tolist() == [0.604, 9.3]
     assert table[WITHIN].tolist() == [75, 0]  # 0.75 of the episodes within 1 mm
@@ -134,10 +134,16 @@ def test_closing_summary_of_the_chain(tmp_path, make_cfg, monkeypatch):
 
 
 def test_the_report_opens_with_the_summary_table(tmp_path):
+    import pandas as pd
+
     from pipeline.evaluation.report import Section, write_report
+    from pipeline.evaluation.sections import headline_section
 
     folder = _evaluate_artifact(tmp_path / "evaluate")
-    markdown, page = write_report(folder, "run", [Section("Results").add("text")])
+    tables = {name: pd.read_parquet(folder / f"{name}.parquet")
+              for name in ("summary", "episodes")}
+    markdown, page = write_report(folder, "run", [headline_section(tables),
+                                                  Section("Results").add("text")])
     text = markdown.read_text()
     assert text.index("## Summary") < text.index("## Results")
     assert "| ppo_ff | learned | 0.604 | 75 | 2 | 4 |" in text

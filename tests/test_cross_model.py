@@ -231,7 +231,8 @@ def test_evaluate_runs_the_cross_model_protocol_on_recorded_runs(make_cfg, sorol
     inputs = evaluated.manifest["inputs"]
     policy = store.require("train_ppo", inputs["cross_model/A->B/train_ppo/ppo_ff"])
     deployed = a_to_b[a_to_b["controller"] == "ppo_ff"]["deployed_seed"]
-    assert set(deployed) == {best_seed(policy)}
+    evaluation = policy.file("evaluation.parquet")
+    assert set(deployed) == {best_seed(pd.read_parquet(evaluation), evaluation)}
     # the model the A policies meet was fitted to B's runs alone
     other = store.require("fit_model", inputs["cross_model/A->B/fit_model"])
     aligned, _ = read_table(store.require("align", other.manifest["inputs"]["align"])

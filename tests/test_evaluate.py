@@ -75,6 +75,12 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
                     "Baselines",
                     "Plant gap", "Time to a controller", "Consecutive goals"):
         assert f"## {section}" in markdown, section
+    # the report opens with the table the run printed at its end: one row per controller and
+    # plant, the ppo_ff row with its one seed's 4 episodes
+    first = markdown.split("\n## ")[1]
+    assert first.startswith("Summary\n")
+    assert "| controller | plant | median_final_mm | within_1mm_% | seeds | episodes |" in first
+    assert first.count("| ppo_ff |") == 2 and "| 1 | 4 |" in first
     # every artifact of the chain says how long it took to build; the policies split theirs
     for stage in ("collect", "align", "fit_model", "train_ppo"):
         built = results[stage].manifest["build_seconds"]

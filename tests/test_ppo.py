@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
@@ -414,7 +415,7 @@ def test_ppo_learns_pendulum_within_reach_of_the_optimum(make_cfg):
 
 @pytest.mark.slow
 def test_train_ppo_stage_writes_reuses_and_warm_starts(make_cfg):
-    from pipeline.rl.results import training_curves
+    from pipeline.rl.results import return_curves
     from pipeline.stages.train_ppo import train_ppo
 
     cfg_overrides = ("stage=train_ppo", "env=gymnax", "agent.num_seeds=2", "agent.num_envs=8",
@@ -425,7 +426,7 @@ def test_train_ppo_stage_writes_reuses_and_warm_starts(make_cfg):
     for name in ("metrics.parquet", "evaluation.parquet", "episodes.parquet", "policy.msgpack",
                  "figures/returns.png"):
         assert artifact.file(name).is_file(), name
-    curves = training_curves(artifact)
+    curves = return_curves(pd.read_parquet(artifact.file("metrics.parquet")))
     assert list(curves.columns) == ["timesteps", "seed", "return"]
     assert sorted(curves["seed"].unique()) == [0, 1]
     _, params, meta = load_policy(artifact.file("policy.msgpack"))

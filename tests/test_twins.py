@@ -50,6 +50,7 @@ def test_a_twin_starts_where_the_learned_env_starts_observed_like_it(make_cfg):
     """The twin plant settles at the preload from the poses the learned env's starts settled
     from, and keeps the learned env's goals, safe set and observation normalization."""
     from pipeline.evaluation.closed_loop import _twin_env
+    from pipeline.stages.evaluate import closed_loop_settings
 
     cfg = make_cfg()
     physics = twin_physics("sim_sorolex", cfg.paths.artifact_dir)
@@ -66,7 +67,8 @@ def test_a_twin_starts_where_the_learned_env_starts_observed_like_it(make_cfg):
                               safe_set=SafeSet.from_limits(LIMITS), preload=2.0, rest_pose=rest,
                               rest_pose_std=0.002, goal_set=goals)
 
-    twin_env, twin = _twin_env(cfg, env, learned, physics, jax.random.PRNGKey(1))
+    twin_env, twin = _twin_env(closed_loop_settings(cfg), env, learned, physics,
+                               jax.random.PRNGKey(1))
     assert sim.mocap_hz / twin_env.plant.model_hz == 10  # 100 Hz frames, 10 a model step
     # settled at the preload from those poses: within a tenth of a millimetre of them (the
     # preload hold lets the arm's slow creep move it a little)

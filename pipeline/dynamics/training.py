@@ -55,7 +55,7 @@ LOSS_TABLE_COLUMNS = ["step", "train_loss", "val_loss", "val_mean_mm", "val_p95_
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
-    """The ``model`` config group (``pipeline.config.ModelConfig``, its only declaration) as a
+    """The ``model`` config group (``pipeline.schemas.ModelConfig``, its only declaration) as a
     frozen dataclass: model and optimizer settings. Defaults: the CPU recipe.
 
     The paper's configuration is ``hidden=1024, batch_size=64, learning_rate=1e-3,

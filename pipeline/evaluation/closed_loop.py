@@ -9,8 +9,10 @@ trained with) and on a **consecutive-goals** task (several targets in a row, no 
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import jax
@@ -21,46 +23,87 @@ import pandas as pd
 from pipeline.arm.twins import twin_sim_params
 from pipeline.evaluation import mpc, rollouts
 from pipeline.evaluation.metrics import MM_PER_M, episode_metrics, plant_gap, summarize
-from pipeline.infra.artifacts import Artifact
 from pipeline.infra.devices import batch_split
-from pipeline.rl.envs.factory import (
-    observation_options,
-    sim_plant_params,
-    sim_rest_pose,
-)
+from pipeline.rl.envs.factory import observation_options, sim_rest_pose
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv, make_env_params
 from pipeline.rl.envs.plants import SimPlantParams, learned_plant, sim_plant
 from pipeline.rl.networks import initial_hidden
-from pipeline.rl.policy_io import load_policy
-from pipeline.schemas import ConfigError, RobotKind
+from pipeline.schemas import ConfigError, EnvConfig, EvaluationConfig
 
 
-def _sim_env(cfg: Any, learned_env: SoftArmReachEnv, mocap_hz: float) -> SoftArmReachEnv:
+class SimArm(NamedTuple):
+    """The simulated arm as the ground-truth plant (``robot=sim``)."""
+
+    plant: SimPlantParams  # its physics, resting at the preload
+    mocap_hz: float  # Hz: the frame rate it integrates at
+    rest_pose_std_m: Sequence[float]  # m, per axis: the spread of its rest pose between sessions
+
+
+@dataclass(frozen=True)
+class ClosedLoopSettings:
+    """What the closed-loop evaluation takes besides the learned environment and the policies.
+
+    ``evaluation``: episodes, baselines, MPC and consecutive-goals settings; ``max_steps``:
+    control periods an episode (and each consecutive goal) lasts; ``model_hz``: Hz of a model
+    step (a plant's frames per model step follow from it); ``limits``: the arm's pressure
+    limits (kPa) the commands are checked against; ``env``: the training env's settings (every
+    plant is observed and rewarded as the learned env);
+    ``sim``: the ground-truth plant, None where the robot has none or ``evaluation.plant`` is
+    off.
+    """
+
+    evaluation: EvaluationConfig
+    max_steps: int
+    model_hz: float
+    limits: Any
+    env: EnvConfig
+    sim: SimArm | None = None
+
+    def only_in_models(self) -> ClosedLoopSettings:
+        """These settings with the preload as the only baseline and no plant, twin or
+        consecutive goals: the controllers in fitted models only."""
+        return dataclasses.replace(self, sim=None, evaluation=dataclasses.replace(
+            self.evaluation, baselines=["preload"], plant=False, num_consecutive_goals=0,
+            models=[]))
+
+
+class Policy(NamedTuple):
+    """A trained policy type: its network and its variables, stacked over seeds (leaves
+    ``[S, ...]``)."""
+
+    network: Any
+    params: Any
+
+
+def _sim_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, mocap_hz: float
+             ) -> SoftArmReachEnv:
     """The simulated arm at ``mocap_hz`` frames, stepped a model step at a time, observed exactly
     like the learned env (which make_learned_env built from the same options)."""
-    frames = round(mocap_hz / float(cfg.dataset.model_hz))
-    if frames < 1 or not math.isclose(mocap_hz / frames, float(cfg.dataset.model_hz),
+    frames = round(mocap_hz / float(settings.model_hz))
+    if frames < 1 or not math.isclose(mocap_hz / frames, float(settings.model_hz),
                                       rel_tol=1e-6):
         raise ConfigError(f"the simulated arm integrates at {mocap_hz:g} Hz, which "
-                          f"dataset.model_hz={cfg.dataset.model_hz} does not divide")
+                          f"dataset.model_hz={settings.model_hz} does not divide")
     return SoftArmReachEnv(sim_plant(mocap_hz, frames), learned_env.control_hz,
-                           **observation_options(cfg.env))
+                           **observation_options(settings.env))
 
 
-def _plant_env(cfg: Any, learned_env: SoftArmReachEnv, learned_params: EnvParams,
-               key: jax.Array) -> tuple[SoftArmReachEnv, EnvParams] | None:
+def _plant_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv,
+               learned_params: EnvParams, key: jax.Array
+               ) -> tuple[SoftArmReachEnv, EnvParams] | None:
     """The ground-truth plant as an environment observed like the learned one (same goals and
-    normalization), or None when this robot has no simulator."""
-    if RobotKind(cfg.robot.kind) is not RobotKind.sim or not cfg.evaluation.plant:
+    normalization), or None when there is none."""
+    sim = settings.sim
+    if sim is None:
         return None
-    env = _sim_env(cfg, learned_env, float(cfg.robot.mocap.rate_hz))
-    plant = sim_plant_params(cfg.robot)
+    env = _sim_env(settings, learned_env, float(sim.mocap_hz))
+    plant = sim.plant
     params = make_env_params(
         env, plant, key=key, safe_set=learned_params.safe_set, preload=plant.preload,
         rest_pose=sim_rest_pose(plant),
-        rest_pose_std=jnp.asarray(cfg.robot.physics.rest_pose_std_m, jnp.float32),
+        rest_pose_std=jnp.asarray(sim.rest_pose_std_m, jnp.float32),
         goal_set=learned_params.goal_set, obs_mean=learned_params.obs_mean,
-        obs_scale=learned_params.obs_scale, settings=cfg.env)
+        obs_scale=learned_params.obs_scale, settings=settings.env)
     return env, params
 
 
@@ -95,8 +138,8 @@ def rollout_program(env: SoftArmReachEnv, make: Callable[[Any, EnvParams], rollo
     return jax.jit(jax.vmap(episodes, in_axes=(None, 0, 0, None, None, None, None)))
 
 
-def _controllers(cfg, env, params, learned_params, policies_loaded, num_episodes
-                 ) -> dict[str, Controllers]:
+def _controllers(settings: ClosedLoopSettings, env, params, learned_params, policies_loaded,
+                 num_episodes) -> dict[str, Controllers]:
     """Every policy type (all its seeds) and every baseline on ``env`` with ``params``, by name.
 
     ``learned_params`` are the learned environment's: the MPC's model starts from its settled
@@ -111,7 +154,8 @@ def _controllers(cfg, env, params, learned_params, policies_loaded, num_episodes
             lambda params, env_params, n=network: rollouts.policy_controller(n, params),
             stacked, carries)
     none, dummy = jnp.zeros((1,)), jnp.zeros((1, num_episodes))
-    for baseline in cfg.evaluation.baselines:
+    evaluation = settings.evaluation
+    for baseline in evaluation.baselines:
         if baseline == "preload":
             out[baseline] = Controllers(
                 lambda params, env_params: rollouts.preload_controller(env, env_params),
@@ -120,15 +164,15 @@ def _controllers(cfg, env, params, learned_params, policies_loaded, num_episodes
             out[baseline] = Controllers(lambda params, env_params: rollouts.random_controller(),
                                         none, dummy)
         elif baseline == "mpc":
-            settings = mpc.CEMSettings(horizon=int(cfg.evaluation.mpc_horizon),
-                                       num_samples=int(cfg.evaluation.mpc_samples),
-                                       num_iterations=int(cfg.evaluation.mpc_iterations))
-            model = learned_plant(float(cfg.dataset.model_hz))
+            cem = mpc.CEMSettings(horizon=int(evaluation.mpc_horizon),
+                                  num_samples=int(evaluation.mpc_samples),
+                                  num_iterations=int(evaluation.mpc_iterations))
+            model = learned_plant(float(settings.model_hz))
             model_carries, model_starts = _starts(learned_params, num_episodes)
             carries = jax.vmap(mpc.initial_carry, in_axes=(0, 0, None))(
                 model_carries, model_starts, params.preload)
             out[baseline] = Controllers(
-                lambda params, env_params, m=model, s=settings: mpc.mpc_controller(
+                lambda params, env_params, m=model, s=cem: mpc.mpc_controller(
                     env, env_params, m, params, s),
                 jax.tree.map(lambda x: x[None], learned_params.plant),
                 jax.tree.map(lambda x: x[None], carries))
@@ -164,7 +208,7 @@ class _Programs:
 
 
 def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: Any,
-               key: jax.Array, cfg: Any) -> EnvParams:
+               key: jax.Array, settings: ClosedLoopSettings) -> EnvParams:
     """Another fitted model as a plant of the same environment: its own settled starts, settled
     in it from the poses the learned env's starts settled from (the same rest poses of the
     arm), the same safe set, goals and observation normalization."""
@@ -172,81 +216,71 @@ def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: An
         env, dynamics_params, key=key, safe_set=eval_params.safe_set,
         preload=eval_params.preload, initial_poses=eval_params.reset_initial_poses,
         goal_set=eval_params.goal_set, obs_mean=eval_params.obs_mean,
-        obs_scale=eval_params.obs_scale, settings=cfg.env)
+        obs_scale=eval_params.obs_scale, settings=settings.env)
 
 
-def _twin_env(cfg: Any, learned_env: SoftArmReachEnv, eval_params: EnvParams,
+def _twin_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, eval_params: EnvParams,
               physics: dict[str, Any], key: jax.Array) -> tuple[SoftArmReachEnv, EnvParams]:
     """A calibrated twin (the simulated arm with ``physics``, SimPhysics values) as a plant
     observed like the learned env: the same goals, safe set and normalization, its starts
     settled at the preload with the arm's rest offset put on the poses the learned env's starts
     settled from."""
     sim = twin_sim_params(physics)
-    env = _sim_env(cfg, learned_env, sim.mocap_hz)
+    env = _sim_env(settings, learned_env, sim.mocap_hz)
     plant = SimPlantParams(sim, eval_params.preload)
     params = make_env_params(
         env, plant, key=key, safe_set=eval_params.safe_set, preload=eval_params.preload,
         initial_poses=eval_params.reset_initial_poses, goal_set=eval_params.goal_set,
-        obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale, settings=cfg.env)
+        obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale,
+        settings=settings.env)
     return env, params
 
 
-def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv,
-                   eval_params: EnvParams, models: dict[str, Any] | None = None,
-                   twins: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
-    """Roll out every controller of ``policies`` (train_ppo artifacts by policy type) and every
-    baseline on the learned env (``env`` with its evaluation parameters), on the plant, in each
-    of ``models`` (other fitted models' ``DynamicsParams`` by plant name) and on each of
-    ``twins`` (calibrated twins' SimPhysics values by plant name); return tables and arrays."""
-    evaluation = cfg.evaluation
-    episodes, steps = int(evaluation.num_episodes), int(cfg.env.max_steps)
+def _plants(settings: ClosedLoopSettings, env: SoftArmReachEnv, eval_params: EnvParams,
+            key: jax.Array, models: Mapping[str, Any], twins: Mapping[str, Mapping[str, Any]]
+            ) -> dict[str, tuple[SoftArmReachEnv, EnvParams]]:
+    """Every plant by name: the learned env, the ground-truth plant (where there is one), each
+    other fitted model and each calibrated twin, observed like the learned env."""
+    plants = {"learned": (env, eval_params)}
+    plant_env = _plant_env(settings, env, eval_params, key)
+    if plant_env is not None:
+        plants["plant"] = plant_env
+    for number, (name, dynamics_params) in enumerate(models.items()):
+        plants[name] = (env, _model_env(env, eval_params, dynamics_params,
+                                        jax.random.fold_in(key, number + 1), settings))
+    for number, (name, physics) in enumerate(twins.items()):
+        plants[name] = _twin_env(settings, env, eval_params, physics,
+                                 jax.random.fold_in(key, len(models) + number + 1))
+    return plants
+
+
+def run_evaluation(settings: ClosedLoopSettings, policies: Mapping[str, Policy],
+                   env: SoftArmReachEnv, eval_params: EnvParams,
+                   models: Mapping[str, Any] | None = None,
+                   twins: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, Any]:
+    """Roll out every policy type of ``policies`` (all seeds) and every baseline on the learned
+    env (``env`` with its evaluation parameters), on the plant, in each of ``models`` (other
+    fitted models' ``DynamicsParams`` by plant name) and on each of ``twins`` (calibrated twins'
+    SimPhysics values by plant name); return tables and arrays."""
+    evaluation = settings.evaluation
+    episodes, steps = int(evaluation.num_episodes), int(settings.max_steps)
     key = jax.random.key(int(evaluation.seed))
     goal_key, plant_key, rollout_key, consecutive_key = jax.random.split(key, 4)
 
     goal_index = jax.random.randint(goal_key, (episodes,), 0, eval_params.goal_set.shape[0])
     goals = eval_params.goal_set[goal_index]
     goal_paths = jnp.broadcast_to(goals[:, None], (episodes, steps, 3))
-    plants = {"learned": (env, eval_params)}
-    plant_env = _plant_env(cfg, env, eval_params, plant_key)
-    if plant_env is not None:
-        plants["plant"] = plant_env
-    for number, (name, dynamics_params) in enumerate((models or {}).items()):
-        plants[name] = (env, _model_env(env, eval_params, dynamics_params,
-                                        jax.random.fold_in(plant_key, number + 1), cfg))
-    for number, (name, physics) in enumerate((twins or {}).items()):
-        plants[name] = _twin_env(cfg, env, eval_params, physics,
-                                 jax.random.fold_in(plant_key, len(models or {}) + number + 1))
-
-    loaded = {}
-    for name, artifact in policies.items():
-        network, stacked, _ = load_policy(artifact.file("policy.msgpack"))
-        loaded[name] = (network, stacked, jax.tree.leaves(stacked)[0].shape[0])
-
-    limits = cfg.robot.limits
-    rows, finals, paths, sent = [], {}, {}, {}
-    keys = jax.random.split(rollout_key, episodes)
+    plants = _plants(settings, env, eval_params, plant_key, models or {}, twins or {})
+    loaded = {name: (policy.network, policy.params, jax.tree.leaves(policy.params)[0].shape[0])
+              for name, policy in policies.items()}
     programs = _Programs()
-    for plant_name, (plant_env_i, plant_params) in plants.items():
-        controllers = _controllers(cfg, plant_env_i, plant_params, eval_params, loaded, episodes)
-        starts = _starts(plant_params, episodes)
-        for controller, batch in controllers.items():
-            positions, commands = programs.run(controller, plant_env_i, plant_params, batch,
-                                               keys, starts, goal_paths)
-            for seed in range(positions.shape[0]):
-                table = episode_metrics(positions[seed], np.asarray(goals), commands[seed],
-                                        limits)
-                table.insert(0, "episode", np.arange(episodes))
-                table.insert(0, "seed", seed)
-                table.insert(0, "controller", controller)
-                table.insert(0, "plant", plant_name)
-                rows.append(table)
-                finals[(plant_name, controller, seed)] = positions[seed, :, -1]
-                paths[(plant_name, controller, seed)] = positions[seed]
-                sent[(plant_name, controller, seed)] = commands[seed]
+    rows, finals, paths, sent = _episodes(settings, plants, loaded, eval_params, programs,
+                                          jax.random.split(rollout_key, episodes), goals,
+                                          goal_paths)
     episodes_table = pd.concat(rows, ignore_index=True)
     summary = summarize(episodes_table, ["plant", "controller"])
     gaps = _gap_table(episodes_table, finals) if "plant" in plants else pd.DataFrame()
-    consecutive = _consecutive(cfg, plants, loaded, consecutive_key, eval_params, programs)
+    consecutive = _consecutive(settings, plants, loaded, consecutive_key, eval_params, programs)
     headline = {
         f"{row.plant}/{row.controller}": {"median_final_mm": float(row.median_final_mm),
                                           "success_1mm": float(row.success_1mm),
@@ -256,6 +290,35 @@ def run_evaluation(cfg: Any, policies: dict[str, Artifact], env: SoftArmReachEnv
     return {"tables": {"episodes": episodes_table, "summary": summary, "plant_gap": gaps,
                        "consecutive": consecutive},
             "paths": paths, "commands": sent, "goals": np.asarray(goals), "headline": headline}
+
+
+def _episodes(settings: ClosedLoopSettings, plants, loaded, eval_params: EnvParams,
+              programs: _Programs, keys: jax.Array, goals: jax.Array, goal_paths: jax.Array
+              ) -> tuple[list[pd.DataFrame], dict, dict, dict]:
+    """Every controller on every plant: the per-episode tables (one per plant, controller and
+    seed) and, by ``(plant, controller, seed)``, the final positions ``[E, 3]``, the paths
+    ``[E, T + 1, 3]`` (m) and the commands sent ``[E, T, 3]`` (kPa)."""
+    episodes = int(np.shape(keys)[0])
+    rows, finals, paths, sent = [], {}, {}, {}
+    for plant_name, (plant_env_i, plant_params) in plants.items():
+        controllers = _controllers(settings, plant_env_i, plant_params, eval_params, loaded,
+                                   episodes)
+        starts = _starts(plant_params, episodes)
+        for controller, batch in controllers.items():
+            positions, commands = programs.run(controller, plant_env_i, plant_params, batch,
+                                               keys, starts, goal_paths)
+            for seed in range(positions.shape[0]):
+                table = episode_metrics(positions[seed], np.asarray(goals), commands[seed],
+                                        settings.limits)
+                table.insert(0, "episode", np.arange(episodes))
+                table.insert(0, "seed", seed)
+                table.insert(0, "controller", controller)
+                table.insert(0, "plant", plant_name)
+                rows.append(table)
+                finals[(plant_name, controller, seed)] = positions[seed, :, -1]
+                paths[(plant_name, controller, seed)] = positions[seed]
+                sent[(plant_name, controller, seed)] = commands[seed]
+    return rows, finals, paths, sent
 
 
 def _gap_table(episodes: pd.DataFrame, finals: dict) -> pd.DataFrame:
@@ -274,12 +337,13 @@ def _gap_table(episodes: pd.DataFrame, finals: dict) -> pd.DataFrame:
     return pd.concat(rows, ignore_index=True)
 
 
-def _consecutive(cfg, plants, loaded, key, eval_params, programs: _Programs) -> pd.DataFrame:
+def _consecutive(settings: ClosedLoopSettings, plants, loaded, key, eval_params,
+                 programs: _Programs) -> pd.DataFrame:
     """Reach ``num_consecutive_goals`` goals one after another (``max_steps`` each, no reset);
     the distance at the end of each goal's time is recorded."""
-    count = int(cfg.evaluation.num_consecutive_goals)
-    episodes = int(cfg.evaluation.consecutive_episodes)
-    per_goal = int(cfg.env.max_steps)
+    count = int(settings.evaluation.num_consecutive_goals)
+    episodes = int(settings.evaluation.consecutive_episodes)
+    per_goal = int(settings.max_steps)
     if count < 1 or episodes < 1:
         return pd.DataFrame()
     goal_key, rollout_key = jax.random.split(key)
@@ -288,7 +352,7 @@ def _consecutive(cfg, plants, loaded, key, eval_params, programs: _Programs) -> 
     keys = jax.random.split(rollout_key, episodes)
     rows = []
     for plant_name, (env, params) in plants.items():
-        controllers = _controllers(cfg, env, params, eval_params, loaded, episodes)
+        controllers = _controllers(settings, env, params, eval_params, loaded, episodes)
         starts = _starts(params, episodes)
         for controller, batch in controllers.items():
             if controller in ("preload", "random"):

@@ -15,29 +15,26 @@ from collections.abc import Mapping
 from typing import Any
 
 import pandas as pd
-from omegaconf import OmegaConf
 
-from pipeline.evaluation.closed_loop import run_evaluation
-from pipeline.evaluation.metrics import summarize
-from pipeline.infra.artifacts import Artifact
+from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, run_evaluation
+from pipeline.evaluation.metrics import CROSS, OWN, summarize
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 
-OWN, CROSS = "own", "cross"
 # the figures of each (plant, controller) row beyond summarize's
 SEED_COLUMNS = ("seeds", "seeds_median_within_1mm", "deployed_seed", "deployed_median_final_mm",
                 "deployed_success_1mm")
 
 
-def cross_model_episodes(cfg: Any, policies: Mapping[str, Artifact], env: SoftArmReachEnv,
-                         eval_params: EnvParams, other: Any) -> pd.DataFrame:
+def cross_model_episodes(settings: ClosedLoopSettings, policies: Mapping[str, Policy],
+                         env: SoftArmReachEnv, eval_params: EnvParams, other: Any
+                         ) -> pd.DataFrame:
     """One row per (plant, controller, seed, episode), as evaluate's ``episodes`` table: every
-    policy type of ``policies`` (train_ppo artifacts trained in ``env``'s model under ``cfg``,
-    all seeds) and the preload, on ``cfg``'s held-out goals (``eval_params.goal_set``), in their
-    own model (plant ``own``) and in ``other`` (``cross``: another fitted model's
+    policy type of ``policies`` (trained in ``env``'s model, all seeds) and the preload, under
+    ``settings`` (the training group's), on its held-out goals (``eval_params.goal_set``), in
+    their own model (plant ``own``) and in ``other`` (``cross``: another fitted model's
     ``DynamicsParams``)."""
-    variant = OmegaConf.merge(cfg, {"evaluation": {
-        "baselines": ["preload"], "plant": False, "num_consecutive_goals": 0, "models": []}})
-    results = run_evaluation(variant, dict(policies), env, eval_params, {CROSS: other})
+    results = run_evaluation(settings.only_in_models(), policies, env, eval_params,
+                             {CROSS: other})
     episodes = results["tables"]["episodes"]
     return episodes.assign(plant=episodes["plant"].replace({"learned": OWN}))
 

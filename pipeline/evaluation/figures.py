@@ -6,17 +6,21 @@ Figure`); the captions say what is drawn (which seeds, which episodes).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from pipeline.evaluation.metrics import ARRIVAL_MM, HELD_MM, MM_PER_M, first_step_within
 from pipeline.evaluation.report import Figure
-from pipeline.rl.results import RETURN_LABEL, training_curves
+from pipeline.rl.results import RETURN_LABEL
 
 PLANT_TITLES = {"learned": "learned model", "plant": "simulated arm (plant)"}
 TRAJECTORY_EPISODES = 4  # episodes drawn per panel of the trajectory figure
 TAIL_EPISODES = 3  # episodes drawn per plant in the figure after arrival
+SEED_STYLES = ["-", "--", ":", "-."]  # line style per seed drawn in the trajectory figure
 
 
 def tail_episodes(distance_mm: np.ndarray, count: int = TAIL_EPISODES,
@@ -29,23 +33,50 @@ def tail_episodes(distance_mm: np.ndarray, count: int = TAIL_EPISODES,
     return arrived[order[:count]]
 
 
-def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
+@dataclass(frozen=True)
+class FigureSettings:
+    """What the evaluation's figures say of the run: ``max_steps`` control periods an episode
+    lasts, ``control_hz`` (Hz) its control rate, ``goal_tolerance_m`` (m) the training
+    tolerance."""
+
+    max_steps: int
+    control_hz: float
+    goal_tolerance_m: float
+
+
+def make_figures(folder: Path, settings: FigureSettings, curves: Mapping[str, pd.DataFrame],
+                 results) -> dict[str, Figure]:
+    """Every figure of an evaluation into ``folder``, by name: the training curves of each policy
+    type (``curves``: its :func:`~pipeline.rl.results.return_curves`, columns timesteps, seed,
+    return), the distance to the goal over time, the trajectories and, per policy type, what
+    happens after the first arrival (where it ever arrived)."""
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.lines import Line2D
 
     folder.mkdir(parents=True, exist_ok=True)
-    figures = {}
+    figures = {"returns": _returns_figure(folder / "returns.png", settings, curves),
+               "distance": _distance_figure(folder / "distance.png", settings, results)}
+    trajectories = _trajectories_figure(folder / "trajectories.png", results)
+    for name in curves:
+        drawn = after_arrival_figure(folder / f"after_arrival_{name}.png",
+                                     float(settings.control_hz), results, name)
+        if drawn is not None:
+            figures[f"after_arrival/{name}"] = drawn
+    figures["trajectories"] = trajectories
+    return figures
 
-    # ---- training curves: mean +- std over seeds per policy type (paper Fig. 8) ------------
+
+def _returns_figure(path: Path, settings: FigureSettings, curves: Mapping[str, pd.DataFrame]
+                    ) -> Figure:
+    """Training curves: mean +- std over seeds per policy type (paper Fig. 8)."""
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(7.5, 4))
     seeds_per_type = {}
-    for i, (name, artifact) in enumerate(policies.items()):
-        curves = training_curves(artifact)  # columns: timesteps, seed, return
-        seeds_per_type[name] = curves["seed"].nunique()
-        stats = curves.groupby("timesteps")["return"].agg(["mean", "std"]).reset_index()
+    for i, (name, frame) in enumerate(curves.items()):
+        seeds_per_type[name] = frame["seed"].nunique()
+        stats = frame.groupby("timesteps")["return"].agg(["mean", "std"]).reset_index()
         ax.plot(stats["timesteps"], stats["mean"], color=f"C{i}",
                 label=f"{name} ({seeds_per_type[name]} seeds)")
         ax.fill_between(stats["timesteps"], stats["mean"] - stats["std"].fillna(0),
@@ -55,17 +86,20 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
     ax.set_title("PPO in the learned model (mean ± std over seeds)", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path = folder / "returns.png"
     fig.savefig(path, dpi=100)
     plt.close(fig)
-    figures["returns"] = Figure(path, (
+    return Figure(path, (
         "training return per policy type: the mean return of the training episodes (stochastic "
         "policy) that ended in each update, mean ± std over seeds; the reward is −distance in "
         "mm per control period. The first updates, before any episode could have run its full "
-        f"{cfg.env.max_steps} periods, are left out: then only the episodes that reached the "
+        f"{settings.max_steps} periods, are left out: then only the episodes that reached the "
         "goal early had ended, and their mean made a spike at step 0."))
 
-    # ---- distance to goal over time, and the fraction that has been within 3 mm -------------
+
+def _distance_figure(path: Path, settings: FigureSettings, results) -> Figure:
+    """Distance to goal over time, and the fraction that has been within 3 mm."""
+    import matplotlib.pyplot as plt
+
     goals = results["goals"]
     plants = sorted({key[0] for key in results["paths"]})
     controllers = list(dict.fromkeys(key[1] for key in results["paths"]))
@@ -78,7 +112,7 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
             distance = np.concatenate([
                 np.linalg.norm(results["paths"][k] - goals[:, None], axis=-1) * MM_PER_M
                 for k in seeds])
-            t = np.arange(distance.shape[1]) / float(cfg.robot.control_hz)
+            t = np.arange(distance.shape[1]) / float(settings.control_hz)
             median = np.median(distance, axis=0)
             low, high = np.percentile(distance, [25, 75], axis=0)
             ax.semilogy(t, median, color=f"C{i}", label=controller)
@@ -86,7 +120,7 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
             first = first_step_within(distance, 3.0)
             reached = (first[:, None] <= np.arange(distance.shape[1])[None]).mean(axis=0)
             ax_reached.step(t, reached, where="post", color=f"C{i}", label=controller)
-        ax.axhline(float(cfg.env.goal_tolerance_m) * MM_PER_M, color="k", ls=":", lw=0.8)
+        ax.axhline(float(settings.goal_tolerance_m) * MM_PER_M, color="k", ls=":", lw=0.8)
         ax.set_title(f"on the {PLANT_TITLES.get(plant, plant)}", fontsize=10)
         ax_reached.set_xlabel("time [s]")
         ax_reached.set_ylim(-0.02, 1.02)
@@ -94,64 +128,78 @@ def make_figures(folder: Path, cfg, policies, results) -> dict[str, Figure]:
     axes[1, 0].set_ylabel("fraction of episodes\never within 3 mm")
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
-    path = folder / "distance.png"
     fig.savefig(path, dpi=100)
     plt.close(fig)
-    figures["distance"] = Figure(path, (
+    return Figure(path, (
         "top: distance to the goal over time, median and interquartile range over every seed's "
         "episodes (dotted: the training tolerance); bottom: the fraction of episodes that have "
         "been within 3 mm by that time (one minus the survival curve of 'not yet within 3 mm')."))
 
-    # ---- task-space trajectories against goals ------------------------------------------------
+
+def _trajectories_figure(path: Path, results) -> Figure:
+    """Task-space trajectories against goals, every controller but the preload and random."""
+    import matplotlib.pyplot as plt
+
+    goals = results["goals"]
+    plants = sorted({key[0] for key in results["paths"]})
+    controllers = list(dict.fromkeys(key[1] for key in results["paths"]))
     shown = [c for c in controllers if c not in ("preload", "random")]
     fig, axes = plt.subplots(len(plants), len(shown), figsize=(4 * len(shown), 4 * len(plants)),
                              squeeze=False)
     all_seeds = sorted({key[2] for key in results["paths"]})
-    styles = ["-", "--", ":", "-."]
-    drawn_seeds = all_seeds[:len(styles)]
+    drawn_seeds = all_seeds[:len(SEED_STYLES)]
     episodes = min(TRAJECTORY_EPISODES, len(goals))
     for r, plant in enumerate(plants):
         for c, controller in enumerate(shown):
-            ax = axes[r, c]
-            for s, seed in enumerate(drawn_seeds):
-                path = results["paths"].get((plant, controller, seed))
-                if path is None:  # baselines have one "seed"
-                    continue
-                for e in range(episodes):
-                    ax.plot(path[e, :, 0] * 1e3, path[e, :, 2] * 1e3, styles[s], color=f"C{e}",
-                            lw=1.1 if s == 0 else 0.8)
-                    ax.plot(path[e, 0, 0] * 1e3, path[e, 0, 2] * 1e3, "o", color=f"C{e}", ms=3)
-            for e in range(episodes):
-                ax.plot(goals[e, 0] * 1e3, goals[e, 2] * 1e3, "x", color=f"C{e}", ms=9, mew=2)
-            ax.set_title(f"{controller} on the {PLANT_TITLES.get(plant, plant)}", fontsize=9)
-            ax.set_xlabel("x [mm]")
-            ax.set_ylabel("z [mm]")
-            ax.set_aspect("equal", adjustable="datalim")
-    handles = [Line2D([], [], color=f"C{e}", lw=2, label=f"episode {e}") for e in range(episodes)]
-    handles += [Line2D([], [], color="0.3", ls=styles[s], label=f"seed {seed}")
-                for s, seed in enumerate(drawn_seeds)]
-    handles += [Line2D([], [], color="0.3", marker="o", ls="", ms=4, label="start"),
-                Line2D([], [], color="0.3", marker="x", ls="", ms=8, mew=2, label="goal")]
+            _trajectory_panel(axes[r, c], results, plant, controller, drawn_seeds, episodes)
+    handles = _trajectory_legend(episodes, drawn_seeds)
     fig.legend(handles=handles, loc="upper center", ncol=min(len(handles), 8), fontsize=8,
                frameon=False)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / (4 * len(plants))))
-    path = folder / "trajectories.png"
     fig.savefig(path, dpi=100)
     plt.close(fig)
     seed_words = (f"seeds {', '.join(map(str, drawn_seeds))}" if len(drawn_seeds) > 1
                   else f"seed {drawn_seeds[0]}")
     if len(all_seeds) > len(drawn_seeds):
         seed_words += f" of {len(all_seeds)}"
-    for name in policies:
-        drawn = after_arrival_figure(folder / f"after_arrival_{name}.png",
-                                     float(cfg.robot.control_hz), results, name)
-        if drawn is not None:
-            figures[f"after_arrival/{name}"] = drawn
-    figures["trajectories"] = Figure(path, (
+    return Figure(path, (
         f"task-space trajectories in the x–z plane, episodes 0–{episodes - 1} (one colour "
         f"each, the same goals and starts for every controller), {seed_words} of each policy "
         "(line style); MPC has one."))
-    return figures
+
+
+def _trajectory_panel(ax, results, plant: str, controller: str, seeds: list[int],
+                      episodes: int) -> None:
+    """``controller``'s first ``episodes`` paths on ``plant`` in the x–z plane (mm), one line
+    style per seed of ``seeds``, one colour per episode, with their starts and goals."""
+    goals = results["goals"]
+    for s, seed in enumerate(seeds):
+        path = results["paths"].get((plant, controller, seed))
+        if path is None:  # baselines have one "seed"
+            continue
+        for e in range(episodes):
+            ax.plot(path[e, :, 0] * 1e3, path[e, :, 2] * 1e3, SEED_STYLES[s], color=f"C{e}",
+                    lw=1.1 if s == 0 else 0.8)
+            ax.plot(path[e, 0, 0] * 1e3, path[e, 0, 2] * 1e3, "o", color=f"C{e}", ms=3)
+    for e in range(episodes):
+        ax.plot(goals[e, 0] * 1e3, goals[e, 2] * 1e3, "x", color=f"C{e}", ms=9, mew=2)
+    ax.set_title(f"{controller} on the {PLANT_TITLES.get(plant, plant)}", fontsize=9)
+    ax.set_xlabel("x [mm]")
+    ax.set_ylabel("z [mm]")
+    ax.set_aspect("equal", adjustable="datalim")
+
+
+def _trajectory_legend(episodes: int, seeds: list[int]) -> list:
+    """The trajectory figure's legend: a colour per episode, a line style per seed, start and
+    goal markers."""
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=f"C{e}", lw=2, label=f"episode {e}") for e in range(episodes)]
+    handles += [Line2D([], [], color="0.3", ls=SEED_STYLES[s], label=f"seed {seed}")
+                for s, seed in enumerate(seeds)]
+    handles += [Line2D([], [], color="0.3", marker="o", ls="", ms=4, label="start"),
+                Line2D([], [], color="0.3", marker="x", ls="", ms=8, mew=2, label="goal")]
+    return handles
 
 
 def after_arrival_figure(path: Path, control_hz: float, results, controller: str

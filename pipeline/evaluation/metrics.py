@@ -19,6 +19,8 @@ import pandas as pd
 MM_PER_M = 1000.0
 ARRIVAL_MM = 1.0  # an episode has arrived once its distance was within this
 HELD_MM = 1.5  # an arrival is held when the episode ends within this
+# the cross-model protocol's plants: the policies' own model and the other group's
+OWN, CROSS = "own", "cross"
 
 
 def distances_mm(positions: np.ndarray, goals: np.ndarray) -> np.ndarray:

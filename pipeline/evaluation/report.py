@@ -187,17 +187,9 @@ def _inline(text: str) -> str:
 
 
 def write_report(folder: Path, title: str, sections: list[Section]) -> tuple[Path, Path]:
-    """Write ``report.md`` and ``report.html`` into ``folder``; return both paths. An evaluation
-    (``summary.parquet`` in ``folder``) opens with the summary table the terminal shows."""
+    """Write ``report.md`` and ``report.html`` into ``folder``; return both paths."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    if (folder / "summary.parquet").is_file():
-        from pipeline.evaluation.summary import evaluation_table
-
-        sections = [Section("Summary").add(Table(evaluation_table(folder), (
-            "Closed loop on held-out goals, per controller and plant: the median final distance "
-            "[mm], the share of episodes that ended within 1 mm [%], the seeds and episodes (the "
-            "table the run printed at its end)."))), *sections]
     markdown = folder / "report.md"
     page = folder / "report.html"
     markdown.write_text(render_markdown(title, sections, folder))

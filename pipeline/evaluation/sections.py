@@ -7,14 +7,18 @@ model the policies were trained in; the report says so in words.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
 import pandas as pd
-from omegaconf import OmegaConf
 
 from pipeline.dynamics.cv import cv_summary
 from pipeline.dynamics.scoring import LEARNED
 from pipeline.evaluation.metrics import seed_spread
 from pipeline.evaluation.report import Figure, Section, Table, format_number
-from pipeline.infra.artifacts import Artifact
+from pipeline.evaluation.summary import evaluation_table
+from pipeline.infra.records import ArtifactRecord
 
 PLANT_NAMES = {"learned": "learned model", "plant": "simulated arm"}
 # the hold after the first arrival within 1 mm (metrics.summarize), as the report shows it
@@ -42,6 +46,39 @@ STEPS_NOTE = ("'ever ≤ 3 mm' is the fraction of episodes that came within 3 mm
               "the end spent within 1 mm, and the median of the largest distance after it.")
 
 
+@dataclass(frozen=True)
+class ReportFacts:
+    """The run's settings the report states, as the config gives them (printed as they are).
+
+    ``robot_name``: the robot config; ``exploration_alpha``, ``exploration_beta``,
+    ``p_max_kpa`` (kPa): the exploration walk's; ``model_hidden`` units of the model at
+    ``model_hz`` (Hz); ``policies`` and ``baselines``: the evaluated policy types and baselines;
+    ``max_steps``: control periods an episode (and each consecutive goal) lasts;
+    ``num_consecutive_goals``: goals in a row of the consecutive-goals task; ``config_yaml``:
+    the whole config, resolved, as YAML.
+    """
+
+    robot_name: str
+    exploration_alpha: Any
+    exploration_beta: Any
+    p_max_kpa: Any
+    model_hidden: Any
+    model_hz: Any
+    policies: tuple[str, ...]
+    baselines: tuple[str, ...]
+    max_steps: int
+    num_consecutive_goals: int
+    config_yaml: str
+
+
+# the collect stage's figures the report shows, with their captions
+COLLECT_FIGURES = {
+    "exploration_alphas.png": "exploration walk for several alpha (the same random draws for each)",
+    "runs.png": "recorded commands and positions"}
+# the fit_model stage's figures the report shows (captions in the model section)
+MODEL_FIGURES = ("loss.png", "reconstruction.png")
+
+
 def _plant_label(name: str) -> str:
     return PLANT_NAMES.get(name, name)
 
@@ -56,8 +93,8 @@ def _summary_table(summary: pd.DataFrame) -> pd.DataFrame:
     return shown[[c for c in SUMMARY_COLUMNS if c in shown]].rename(columns=SUMMARY_COLUMNS)
 
 
-def _model_sentence(model: Artifact) -> str:
-    held = model.manifest["summary"]
+def _model_sentence(model: ArtifactRecord) -> str:
+    held = model.summary
     tested = list(held.get("test_runs", []))
     if held.get("protocol") == "cv":
         folds = list(held.get("folds", []))
@@ -75,12 +112,13 @@ def _model_sentence(model: Artifact) -> str:
             f"lagged-pressure baseline {format_number(held['linear_lagged_mean_mm'])} mm).")
 
 
-def _summary_section(cfg, model, summary: pd.DataFrame, order: list[str]) -> Section:
+def _summary_section(facts: ReportFacts, model: ArtifactRecord | None, summary: pd.DataFrame,
+                     order: list[str]) -> Section:
     """The headline: model accuracy, and each controller's median final distance."""
     section = Section("Summary")
     if model is not None:
         section.add(_model_sentence(model))
-        for warning in model.manifest["summary"].get("warnings", []):
+        for warning in model.summary.get("warnings", []):
             section.add(f"**Warning:** {warning}.")
     if "plant" in set(summary["plant"]):
         section.add("Every controller is run on the **learned model** (the fitted recurrent "
@@ -99,18 +137,20 @@ def _summary_section(cfg, model, summary: pd.DataFrame, order: list[str]) -> Sec
     wide.columns.name = None
     wide = _ordered(wide, order).rename(
         columns={p: f"on the {_plant_label(p)} [mm]" for p in PLANT_NAMES})
-    section.add(Table(wide, f"median final distance to held-out goals after {cfg.env.max_steps} "
+    section.add(Table(wide, f"median final distance to held-out goals after {facts.max_steps} "
                             "control periods, every seed's episodes pooled"))
     return section
 
 
-def _model_section(model: Artifact | None) -> Section:
+def _model_section(model: ArtifactRecord | None) -> Section:
+    """The model's open-loop error per run next to its baselines (``model``'s ``metrics``
+    table), and its figures."""
     accuracy = Section("Model accuracy")
     if model is None:
         accuracy.add("No dynamics model in this run.")
         return accuracy
-    metrics = pd.read_parquet(model.file("metrics.parquet"))
-    held = model.manifest["summary"]
+    metrics = model.tables["metrics"]
+    held = model.summary
     if "cv" in set(metrics["split"]):
         accuracy.add("Leave-one-run-out cross-validation: each run predicted over its entire "
                      "length by the model fitted to the other runs, next to the baselines fitted "
@@ -122,8 +162,8 @@ def _model_section(model: Artifact | None) -> Section:
         for name, caption in (("loss.png", "training loss of the model fitted to all runs"),
                               ("reconstruction.png", "open-loop reconstruction of a training "
                                "run (model on all runs) and a held-out run (its fold model)")):
-            if model.file(f"figures/{name}").is_file():
-                accuracy.add(Figure(model.file(f"figures/{name}"), caption))
+            if name in model.figures:
+                accuracy.add(Figure(model.figures[name], caption))
         return accuracy
     trained, tested = list(held.get("train_runs", [])), list(held.get("test_runs", []))
     accuracy.add(f"{len(trained)} training run{'s' if len(trained) != 1 else ''} and "
@@ -146,8 +186,8 @@ def _model_section(model: Artifact | None) -> Section:
             ("reconstruction.png", "open-loop reconstruction of a training and an unseen run: "
                                    "measured and predicted x, y, z, the error over time, and a "
                                    "zoom (right of each run) into the shaded window")):
-        if model.file(f"figures/{name}").is_file():
-            accuracy.add(Figure(model.file(f"figures/{name}"), caption))
+        if name in model.figures:
+            accuracy.add(Figure(model.figures[name], caption))
     return accuracy
 
 
@@ -172,7 +212,8 @@ def _chatter_sentence(summary: pd.DataFrame, policies: list[str]) -> str | None:
     return sentence
 
 
-def timing_table(upstream: dict[str, Artifact | None], policies: dict[str, Artifact],
+def timing_table(upstream: Mapping[str, ArtifactRecord | None],
+                 policies: Mapping[str, ArtifactRecord],
                  evaluate_seconds: float | None = None) -> pd.DataFrame:
     """One row per artifact of the chain: the wall seconds its build took when it was built
     (``build_seconds`` of its manifest; empty for artifacts written before it was recorded), and
@@ -182,11 +223,11 @@ def timing_table(upstream: dict[str, Artifact | None], policies: dict[str, Artif
     for stage, artifact in upstream.items():
         if artifact is not None:
             rows.append({"stage": stage, "artifact": artifact.path.name,
-                         "built in [s]": artifact.manifest.get("build_seconds")})
+                         "built in [s]": artifact.build_seconds})
     for name, artifact in policies.items():
-        summary = artifact.manifest.get("summary", {})
+        summary = artifact.summary
         rows.append({"stage": f"train_ppo ({name})", "artifact": artifact.path.name,
-                     "built in [s]": artifact.manifest.get("build_seconds"),
+                     "built in [s]": artifact.build_seconds,
                      "compile [s]": summary.get("compile_seconds"),
                      "training [s]": summary.get("train_seconds"),
                      "devices": summary.get("devices"),
@@ -197,45 +238,91 @@ def timing_table(upstream: dict[str, Artifact | None], policies: dict[str, Artif
     return pd.DataFrame(rows)
 
 
-def report_sections(cfg, policies, results, figures, collect: Artifact | None = None,
-                    aligned: Artifact | None = None, model: Artifact | None = None,
+def report_sections(facts: ReportFacts, policies: Mapping[str, ArtifactRecord], results,
+                    figures: Mapping[str, Figure], collect: ArtifactRecord | None = None,
+                    aligned: ArtifactRecord | None = None, model: ArtifactRecord | None = None,
                     evaluate_seconds: float | None = None) -> list[Section]:
-    """The report of an evaluation; ``collect``, ``aligned``, ``model``: the upstream artifacts
-    where there are any (env=learned); ``evaluate_seconds``: how long this evaluation has run."""
+    """The report of an evaluation of ``policies`` (train_ppo records by policy type) with
+    ``results`` (:func:`~pipeline.evaluation.closed_loop.run_evaluation`'s) and ``figures``;
+    ``collect``, ``aligned``, ``model``: the upstream records where there are any (env=learned;
+    ``model`` with its ``metrics`` table and figures); ``evaluate_seconds``: how long this
+    evaluation has run."""
     tables = results["tables"]
     summary = tables["summary"]
-    episodes = tables["episodes"]
     names = list(policies)
-    order = names + list(cfg.evaluation.baselines)
-    sections = [_summary_section(cfg, model, summary, order)]
+    order = names + list(facts.baselines)
+    sections = [headline_section(tables), _summary_section(facts, model, summary, order),
+                _configuration_section(facts),
+                _data_section(collect, aligned), _model_section(model),
+                _policy_section(facts, tables, figures, names, order),
+                _baselines_section(summary, names, order),
+                _gap_section(facts, tables["plant_gap"], order)]
+    if len(tables.get("cross_model", ())):
+        sections.append(cross_model_section(tables["cross_model"], order))
+    upstream = {"collect": collect, "align": aligned, "fit_model": model}
+    sections.append(Section("Time to a controller", [
+        "Wall seconds of each artifact's build, when it was built (a reused artifact keeps the "
+        "time of the run that built it); for the policies, the compilation and the training "
+        "apart, and the devices (CPU cores or GPUs) their seeds were split over.",
+        Table(timing_table(upstream, policies, evaluate_seconds))]))
+    consecutive = tables["consecutive"]
+    if len(consecutive):
+        sections.append(Section("Consecutive goals", [
+            f"{facts.num_consecutive_goals} goals in a row, {facts.max_steps} "
+            "control periods each, no reset: the distance at the end of each goal's time.",
+            Table(consecutive_table(consecutive, order),
+                  "median over seeds of each seed's median distance [mm] at the end of goal "
+                  "1, 2, ...; the last column: the fraction of all goals (every seed's episodes) ended "
+                  "within 3 mm")]))
+    return sections
 
+
+def headline_section(tables: Mapping[str, pd.DataFrame]) -> Section:
+    """The table the run printed at its end (:func:`~pipeline.evaluation.summary.
+    evaluation_table` of the evaluation's ``summary``, ``episodes`` and, where it ran,
+    ``cross_model`` tables), the report's first section."""
+    table = evaluation_table(tables["summary"], tables["episodes"], tables.get("cross_model"))
+    return Section("Summary").add(Table(table, (
+        "Closed loop on held-out goals, per controller and plant: the median final distance "
+        "[mm], the share of episodes that ended within 1 mm [%], the seeds and episodes (the "
+        "table the run printed at its end).")))
+
+
+def _configuration_section(facts: ReportFacts) -> Section:
+    """The run's main settings in a sentence, and the whole config."""
     config = Section("Configuration")
-    config.add(f"Robot `{cfg.robot.name}`; exploration alpha {cfg.exploration.alpha}, beta "
-               f"{cfg.exploration.beta}, P_max {cfg.exploration.p_max} kPa; model "
-               f"{cfg.model.hidden} units at {cfg.dataset.model_hz} Hz; policies "
-               f"{', '.join(cfg.evaluation.policies)}; baselines "
-               f"{', '.join(cfg.evaluation.baselines)}.")
-    config.add("```yaml\n" + OmegaConf.to_yaml(cfg, resolve=True) + "```")
-    sections.append(config)
+    config.add(f"Robot `{facts.robot_name}`; exploration alpha {facts.exploration_alpha}, beta "
+               f"{facts.exploration_beta}, P_max {facts.p_max_kpa} kPa; model "
+               f"{facts.model_hidden} units at {facts.model_hz} Hz; policies "
+               f"{', '.join(facts.policies)}; baselines "
+               f"{', '.join(facts.baselines)}.")
+    config.add("```yaml\n" + facts.config_yaml + "```")
+    return config
 
+
+def _data_section(collect: ArtifactRecord | None, aligned: ArtifactRecord | None) -> Section:
+    """The recorded runs (``collect``'s counts and figures) and the alignment's counts."""
     data = Section("Data")
     if collect is not None:
-        collected = collect.manifest["summary"]
+        collected = collect.summary
         data.add(f"{collected.get('runs')} runs, {collected.get('commands')} commands, "
                  f"{collected.get('frames')} motion-capture frames "
                  f"({collected.get('dropped_frames')} dropped). Artifact `{collect.path}`.")
-        for name, caption in (("exploration_alphas.png", "exploration walk for several alpha "
-                                                         "(the same random draws for each)"),
-                              ("runs.png", "recorded commands and positions")):
-            if collect.file(f"figures/{name}").is_file():
-                data.add(Figure(collect.file(f"figures/{name}"), caption))
+        for name, caption in COLLECT_FIGURES.items():
+            if name in collect.figures:
+                data.add(Figure(collect.figures[name], caption))
     if aligned is not None:
-        counts = aligned.manifest["summary"]
+        counts = aligned.summary
         data.add(Table(pd.DataFrame({"count": list(counts), "value": list(counts.values())}),
                        "alignment counts, summed over runs"))
-    sections.append(data)
-    sections.append(_model_section(model))
+    return data
 
+
+def _policy_section(facts: ReportFacts, tables: Mapping[str, pd.DataFrame],
+                    figures: Mapping[str, Figure], names: list[str], order: list[str]
+                    ) -> Section:
+    """Every policy type's results, pooled over seeds and spread over seeds, and the figures."""
+    summary, episodes = tables["summary"], tables["episodes"]
     is_policy = summary["controller"].isin(names)
     seeds = sorted(episodes["seed"].unique()) if "seed" in episodes else [0]
     policy_episodes = episodes[episodes["controller"].isin(names)]
@@ -243,8 +330,8 @@ def report_sections(cfg, policies, results, figures, collect: Artifact | None = 
     spread = _ordered(spread.assign(plant=spread["plant"].map(_plant_label)), order).rename(
         columns={"plant": "evaluated on", "median_of_seed_medians": "median [mm]",
                  "q25": "q25 [mm]", "q75": "q75 [mm]", "min": "min [mm]", "max": "max [mm]"})
-    sections.append(Section("Policy results", [
-        f"Final distance to held-out goals after {cfg.env.max_steps} control periods: the "
+    return Section("Policy results", [
+        f"Final distance to held-out goals after {facts.max_steps} control periods: the "
         "controller must reach the goal and stay there. Below, every seed's episodes pooled; "
         f"then the spread over the {len(seeds)} seeds of each seed's median.",
         Table(_summary_table(_ordered(summary[is_policy], order)), STEPS_NOTE),
@@ -252,8 +339,12 @@ def report_sections(cfg, policies, results, figures, collect: Artifact | None = 
                       "quartiles and extremes over seeds"),
         figures["returns"], figures["distance"], figures["trajectories"],
         *(figures[f"after_arrival/{name}"] for name in names
-          if f"after_arrival/{name}" in figures)]))
+          if f"after_arrival/{name}" in figures)])
 
+
+def _baselines_section(summary: pd.DataFrame, names: list[str], order: list[str]) -> Section:
+    """The baselines' results, and MPC's chatter against the policies' smoothness."""
+    is_policy = summary["controller"].isin(names)
     baselines = Section("Baselines", [
         "Preload (do nothing), random safe actions, and sampling-based MPC on the learned model "
         "(offset-corrected on the simulated arm), on the same goals and starts.",
@@ -261,11 +352,14 @@ def report_sections(cfg, policies, results, figures, collect: Artifact | None = 
     chatter = _chatter_sentence(summary, names)
     if chatter:
         baselines.add(chatter)
-    sections.append(baselines)
+    return baselines
 
+
+def _gap_section(facts: ReportFacts, plant_gap: pd.DataFrame, order: list[str]) -> Section:
+    """The learned model against the simulated arm (``plant_gap`` table), where there is one."""
     gap_section = Section("Plant gap")
-    if len(tables["plant_gap"]):
-        gap = tables["plant_gap"].groupby("controller").agg(
+    if len(plant_gap):
+        gap = plant_gap.groupby("controller").agg(
             median_final_gap_mm=("final_gap_mm", "median"),
             median_position_gap_mm=("final_position_gap_mm", "median")).reset_index()
         gap = _ordered(gap, order).rename(columns={
@@ -277,30 +371,9 @@ def report_sections(cfg, policies, results, figures, collect: Artifact | None = 
                         "poses.")
         gap_section.add(Table(gap))
     else:
-        gap_section.add(f"No plant for robot `{cfg.robot.name}`: evaluated on the learned "
+        gap_section.add(f"No plant for robot `{facts.robot_name}`: evaluated on the learned "
                         "model only.")
-    sections.append(gap_section)
-
-    if len(tables.get("cross_model", ())):
-        sections.append(cross_model_section(tables["cross_model"], order))
-
-    upstream = {"collect": collect, "align": aligned, "fit_model": model}
-    sections.append(Section("Time to a controller", [
-        "Wall seconds of each artifact's build, when it was built (a reused artifact keeps the "
-        "time of the run that built it); for the policies, the compilation and the training "
-        "apart, and the devices (CPU cores or GPUs) their seeds were split over.",
-        Table(timing_table(upstream, policies, evaluate_seconds))]))
-
-    consecutive = tables["consecutive"]
-    if len(consecutive):
-        sections.append(Section("Consecutive goals", [
-            f"{cfg.evaluation.num_consecutive_goals} goals in a row, {cfg.env.max_steps} "
-            "control periods each, no reset: the distance at the end of each goal's time.",
-            Table(consecutive_table(consecutive, order),
-                  "median over seeds of each seed's median distance [mm] at the end of goal "
-                  "1, 2, ...; the last column: the fraction of all goals (every seed's episodes) ended "
-                  "within 3 mm")]))
-    return sections
+    return gap_section
 
 
 def consecutive_table(consecutive: pd.DataFrame, order: list[str] | None = None

@@ -13,7 +13,8 @@ gains columns keeps its summary:
 - ``control``: per goal, the final distance, the time to within 1 mm, the steady-state error
   (``goals.parquet``).
 
-:func:`evaluation_table` is also the table that heads the evaluation's report.
+:func:`evaluation_table` is also the table that heads the evaluation's report
+(:func:`pipeline.evaluation.sections.report_sections`).
 """
 
 from __future__ import annotations
@@ -27,23 +28,34 @@ from typing import Any, NamedTuple
 
 import pandas as pd
 
+from pipeline.evaluation.metrics import CROSS
 from pipeline.evaluation.report import format_number
 
 WITHIN = "within_1mm_%"  # the share of episodes (or seeds) that ended within 1 mm, in per cent
-CROSS_PLANT = "other model"  # the plant name of cross_model.parquet's rows in the other model
 
 
-def evaluation_table(artifact_path: Path) -> pd.DataFrame:
-    """One row per controller and plant of an evaluate artifact: ``median_final_mm`` [mm],
-    ``within_1mm_%`` (episodes that ended within 1 mm) [%], ``seeds``, ``episodes``; the
-    cross-model protocol's rows (plant ``model of runs A->B``) where it ran. Ordered as the
-    evaluation ran them (plant, then controller)."""
+def read_evaluation_table(artifact_path: Path) -> pd.DataFrame:
+    """:func:`evaluation_table` of the evaluate artifact in ``artifact_path`` (its
+    ``summary.parquet``, and ``episodes.parquet`` and ``cross_model.parquet`` where there)."""
     folder = Path(artifact_path)
-    summary = pd.read_parquet(folder / "summary.parquet")
-    seeds = pd.Series(dtype=float)
+    episodes = cross = None
     if (folder / "episodes.parquet").is_file():
         episodes = pd.read_parquet(folder / "episodes.parquet", columns=["plant", "controller",
                                                                        "seed"])
+    if (folder / "cross_model.parquet").is_file():
+        cross = pd.read_parquet(folder / "cross_model.parquet")
+    return evaluation_table(pd.read_parquet(folder / "summary.parquet"), episodes, cross)
+
+
+def evaluation_table(summary: pd.DataFrame, episodes: pd.DataFrame | None = None,
+                     cross_model: pd.DataFrame | None = None) -> pd.DataFrame:
+    """One row per controller and plant of an evaluation's ``summary`` table: ``median_final_mm``
+    [mm], ``within_1mm_%`` (episodes that ended within 1 mm) [%], ``seeds`` (counted in
+    ``episodes``, 1 without it), ``episodes``; the cross-model protocol's rows (plant ``model of
+    runs A->B``, from ``cross_model``) where it ran. Ordered as the evaluation ran them (plant,
+    then controller)."""
+    seeds = pd.Series(dtype=float)
+    if episodes is not None:
         seeds = episodes.groupby(["plant", "controller"], sort=False)["seed"].nunique()
     rows = []
     for row in summary.to_dict("records"):
@@ -52,11 +64,9 @@ def evaluation_table(artifact_path: Path) -> pd.DataFrame:
                      WITHIN: round(100.0 * float(row["success_1mm"])),
                      "seeds": int(seeds.get((row["plant"], row["controller"]), 1)),
                      "episodes": int(row["episodes"])})
-    cross = folder / "cross_model.parquet"
-    if cross.is_file():
-        table = pd.read_parquet(cross)
-        for row in table.to_dict("records"):
-            if str(row.get("plant")) != CROSS_PLANT and "direction" in row:
+    if cross_model is not None:
+        for row in cross_model.to_dict("records"):
+            if str(row.get("plant")) != CROSS and "direction" in row:
                 continue  # its rows in the group's own model: the learned rows say as much
             rows.append({"controller": row["controller"],
                          "plant": f"model of runs {row.get('direction', '?')}",
@@ -207,7 +217,7 @@ def closing_summary(stage: str, results: dict[str, Any], run: RunFacts,
     if evaluation is not None and hasattr(evaluation, "path"):
         lines += ["", f"Closed loop on held-out goals (robot={robot}): median final distance "
                   "[mm], share of episodes within 1 mm [%], seeds:",
-                  *text_table(evaluation_table(evaluation.path))]
+                  *text_table(read_evaluation_table(evaluation.path))]
     control = results.get("control")
     if control is not None and hasattr(control, "path") and (control.path /
                                                               "goals.parquet").is_file():

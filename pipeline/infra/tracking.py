@@ -1,8 +1,8 @@
 """Experiment tracking: Weights & Biases when ``logger.wandb=true``, otherwise nothing.
 
-wandb runs offline (``logger.mode=offline``, the default) and writes under ``paths.output_dir``;
-``wandb sync`` uploads such a run later. Nothing here touches the network unless the user sets
-``logger.mode=online``.
+wandb runs offline (``logger.mode=offline``, the default) and writes under the output folder the
+stage gives (``paths.output_dir``); ``wandb sync`` uploads such a run later. Nothing here touches
+the network unless the user sets ``logger.mode=online``.
 """
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from omegaconf import OmegaConf
+
+from pipeline.schemas import LoggerConfig
 
 
 class Tracker:
@@ -38,20 +39,22 @@ class WandbTracker(Tracker):
 
 
 @contextlib.contextmanager
-def tracking(cfg: Any, stage: str) -> Iterator[Tracker]:
-    """A tracker for one stage run; a wandb run (offline by default) if the logger asks for it."""
-    if not cfg.logger.wandb:
+def tracking(logger: LoggerConfig, output_dir: Path, stage: str,
+             run_config: Mapping[str, Any]) -> Iterator[Tracker]:
+    """A tracker for one stage run; a wandb run (offline by default, under ``output_dir``) if
+    ``logger`` asks for it, recording ``run_config`` (the run's whole config, resolved, as plain
+    containers)."""
+    if not logger.wandb:
         yield Tracker()
         return
     try:
         import wandb
     except ImportError as err:
         raise ImportError("logger.wandb=true needs wandb: pip install -e '.[wandb]'") from err
-    directory = Path(cfg.paths.output_dir)
+    directory = Path(output_dir)
     directory.mkdir(parents=True, exist_ok=True)
-    run = wandb.init(project=cfg.logger.project, mode=cfg.logger.mode, dir=str(directory),
-                     job_type=stage, config=OmegaConf.to_container(cfg, resolve=True),
-                     reinit="finish_previous")
+    run = wandb.init(project=logger.project, mode=logger.mode, dir=str(directory),
+                     job_type=stage, config=dict(run_config), reinit="finish_previous")
     try:
         yield WandbTracker(run, stage)
     finally:

@@ -17,7 +17,6 @@ import numpy as np
 import pandas as pd
 from flax import serialization
 
-from pipeline.infra.artifacts import Artifact
 from pipeline.infra.parquet import atomic_write
 from pipeline.rl.networks import make_network
 from pipeline.schemas import AgentConfig
@@ -116,13 +115,13 @@ def warm_start_params(agent: Any, obs_dim: int, action_dim: int) -> Any:
     return params
 
 
-def best_seed(artifact: Artifact) -> int:
-    """The seed with the lowest held-out median final distance in the artifact's last
-    evaluation during training (``evaluation.parquet``)."""
-    table = pd.read_parquet(artifact.file("evaluation.parquet"))
-    last = table.sort_values("evaluation").groupby("seed").last()
+def best_seed(evaluation: pd.DataFrame, source: str | Path) -> int:
+    """The seed with the lowest held-out median final distance in the last evaluation during
+    training of ``evaluation`` (a train_ppo artifact's ``evaluation.parquet`` table, read from
+    ``source``, which errors name)."""
+    last = evaluation.sort_values("evaluation").groupby("seed").last()
     medians = last["median_final_distance_m"]
     if not np.isfinite(medians).any():
-        raise ValueError(f"{artifact.file('evaluation.parquet')}: no finite held-out median per "
-                         f"seed; choose one with control.seed")
+        raise ValueError(f"{source}: no finite held-out median per seed; choose one with "
+                         f"control.seed")
     return int(medians.idxmin())

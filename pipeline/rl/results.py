@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.infra.artifacts import Artifact
 from pipeline.infra.parquet import table_metadata, write_parquet
 
 RETURN_UNIT = "sum over the episode of the reward (env=learned/sim: -distance in mm per period)"
@@ -93,12 +92,6 @@ def evaluation_tables(evaluation: dict[str, np.ndarray]) -> tuple[pd.DataFrame, 
     for name, values in last.items():
         episodes[name.removeprefix("episode_")] = values.reshape(-1)
     return summary, episodes
-
-
-def training_curves(artifact: Artifact) -> pd.DataFrame:
-    """Columns timesteps, seed, return: the training return curve of every seed
-    (:func:`return_curves`)."""
-    return return_curves(pd.read_parquet(artifact.file("metrics.parquet")))
 
 
 def plot_returns(path: Path, metrics: pd.DataFrame, evaluation: pd.DataFrame, title: str

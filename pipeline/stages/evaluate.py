@@ -34,19 +34,28 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
+from omegaconf import OmegaConf
 
 from pipeline import chain, keys
 from pipeline.dynamics.checkpoints import load_dynamics
-from pipeline.evaluation.closed_loop import run_evaluation
+from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, SimArm, run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
-from pipeline.evaluation.figures import make_figures
+from pipeline.evaluation.figures import FigureSettings, make_figures
 from pipeline.evaluation.report import write_report
-from pipeline.evaluation.sections import report_sections
+from pipeline.evaluation.sections import (
+    COLLECT_FIGURES,
+    MODEL_FIGURES,
+    ReportFacts,
+    report_sections,
+)
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
-from pipeline.rl.policy_io import best_seed
-from pipeline.schemas import EnvName
-from pipeline.stages._environment import config_environment
+from pipeline.infra.records import ArtifactRecord, artifact_record
+from pipeline.rl.envs.factory import sim_plant_params
+from pipeline.rl.policy_io import best_seed, load_policy
+from pipeline.rl.results import return_curves
+from pipeline.schemas import EnvName, RobotKind
+from pipeline.stages._environment import config_environment, env_settings
 
 log = logging.getLogger(__name__)
 STAGE = "evaluate"
@@ -76,23 +85,73 @@ def evaluate(cfg: Any) -> Artifact:
                   for name, artifact in other_models.items()}
         twins = {f"twin {name}": physics
                  for name, physics in spec["evaluation"].get("twins", {}).items()}
-        results = run_evaluation(cfg, policies, env, eval_params, models, twins)
+        results = run_evaluation(closed_loop_settings(cfg), _load_policies(policies), env,
+                                 eval_params, models, twins)
         if folds:
             _cross_model(folds, results)
         config = {"evaluation": spec["evaluation"], "env": spec["env"]}
         for name, frame in results["tables"].items():
             write_parquet(frame, writer.file(f"{name}.parquet"),
                           table_metadata(frame, name, config, {"stage": STAGE, "inputs": inputs}))
-        figures = make_figures(writer.path / "figures", cfg, policies, results)
-        sections = report_sections(cfg, policies, results, figures, **upstream,
-                                   evaluate_seconds=time.perf_counter() - started)
-        write_report(writer.path, f"sorolearn run: robot={cfg.robot.name}", sections)
+        _report(cfg, writer.path, policies, upstream, results, started)
         writer.summary = results["headline"]
         log.info("evaluate: %s", json.dumps(results["headline"]))
 
     artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)
     log.info("evaluate: report at %s", artifact.file("report.html"))
     return artifact
+
+
+def closed_loop_settings(cfg: Any) -> ClosedLoopSettings:
+    """The closed-loop evaluation's settings of ``cfg``: its evaluation, the env's episode
+    length, observation and shared parameters as the training env's, the robot's limits, and
+    the simulated arm as the plant for ``robot=sim`` with ``evaluation.plant``."""
+    evaluation = OmegaConf.to_object(cfg.evaluation)
+    sim = None
+    if RobotKind(cfg.robot.kind) is RobotKind.sim and evaluation.plant:
+        sim = SimArm(sim_plant_params(OmegaConf.to_object(cfg.robot)),
+                     float(cfg.robot.mocap.rate_hz),
+                     list(cfg.robot.physics.rest_pose_std_m))
+    return ClosedLoopSettings(
+        evaluation=evaluation, max_steps=int(cfg.env.max_steps),
+        model_hz=float(cfg.dataset.model_hz), limits=OmegaConf.to_object(cfg.robot.limits),
+        env=env_settings(cfg), sim=sim)
+
+
+def _load_policies(policies: dict[str, Artifact]) -> dict[str, Policy]:
+    """Each train_ppo artifact's policies (``policy.msgpack``, every seed) by policy type."""
+    return {name: Policy(*load_policy(artifact.file("policy.msgpack"))[:2])
+            for name, artifact in policies.items()}
+
+
+def _report(cfg: Any, folder: Path, policies: dict[str, Artifact],
+            upstream: dict[str, Artifact | None], results: dict[str, Any],
+            started: float) -> None:
+    """The figures and ``report.md`` / ``report.html`` into ``folder``, from ``results`` and
+    what the upstream artifacts and the policies' training recorded; ``started``: when the
+    evaluation began (``time.perf_counter``)."""
+    records = {name: artifact_record(artifact, tables=("metrics",))
+               for name, artifact in policies.items()}
+    curves = {name: return_curves(record.tables["metrics"]) for name, record in records.items()}
+    figures = make_figures(folder / "figures", FigureSettings(
+        max_steps=int(cfg.env.max_steps), control_hz=float(cfg.robot.control_hz),
+        goal_tolerance_m=float(cfg.env.goal_tolerance_m)), curves, results)
+    reads = {"collect": {"figures": tuple(COLLECT_FIGURES)}, "aligned": {},
+             "model": {"figures": MODEL_FIGURES, "tables": ("metrics",)}}
+    loaded: dict[str, ArtifactRecord | None] = {
+        name: None if artifact is None else artifact_record(artifact, **reads[name])
+        for name, artifact in upstream.items()}
+    facts = ReportFacts(
+        robot_name=str(cfg.robot.name), exploration_alpha=cfg.exploration.alpha,
+        exploration_beta=cfg.exploration.beta, p_max_kpa=cfg.exploration.p_max,
+        model_hidden=cfg.model.hidden, model_hz=cfg.dataset.model_hz,
+        policies=tuple(cfg.evaluation.policies), baselines=tuple(cfg.evaluation.baselines),
+        max_steps=int(cfg.env.max_steps),
+        num_consecutive_goals=int(cfg.evaluation.num_consecutive_goals),
+        config_yaml=OmegaConf.to_yaml(cfg, resolve=True))
+    sections = report_sections(facts, records, results, figures, **loaded,
+                               evaluate_seconds=time.perf_counter() - started)
+    write_report(folder, f"sorolearn run: robot={cfg.robot.name}", sections)
 
 
 def _cross_model_inputs(cfg: Any, store: ArtifactStore, inputs: dict[str, str]
@@ -122,10 +181,11 @@ def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> N
     for direction, fold in folds.items():
         env, _, eval_params = config_environment(fold["cfg"], fold["model"], fold["aligned"])
         other = load_dynamics(fold["other"].file("model.msgpack"))
-        rows = cross_model_episodes(fold["cfg"], fold["policies"], env, eval_params, other)
+        rows = cross_model_episodes(closed_loop_settings(fold["cfg"]),
+                                    _load_policies(fold["policies"]), env, eval_params, other)
         labels = {"direction": direction, "train_runs": "+".join(fold["cfg"].robot.files),
                   "test_runs": "+".join(fold["test_runs"])}
-        deployed = {name: best_seed(artifact) for name, artifact in fold["policies"].items()}
+        deployed = {name: _deployed_seed(artifact) for name, artifact in fold["policies"].items()}
         episodes.append(rows.assign(**labels))
         summaries.append(across_models(rows, deployed).assign(**labels))
     summary = pd.concat(summaries, ignore_index=True)
@@ -136,3 +196,10 @@ def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> N
             "median_final_mm": float(row.median_final_mm),
             "success_1mm": float(row.success_1mm), "success_3mm": float(row.success_3mm),
             "held_arrivals": float(row.held_arrivals)}
+
+
+def _deployed_seed(policy: Artifact) -> int:
+    """The seed ``stage=control`` drives the arm with: the best in the training's last held-out
+    evaluation (``evaluation.parquet``)."""
+    path = policy.file("evaluation.parquet")
+    return best_seed(pd.read_parquet(path), path)

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.data.alignment import runs_at_model_rate
@@ -184,7 +185,8 @@ def write_losses(cfg: Any, writer, losses: pd.DataFrame, spec: dict, inputs: dic
     write_parquet(losses, writer.file("losses.parquet"), table_metadata(
         losses, "losses", config, provenance,
         {"train_loss": "normalized MSE", "val_loss": "normalized MSE", "step": "step"}))
-    with tracking(cfg, STAGE) as tracker:
+    with tracking(OmegaConf.to_object(cfg.logger), Path(cfg.paths.output_dir), STAGE,
+                  OmegaConf.to_container(cfg, resolve=True)) as tracker:
         tracker.log_table(losses)
     return config, provenance
 

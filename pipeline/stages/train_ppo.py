@@ -28,9 +28,11 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
@@ -89,7 +91,8 @@ def train_ppo(cfg: Any) -> Artifact:
         })
         plot_returns(writer.file("figures/returns.png"), metrics, summary,
                      f"{agent.name} on {env.name}")
-        with tracking(cfg, STAGE) as tracker:
+        with tracking(OmegaConf.to_object(cfg.logger), Path(cfg.paths.output_dir), STAGE,
+                      OmegaConf.to_container(cfg, resolve=True)) as tracker:
             per_update = metrics.drop(columns=["seed"]).groupby("update").mean()
             tracker.log_table(per_update.reset_index().rename(columns={"update": "step"}))
 

@@ -11,6 +11,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from pipeline.arm.limits import UnsafeCommandError
+from pipeline.config import Ros2RobotConfig
 from pipeline.ros2.collector import ArmFault, ClockCheck, Session
 from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.guard import Deadman, GuardNode
@@ -40,7 +41,8 @@ def robot_config(**overrides):
         "guard": {"output_topic": "/control_pressure/guarded", "node_name": "sorolearn_guard",
                   "handshake_topic": "/sorolearn/arm_handshake", "max_duration_s": None},
     }
-    return OmegaConf.create({**values, **overrides})
+    schema = OmegaConf.structured(Ros2RobotConfig)
+    return OmegaConf.to_object(OmegaConf.merge(schema, {**values, **overrides}))
 
 
 # ---- collect's loop on a fake link -----------------------------------------------------------

@@ -221,6 +221,19 @@ def _loop(cfg, deployment, arm_factory, tmp_path):
     return ControlLoop(deployment, schedule, gate, arm, recorder, settings).run(), arm
 
 
+def test_loop_settings_take_the_watchdog_and_missed_periods_of_a_ros2_robot_only():
+    from pipeline.config import Ros2RobotConfig, SimRobotConfig
+
+    control_settings = ControlConfig(max_pose_jump_mm=15.0, workspace_margin_mm=1.0,
+                                     flush_every_s=3.0)
+    ros = LoopSettings.of(Ros2RobotConfig(control_hz=4.0, watchdog_s=0.3, max_missed_periods=1),
+                          control_settings)
+    assert ros == LoopSettings(control_hz=4.0, watchdog_s=0.3, max_missed_periods=1,
+                               max_pose_jump_mm=15.0, workspace_margin_mm=1.0, flush_every_s=3.0)
+    sim = LoopSettings.of(SimRobotConfig(control_hz=2.0), control_settings)
+    assert sim.watchdog_s is None and sim.max_missed_periods == 2 and sim.control_hz == 2.0
+
+
 class Faulty:
     """The simulated arm with a fault from arm time ``at`` on: ``kind`` jump | silent | error."""
 

@@ -29,7 +29,7 @@ import pandas as pd
 
 from pipeline.config import compose, register_configs
 from pipeline.control.results import latency_summary
-from pipeline.control.session import control
+from pipeline.stages.control import control, load_deployment
 
 POLICIES = {"ppo_ff": "ff", "ppo_rnn": "rnn"}
 
@@ -55,7 +55,6 @@ def measure(policy: str, periods: int, policy_file: str | None, ros: bool, out: 
                        f"control.policy_file={policy_file}",
                        *(["robot=ros2", "robot.rehearsal=true"] if ros else []))
     if goals is None:  # a trained policy: goals from its own workspace
-        from pipeline.control.policy import load_deployment
         from pipeline.infra.artifacts import ArtifactStore
 
         deployment = load_deployment(run_cfg, ArtifactStore(run_cfg.paths.artifact_dir))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -9,17 +11,18 @@ from omegaconf import OmegaConf
 
 from pipeline.arm.safety import SafeSet
 from pipeline.control.goals import GoalError, goal_schedule, workspace_problem
-from pipeline.control.loop import ControlLoop, SimArm
-from pipeline.control.policy import load_deployment
+from pipeline.control.loop import ControlLoop, LoopSettings, SimArm
 from pipeline.control.records import GOAL_COLUMNS, PeriodRecorder
 from pipeline.control.results import goal_metrics
-from pipeline.control.session import ControlInterrupted, control
+from pipeline.control.session import ControlInterrupted
 from pipeline.data.schemas import CMD_COLUMNS
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.keys import key
 from pipeline.rl.envs.learned import EnvState
 from pipeline.rl.envs.observation import observe
 from pipeline.ros2.gate import CommandGate
+from pipeline.schemas import ControlConfig
+from pipeline.stages.control import control, load_deployment
 from tests.conftest import compose_config
 from tests.control_fixtures import SMALL, goals_mm, write_policy
 
@@ -75,9 +78,7 @@ def test_a_goal_outside_the_workspace_is_refused_saying_by_how_much():
 
 def test_goal_schedules(tmp_path):
     def control_cfg(**values):
-        base = {"goals": [], "goals_csv": None, "goal_topic": None, "duration_s": None,
-                "hold_s": 2.0, "workspace_margin_mm": 2.0}
-        return OmegaConf.create({**base, **values})
+        return ControlConfig(**{"hold_s": 2.0, "workspace_margin_mm": 2.0, **values})
 
     schedule = goal_schedule(control_cfg(goals=[[30, 352, 200], [40, 353, 210]]), 2.0, WORKSPACE)
     assert schedule.end == 8 and schedule.goal(0)[0] == 0 and schedule.goal(4)[0] == 1
@@ -210,13 +211,27 @@ def test_the_arm_accumulates_the_error_as_the_environment_does(tmp_path):
 
 
 def _loop(cfg, deployment, arm_factory, tmp_path):
-    schedule = goal_schedule(cfg.control, deployment.control_hz, deployment.workspace_m)
-    gate = CommandGate(cfg.robot.limits, 3)
-    arm = arm_factory(SimArm(cfg.robot, 0, gate))
+    robot, control_settings = OmegaConf.to_object(cfg.robot), OmegaConf.to_object(cfg.control)
+    schedule = goal_schedule(control_settings, deployment.control_hz, deployment.workspace_m)
+    gate = CommandGate(robot.limits, 3)
+    arm = arm_factory(SimArm(robot, 0, gate))
     recorder = PeriodRecorder(tmp_path / "chunks", deployment.env.obs_dim, {}, {})
-    # robot=sim has no watchdog setting; the loop reads it where the robot has one
-    robot = OmegaConf.create({**OmegaConf.to_container(cfg.robot), "watchdog_s": 0.2})
-    return ControlLoop(deployment, schedule, gate, arm, recorder, cfg.control, robot).run(), arm
+    # robot=sim has no watchdog setting; the loop takes one where the robot has one
+    settings = dataclasses.replace(LoopSettings.of(robot, control_settings), watchdog_s=0.2)
+    return ControlLoop(deployment, schedule, gate, arm, recorder, settings).run(), arm
+
+
+def test_loop_settings_take_the_watchdog_and_missed_periods_of_a_ros2_robot_only():
+    from pipeline.schemas import Ros2RobotConfig, SimRobotConfig
+
+    control_settings = ControlConfig(max_pose_jump_mm=15.0, workspace_margin_mm=1.0,
+                                     flush_every_s=3.0)
+    ros = LoopSettings.of(Ros2RobotConfig(control_hz=4.0, watchdog_s=0.3, max_missed_periods=1),
+                          control_settings)
+    assert ros == LoopSettings(control_hz=4.0, watchdog_s=0.3, max_missed_periods=1,
+                               max_pose_jump_mm=15.0, workspace_margin_mm=1.0, flush_every_s=3.0)
+    sim = LoopSettings.of(SimRobotConfig(control_hz=2.0), control_settings)
+    assert sim.watchdog_s is None and sim.max_missed_periods == 2 and sim.control_hz == 2.0
 
 
 class Faulty:

@@ -10,21 +10,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
 from pipeline.control.goals import GoalSchedule
-from pipeline.control.loop import ControlFault, ControlLoop
+from pipeline.control.loop import ControlFault, ControlLoop, LoopSettings
 from pipeline.control.records import PeriodRecorder
 from pipeline.ros2.gate import CommandGate
+from pipeline.schemas import PressureLimits
 
 PERIOD_S = 0.5
 FRAME_S = 0.01
 PRELOAD = [2.0, 2.0, 2.0]
-LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
-ROBOT = OmegaConf.create({"control_hz": 1 / PERIOD_S, "watchdog_s": 0.5,
-                          "max_missed_periods": 2})
-CONTROL = OmegaConf.create({"max_pose_jump_mm": 20.0, "workspace_margin_mm": 2.0,
-                            "flush_every_s": 1e6})
+LIMITS = PressureLimits(p_min=0.0, p_max=7.0, sum_max=13.0, preload=2.0)
+SETTINGS = LoopSettings(control_hz=1 / PERIOD_S, watchdog_s=0.5, max_missed_periods=2,
+                        max_pose_jump_mm=20.0, workspace_margin_mm=2.0, flush_every_s=1e6)
 STEP = np.array([0.5, 0.0, -0.5])
 
 
@@ -109,7 +107,7 @@ def run(tmp_path, arm, periods: int = 10, policy=None):
     schedule = GoalSchedule(np.array([[0.03, 0.35, 0.2]]), np.array([0]), periods, "test")
     recorder = PeriodRecorder(tmp_path / "rec", 4, {}, {})
     gate = CommandGate(LIMITS, 3, LIMITS)
-    loop = ControlLoop(policy or StepPolicy(), schedule, gate, arm, recorder, CONTROL, ROBOT)
+    loop = ControlLoop(policy or StepPolicy(), schedule, gate, arm, recorder, SETTINGS)
     return loop.run(), recorder
 
 
@@ -212,7 +210,7 @@ def test_a_failing_stop_still_flushes_the_records(tmp_path):
     schedule = GoalSchedule(np.array([[0.03, 0.35, 0.2]]), np.array([0]), 4, "test")
     recorder = PeriodRecorder(tmp_path / "rec", 4, {}, {})
     loop = ControlLoop(StepPolicy(), schedule, CommandGate(LIMITS, 3, LIMITS), arm, recorder,
-                       CONTROL, ROBOT)
+                       SETTINGS)
     with pytest.raises(RuntimeError, match="the middleware is gone"):
         loop.run()
     assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["periods-00000.parquet"]
@@ -227,7 +225,7 @@ def test_the_float64_check_refuses_inside_the_publish_path(tmp_path, monkeypatch
     monkeypatch.setattr(gate, "project", lambda p: np.asarray(p, np.float64) + np.array([3.0, 0, 0]))
     schedule = GoalSchedule(np.array([[0.03, 0.35, 0.2]]), np.array([0]), 10, "test")
     recorder = PeriodRecorder(tmp_path / "rec", 4, {}, {})
-    outcome = ControlLoop(StepPolicy(), schedule, gate, arm, recorder, CONTROL, ROBOT).run()
+    outcome = ControlLoop(StepPolicy(), schedule, gate, arm, recorder, SETTINGS).run()
     # 2 + 0.5 + 3 = 5.5 kPa goes out; then 5.5 + 0.5 + 3 = 9 kPa is refused, the preload follows
     assert ("UnsafeCommandError: refusing pressure command [9.0, 2.0, 1.0] kPa outside the arm's "
             "rating") in outcome.reason

@@ -16,9 +16,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.control.session import control
 from pipeline.data.schemas import CMD_COLUMNS
 from pipeline.infra.artifacts import ArtifactStore
+from pipeline.stages.control import control
 from tests.conftest import compose_config
 from tests.control_fixtures import SMALL, goals_mm, write_policy
 from tests.ros_required import require_ros

@@ -48,8 +48,8 @@ def test_the_deployed_seed_is_the_best_in_the_last_evaluation():
 
 
 def test_in_models_only_keeps_the_preload_and_drops_plant_and_consecutive_goals():
-    from pipeline.schemas import EvaluationConfig
     from pipeline.evaluation.closed_loop import ClosedLoopSettings, SimArm
+    from pipeline.schemas import EvaluationConfig
 
     settings = ClosedLoopSettings(
         evaluation=EvaluationConfig(models=["m"], num_episodes=7), max_steps=40, model_hz=10.0,

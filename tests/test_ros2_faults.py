@@ -17,6 +17,7 @@ from pipeline.ros2.guard import Deadman, GuardNode
 from pipeline.ros2.handshake import answer_of, handshake_problem
 from pipeline.ros2.node import ArmRefused
 from pipeline.ros2.recorder import ChunkedRecorder
+from pipeline.schemas import Ros2RobotConfig
 from tests.ros_required import require_ros
 
 require_ros("std_msgs")
@@ -40,7 +41,8 @@ def robot_config(**overrides):
         "guard": {"output_topic": "/control_pressure/guarded", "node_name": "sorolearn_guard",
                   "handshake_topic": "/sorolearn/arm_handshake", "max_duration_s": None},
     }
-    return OmegaConf.create({**values, **overrides})
+    schema = OmegaConf.structured(Ros2RobotConfig)
+    return OmegaConf.to_object(OmegaConf.merge(schema, {**values, **overrides}))
 
 
 # ---- collect's loop on a fake link -----------------------------------------------------------

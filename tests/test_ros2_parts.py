@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import pytest
+from omegaconf import OmegaConf
 
 from pipeline.arm import sim_arm
 from pipeline.chain import CHAIN, STAGES
@@ -26,10 +27,12 @@ from pipeline.stages.collect import STAGE, _set_aside_incomplete
 from pipeline.stages.twin import twin
 
 
-def test_without_rclpy_ros2_and_twin_fail_with_the_install_hint(monkeypatch, make_cfg):
+def test_without_rclpy_ros2_and_twin_fail_with_the_install_hint(monkeypatch, make_cfg,
+                                                                tmp_path):
     monkeypatch.setitem(sys.modules, "rclpy", None)  # import rclpy -> ImportError
     cfg = make_cfg("robot=ros2")
-    for attempt in (lambda: collect_ros2(cfg, None, {}), lambda: twin(cfg)):
+    robot, exploration = OmegaConf.to_object(cfg.robot), OmegaConf.to_object(cfg.exploration)
+    for attempt in (lambda: collect_ros2(robot, exploration, tmp_path, {}), lambda: twin(cfg)):
         with pytest.raises(RosUnavailableError) as err:
             attempt()
         message = str(err.value)

@@ -7,8 +7,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.schemas import LoggerConfig
 from pipeline.infra.tracking import Tracker, tracking
+from pipeline.schemas import LoggerConfig
 
 
 def test_tracking_is_a_no_op_by_default(tmp_path):

@@ -82,3 +82,18 @@ def test_a_twin_starts_where_the_learned_env_starts_observed_like_it(make_cfg):
         _, state, *_ = twin_env.step(jax.random.PRNGKey(3), state, jnp.array([1.0, -1.0, -1.0]),
                                      twin)
     assert 0.002 < float(jnp.linalg.norm(state.position - start)) < 0.05
+
+
+def test_a_twins_physics_are_typed_as_the_schema_and_bad_values_name_the_field(tmp_path):
+    folder = tmp_path / "fitted"
+    folder.mkdir()
+    (folder / "physics.json").write_text(json.dumps(
+        {"physics": {"bend_gain": 1, "chamber_gains": [1, 2, 3.5], "substeps": 4}}))
+    physics = twin_physics(str(folder), tmp_path / "artifacts")
+    assert physics["bend_gain"] == 1.0 and isinstance(physics["bend_gain"], float)
+    assert physics["chamber_gains"] == [1.0, 2.0, 3.5]
+    assert all(isinstance(v, float) for v in physics["chamber_gains"])
+    assert physics["substeps"] == 4 and isinstance(physics["substeps"], int)
+    (folder / "physics.json").write_text(json.dumps({"physics": {"substeps": 2.5}}))
+    with pytest.raises(ConfigError, match=r"fitted'\.substeps: expected int, got 2\.5"):
+        twin_physics(str(folder), tmp_path / "artifacts")

@@ -92,10 +92,10 @@ class SimParams:
     def from_config(cls, robot: Any) -> SimParams:
         """The parameters of ``robot.physics`` (:class:`pipeline.schemas.SimPhysics`) and
         ``robot.mocap`` (:class:`pipeline.schemas.MocapConfig`)."""
-        mocap = robot.mocap
+        mocap, physics = robot.mocap, robot.physics
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-        values = {k: _plain(getattr(robot.physics, k)) for k in PHYSICS_VALUES}
-        spread = getattr(robot.physics, "session_std", None) or {}
+        values = {k: _plain(getattr(physics, k)) for k in PHYSICS_VALUES}
+        spread = getattr(physics, "session_std", None) or {}  # plain values may have none
         return cls(
             **physics_fields(values),
             session_std=session_spread(values, {k: _plain(v) for k, v in spread.items()}),
@@ -104,7 +104,7 @@ class SimParams:
             drop_prob=f32(mocap.drop_prob),
             burst_prob=f32(mocap.burst_prob),
             mocap_hz=float(mocap.rate_hz),
-            substeps=int(robot.physics.substeps),
+            substeps=int(physics.substeps),
             burst_len=int(mocap.burst_len),
         )
 

@@ -11,18 +11,21 @@ default motion-capture rate.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
+import yaml
 
 from pipeline.config import PROJECT_ROOT
 from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
-from pipeline.schemas import ConfigError, MocapConfig, SimPhysics
+from pipeline.schemas import ConfigError, MocapConfig, SimPhysics, SimRobotConfig
 
 CALIBRATE_STAGE = "calibrate"
 ROBOT_CONFIGS = PROJECT_ROOT / "conf" / "robot"
+# SimPhysics field -> its type as declared ("float", "list[float]", "int", "dict[str, Any]")
+PHYSICS_TYPES = {f.name: str(f.type) for f in dataclasses.fields(SimPhysics)}
 
 
 def load_physics(source: str, artifact_dir: str | Path, setting: str = "robot.physics_from"
@@ -47,17 +50,38 @@ def robot_config_physics(name: str) -> dict[str, Any] | None:
     path = ROBOT_CONFIGS / f"{name}.yaml"
     if "/" in name or not path.is_file():
         return None
-    physics = OmegaConf.load(path).get("physics")
+    physics = (yaml.safe_load(path.read_text()) or {}).get("physics")
     if physics is None:
         raise ConfigError(f"conf/robot/{name}.yaml has no physics: a twin needs a simulated "
                           f"robot config (e.g. sim, sim_sorolex) or a calibrate artifact")
-    return _nominal(physics)
+    return _nominal(physics, f"conf/robot/{name}.yaml physics")
 
 
-def _nominal(values: Any) -> dict[str, Any]:
-    """``values`` (SimPhysics fields) over the schema's defaults, without a per-session spread."""
-    merged = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(SimPhysics), values),
-                                    resolve=True)
+def _typed(value: Any, kind: str, what: str) -> Any:
+    """``value`` as a SimPhysics field of type ``kind`` holds it (numbers as floats where the
+    field is a float, as the structured config makes them); an error naming ``what``."""
+    try:
+        if kind == "float":
+            return float(value)
+        if kind == "int":
+            if float(value) != int(value):
+                raise ValueError(f"{value!r} is not a whole number")
+            return int(value)
+        if kind == "list[float]":
+            return [float(v) for v in value]
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{what}: expected {kind}, got {value!r} ({err})") from err
+    return value
+
+
+def _nominal(values: dict[str, Any], what: str) -> dict[str, Any]:
+    """``values`` (SimPhysics fields) over the schema's defaults, without a per-session spread;
+    an error naming ``what`` for a field that SimPhysics lacks or a value of the wrong type."""
+    unknown = sorted(set(values) - set(PHYSICS_TYPES))
+    if unknown:
+        raise ConfigError(f"{what}: {unknown} are not SimPhysics fields of this version")
+    merged = {**dataclasses.asdict(SimPhysics()), **values}
+    merged = {k: _typed(v, PHYSICS_TYPES[k], f"{what}.{k}") for k, v in merged.items()}
     merged["session_std"] = {}
     return merged
 
@@ -70,12 +94,11 @@ def twin_physics(entry: str, artifact_dir: str | Path, setting: str = "evaluatio
     if from_config is not None:
         return from_config
     fitted = load_physics(str(entry), artifact_dir, setting=setting)
-    known = set(OmegaConf.structured(SimPhysics).keys())
-    unknown = sorted(set(fitted) - known)
+    unknown = sorted(set(fitted) - set(PHYSICS_TYPES))
     if unknown:
         raise ConfigError(f"{setting}: {entry!r} has parameters {unknown} that are not "
                           f"SimPhysics fields of this version")
-    return _nominal(fitted)
+    return _nominal(fitted, f"{setting}: {entry!r}")
 
 
 def twin_sim_params(physics: dict[str, Any]) -> Any:
@@ -84,6 +107,5 @@ def twin_sim_params(physics: dict[str, Any]) -> Any:
     (:class:`~pipeline.schemas.MocapConfig`)."""
     from pipeline.arm import sim_arm  # JAX only where a twin is simulated, not to find one
 
-    robot = OmegaConf.create({"physics": physics,
-                              "mocap": OmegaConf.structured(MocapConfig)})
+    robot = SimRobotConfig(physics=SimPhysics(**physics), mocap=MocapConfig())
     return sim_arm.SimParams.from_config(robot)

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.schemas import ControlConfig
+
 MM_PER_M = 1000.0
 
 
@@ -86,10 +88,13 @@ def read_waypoints(path: Path) -> pd.DataFrame:
     return table
 
 
-def goal_schedule(control: Any, control_hz: float, workspace_m: np.ndarray) -> GoalSchedule:
+def goal_schedule(control: ControlConfig, control_hz: float, workspace_m: np.ndarray
+                  ) -> GoalSchedule:
     """The schedule of ``control.goals`` / ``control.goals_csv`` / ``control.goal_topic`` (exactly
     one), every goal checked against the workspace."""
-    given = [name for name in ("goals", "goals_csv", "goal_topic") if control.get(name)]
+    sources = {"goals": control.goals, "goals_csv": control.goals_csv,
+               "goal_topic": control.goal_topic}
+    given = [name for name, value in sources.items() if value]
     if len(given) != 1:
         raise GoalError(f"stage=control needs exactly one of control.goals (a list of [x, y, z] mm), "
                         f"control.goals_csv (t,x,y,z) or control.goal_topic; got {given or 'none'}")

@@ -1,6 +1,6 @@
 """The control loop of ``stage=control``: one implementation for every arm.
 
-Each control period ``k`` (``1 / robot.control_hz`` arm seconds):
+Each control period ``k`` (``1 / robot.control_hz`` arm seconds; the settings: :class:`LoopSettings`):
 
 1. wait until the period's tick, taking every pose frame that arrives (a jump above
    ``control.max_pose_jump_mm`` between consecutive frames stops the session);
@@ -35,13 +35,19 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
-from omegaconf import OmegaConf
 
 from pipeline.control.goals import GoalSchedule, workspace_problem
 from pipeline.control.policy import MM_PER_M, Deployment
 from pipeline.control.records import PeriodRecorder
 from pipeline.infra.stalls import MissedPeriods
 from pipeline.ros2.gate import CommandGate
+from pipeline.schemas import (
+    ControlConfig,
+    RobotConfig,
+    Ros2RobotConfig,
+    SimRobotConfig,
+    TwinConfig,
+)
 
 log = logging.getLogger(__name__)
 
@@ -89,18 +95,43 @@ class Outcome:
     holds: int = 0  # periods that held the last command (after a stall, for a fresh pose)
 
 
+@dataclass(frozen=True)
+class LoopSettings:
+    """What the loop needs of the robot and ``control`` settings (see :meth:`of`)."""
+
+    control_hz: float  # periods per arm second
+    watchdog_s: float | None  # arm s: the oldest pose a period may act on (None: no watchdog)
+    max_missed_periods: int  # periods late in a row before the preload and a ControlFault
+    max_pose_jump_mm: float  # between consecutive frames: the preload and a ControlFault
+    workspace_margin_mm: float  # live goals this far outside the training goals' box are allowed
+    flush_every_s: float  # wall: rows written to Parquet chunks this often
+
+    @classmethod
+    def of(cls, robot: RobotConfig, control: ControlConfig) -> LoopSettings:
+        """The settings of ``robot`` and ``control``: the watchdog and the missed periods of a
+        ROS 2 robot (``robot.watchdog_s``, ``robot.max_missed_periods``); the simulated arm, in
+        simulated time, has no watchdog and is never late (the ROS 2 robot's default bound)."""
+        if isinstance(robot, Ros2RobotConfig):
+            watchdog_s, max_missed = float(robot.watchdog_s), int(robot.max_missed_periods)
+        else:
+            watchdog_s, max_missed = None, int(Ros2RobotConfig.max_missed_periods)
+        return cls(float(robot.control_hz), watchdog_s, max_missed,
+                   float(control.max_pose_jump_mm), float(control.workspace_margin_mm),
+                   float(control.flush_every_s))
+
+
 class ControlLoop:
     def __init__(self, deployment: Deployment, schedule: GoalSchedule, gate: CommandGate,
-                 arm: Arm, recorder: PeriodRecorder, control: Any, robot: Any):
+                 arm: Arm, recorder: PeriodRecorder, settings: LoopSettings):
         self.deployment, self.schedule, self.gate, self.arm = deployment, schedule, gate, arm
         self.recorder = recorder
-        self.period_s = 1.0 / float(robot.control_hz)
-        watchdog = robot.get("watchdog_s")
+        self.period_s = 1.0 / float(settings.control_hz)
+        watchdog = settings.watchdog_s
         self.watchdog_s = None if watchdog is None else float(watchdog)
-        self.max_jump_m = float(control.max_pose_jump_mm) / MM_PER_M
-        self.margin_mm = float(control.workspace_margin_mm)
-        self.flush_every_s = float(control.flush_every_s)
-        self.missed = MissedPeriods(self.period_s, int(robot.get("max_missed_periods", 2)))
+        self.max_jump_m = float(settings.max_pose_jump_mm) / MM_PER_M
+        self.margin_mm = float(settings.workspace_margin_mm)
+        self.flush_every_s = float(settings.flush_every_s)
+        self.missed = MissedPeriods(self.period_s, int(settings.max_missed_periods))
         self.holds = 0
         self._fresh_after: float | None = None  # a pose stamped after this, before acting again
         self._latest: Frame | None = None
@@ -286,11 +317,10 @@ class SimArm:
     polled each frame.
     """
 
-    def __init__(self, robot: Any, seed: int, gate: CommandGate, signals: Any = None):
+    def __init__(self, robot: SimRobotConfig, seed: int, gate: CommandGate, signals: Any = None):
         from pipeline.ros2.twin import ArmSimulator  # no ROS: only the simulator
 
-        settings = OmegaConf.create({"physics": robot.physics, "mocap": robot.mocap,
-                                     "seed": int(seed)})
+        settings = TwinConfig(seed=int(seed), physics=robot.physics, mocap=robot.mocap)
         self.simulator = ArmSimulator(settings, float(robot.limits.preload), int(robot.n_valves))
         self.frame_s = 1.0 / float(robot.mocap.rate_hz)
         self.gate, self.signals = gate, signals

@@ -21,6 +21,7 @@ from pipeline.control.loop import Frame, Stop
 from pipeline.data.ros_messages import NS_PER_S, message_class
 from pipeline.ros2.collector import ArmLink, Session
 from pipeline.ros2.gate import CommandGate
+from pipeline.schemas import Ros2RobotConfig
 
 log = logging.getLogger(__name__)
 _SPIN_SLICE_S = 0.002  # wall: longest wait inside the executor
@@ -28,8 +29,8 @@ MAX_QUEUED_GOALS = 8  # live goals kept between two periods (the oldest dropped 
 
 
 class RosArm:
-    def __init__(self, node: Any, executor: Any, robot: Any, control: Any, gate: CommandGate,
-                 signals: Any):
+    def __init__(self, node: Any, executor: Any, robot: Ros2RobotConfig, goal_topic: str | None,
+                 gate: CommandGate, signals: Any):
         self.link = ArmLink(node, executor, robot)
         self.session = Session(robot, self.link, gate, None, signals)
         self.robot, self.signals = robot, signals
@@ -37,11 +38,11 @@ class RosArm:
         self.watchdog_wall_s = float(robot.watchdog_s) / self.scale
         self._t0_ns = 0
         self._goals: list[np.ndarray] = []
-        if control.goal_topic:
+        if goal_topic:
             from rclpy.qos import QoSProfile
 
             node.create_subscription(message_class("geometry_msgs/msg/PointStamped"),
-                                     str(control.goal_topic), self._on_goal, QoSProfile(depth=10))
+                                     str(goal_topic), self._on_goal, QoSProfile(depth=10))
 
     def _on_goal(self, message: Any) -> None:
         point = message.point

@@ -1,6 +1,7 @@
-"""The raw streams of a collection (``commands``, ``mocap``, ``runs``) as a ``collect`` artifact.
+"""The raw streams of a collection (``commands``, ``mocap``, ``runs``): checks, counts, a figure.
 
-One writer for every robot: the simulated arm, imported recordings and a ROS 2 session.
+The same for every robot: the simulated arm, imported recordings and a ROS 2 session; the
+``collect`` stage writes them into its artifact.
 """
 
 from __future__ import annotations
@@ -11,16 +12,8 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.data.schemas import (
-    CMD_COLUMNS,
-    COMMANDS,
-    MOCAP,
-    RUNS,
-    XYZ,
-    check_workspace,
-    write_table,
-)
-from pipeline.infra.artifacts import ArtifactWriter
+from pipeline.data.schemas import CMD_COLUMNS, XYZ, check_workspace
+from pipeline.schemas import WorkspaceConfig
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
@@ -30,25 +23,26 @@ class CollectionInterrupted(RuntimeError):
     """A recording was cut short; what was recorded is in an artifact, marked incomplete."""
 
 
-def write_raw(writer: ArtifactWriter, cfg: Any, spec: dict[str, Any], commands: pd.DataFrame,
-               mocap: pd.DataFrame, runs: pd.DataFrame) -> None:
-    """Write the three tables and a figure; the positions must lie in ``robot.workspace``."""
+def check_positions(mocap: pd.DataFrame, runs: pd.DataFrame, workspace: WorkspaceConfig) -> None:
+    """The valid positions of every run must lie in ``workspace`` (the robot's box, m); an error
+    names the run and its source."""
     sources = dict(zip(runs["run_id"], runs["source"]))
     for run_id, run in mocap.groupby("run_id", sort=False):
-        check_workspace(run[run["valid"].astype(bool)], cfg.robot.workspace,
+        check_workspace(run[run["valid"].astype(bool)], workspace,
                         f"run {run_id} ({sources.get(run_id, 'unknown source')})")
-    provenance = {"stage": STAGE, "robot": cfg.robot.name}
-    write_table(commands, writer.file("commands.parquet"), COMMANDS, spec, provenance)
-    write_table(mocap, writer.file("mocap.parquet"), MOCAP, spec, provenance)
-    write_table(runs, writer.file("runs.parquet"), RUNS, spec, provenance)
-    plot_runs(writer.file("figures/runs.png"), commands, mocap)
-    writer.summary = {
+
+
+def raw_summary(commands: pd.DataFrame, mocap: pd.DataFrame, runs: pd.DataFrame
+                ) -> dict[str, Any]:
+    """The counts of a collection for its manifest (and the log)."""
+    summary = {
         "runs": len(runs), "commands": len(commands), "frames": len(mocap),
         "dropped_frames": int((~mocap["valid"]).sum()),
         "incomplete_runs": runs.loc[~runs["complete"], "run_id"].tolist(),
     }
     log.info("collect: %d runs, %d commands, %d mocap frames (%d dropped)", len(runs),
-             len(commands), len(mocap), writer.summary["dropped_frames"])
+             len(commands), len(mocap), summary["dropped_frames"])
+    return summary
 
 
 def plot_runs(path: Path, commands: pd.DataFrame, mocap: pd.DataFrame) -> Path:

@@ -38,7 +38,7 @@ def _check_clocks(source: str, robot: Any, offsets_ns: np.ndarray) -> None:
     if not offsets_ns.size:
         return
     best = float(np.percentile(offsets_ns, 5)) / NS_PER_S
-    bound = float(robot.get("max_clock_offset_s", 0.25))
+    bound = float(robot.max_clock_offset_s)
     if best < -CLOCK_TOLERANCE_S:
         raise DataError(source, f"poses on {robot.pose_topic} are logged {-best:.3f} s before "
                         f"their header stamps (5th percentile): the motion capture's clock runs "

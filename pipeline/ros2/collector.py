@@ -15,16 +15,16 @@ watchdog sees no pose for ``robot.watchdog_s`` and at the end, the preload is pu
 delivery awaited (``robot.stop_timeout_s``) before the node is destroyed.
 
 Nothing recorded is lost: rows go to Parquet chunks (:class:`pipeline.ros2.recorder.
-ChunkedRecorder`) every ``robot.flush_every_s`` and at the end of each run, in
-``<paths.output_dir>/recovery/collect-<key>-<time>/``. The artifact is assembled from the chunks;
-an interrupted session still fills it (the cut run with ``complete = False``) and returns an
-:class:`Interruption`, which ``collect`` turns into a non-zero exit. The recovery folder is removed
-once the artifact holds the data; after a hard kill (SIGKILL, power loss) it is what remains.
+ChunkedRecorder`) every ``robot.flush_every_s`` and at the end of each run, in the recovery
+folder the stage names (``<paths.output_dir>/recovery/collect-<key>-<time>/``). The tables are
+read back from the chunks (:class:`RosCollection`); an interrupted session still returns them (the
+cut run with ``complete = False``) with an :class:`Interruption`, which ``collect`` writes and then
+turns into a non-zero exit. The stage removes the recovery folder once the artifact holds the
+data; after a hard kill (SIGKILL, power loss) it is what remains.
 """
 
 from __future__ import annotations
 
-import datetime as _dt
 import logging
 import shutil
 import time
@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.arm.exploration import exploration_plan, plot_walks
-from pipeline.data.raw import STAGE, CollectionInterrupted, write_raw
+from pipeline.arm.exploration import exploration_plan
+from pipeline.data.raw import STAGE, CollectionInterrupted
 from pipeline.data.ros_messages import (
     NS_PER_S,
     is_finite,
@@ -46,7 +46,6 @@ from pipeline.data.ros_messages import (
     read_stamp_ns,
     write_pressures,
 )
-from pipeline.infra.artifacts import ArtifactWriter
 from pipeline.infra.stalls import MissedPeriods
 from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.handshake import HandshakeListener, handshake_problem
@@ -59,6 +58,7 @@ from pipeline.ros2.node import (
     ros_node,
 )
 from pipeline.ros2.recorder import ChunkedRecorder
+from pipeline.schemas import ExplorationConfig, Ros2RobotConfig
 
 log = logging.getLogger(__name__)
 _SPIN_SLICE_S = 0.005  # wall: longest wait inside the executor, so stops and deadlines are seen
@@ -144,7 +144,7 @@ class LinkStats:
 class ArmLink:
     """The collect node's command publisher and pose subscriber."""
 
-    def __init__(self, node: Any, executor: Any, robot: Any):
+    def __init__(self, node: Any, executor: Any, robot: Ros2RobotConfig):
         self._node, self._executor, self._robot = node, executor, robot
         # plain strings: a config node read per pose would cost more than the pose itself
         self._command_field = str(robot.command_field)
@@ -229,7 +229,8 @@ class ArmLink:
 class Session:
     """One collect session on the arm: runs played out, streams recorded, a safe stop."""
 
-    def __init__(self, robot: Any, link: ArmLink, gate: CommandGate, recorder: ChunkedRecorder,
+    def __init__(self, robot: Ros2RobotConfig, link: ArmLink, gate: CommandGate,
+                 recorder: ChunkedRecorder | None,
                  signals: StopSignals, clock: Callable[[], float] = time.monotonic):
         self.robot, self.link, self.gate, self.recorder = robot, link, gate, recorder
         self.signals = signals
@@ -285,7 +286,7 @@ class Session:
         domain = arm_domain(robot)
         where = (f"ROS domain {domain}" if domain is not None
                  else "the ROS domain of ROS_DOMAIN_ID")
-        if bool(robot.get("rehearsal", False)):
+        if robot.rehearsal:
             hint = (f"is the digital twin (`python -m pipeline stage=twin robot=ros2`) running? "
                     f"Rehearsals run on robot.rehearsal_domain_id={robot.rehearsal_domain_id}")
         else:
@@ -508,17 +509,33 @@ class Session:
 
 
 # --------------------------------------------------------------------------------------------
-# the collect stage's entry (through pipeline.ros2.collect_ros2)
+# the collect stage's entry
 # --------------------------------------------------------------------------------------------
-def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interruption | None:
-    """Run a session on the arm and fill ``writer`` like ``robot=sim`` does (see module doc)."""
-    robot = cfg.robot
+@dataclass
+class RosCollection:
+    """What a session on the arm recorded, for the stage to write as a ``collect`` artifact:
+    the raw tables (:mod:`pipeline.data.schemas` ``COMMANDS``, ``MOCAP``, ``RUNS``), the plan's
+    figure key (:func:`pipeline.arm.exploration.plot_walks`), the link's timing
+    (:meth:`Session.link_summary`), why it stopped early (None: every run completed) and the
+    recovery folder of its chunks (to remove once the artifact holds the rows)."""
+
+    commands: pd.DataFrame
+    mocap: pd.DataFrame
+    runs: pd.DataFrame
+    figure_key: Any
+    link: dict[str, Any]
+    interruption: Interruption | None
+    recovery: Path
+
+
+def record(robot: Ros2RobotConfig, exploration: ExplorationConfig, recovery: Path,
+           spec: dict[str, Any]) -> RosCollection:
+    """Run a session on the arm, its rows saved to chunks in ``recovery`` while it runs, and
+    return what it recorded (see module doc)."""
     if not float(robot.time_scale) > 0:
         raise ValueError(f"robot.time_scale={robot.time_scale} must be positive")
-    plan = exploration_plan(cfg.exploration, robot.limits, robot.n_valves, robot.num_runs)
+    plan = exploration_plan(exploration, robot.limits, robot.n_valves, robot.num_runs)
     gate = CommandGate.for_robot(robot)
-    started = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
-    recovery = Path(cfg.paths.output_dir) / "recovery" / f"{STAGE}-{writer.key}-{started}"
     recorder = ChunkedRecorder(recovery, spec, {"stage": STAGE, "robot": robot.name,
                                                 "recovery": True})
     log.info("collect: streams are saved to %s every %s s while recording", recovery,
@@ -551,22 +568,16 @@ def record(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interrupti
         {"run_id": r.run_id, "source": source, "complete": r.complete,
          "n_commands": int((commands["run_id"] == r.run_id).sum()), "n_frames": r.frames}
         for r in session.runs])
-    write_raw(writer, cfg, spec, commands, mocap, runs)
-    plot_walks(writer.file("figures/exploration_alphas.png"),
-               plan.figure_key,
-               cfg.exploration, robot.limits, robot.control_hz, robot.n_valves)
-    writer.summary["ros2"] = session.link_summary()
-    if interruption is not None:
-        writer.summary["interrupted"] = interruption.reason
-    shutil.rmtree(recovery)  # the artifact's temporary folder now holds every row
-    return interruption
+    return RosCollection(commands, mocap, runs, plan.figure_key, session.link_summary(),
+                         interruption, recovery)
 
 
-def collect_ros2(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> Interruption | None:
-    """Record ``robot.num_runs`` exploration runs on the arm into ``writer``; see the module doc.
+def collect_ros2(robot: Ros2RobotConfig, exploration: ExplorationConfig, recovery: Path,
+                 spec: dict[str, Any]) -> RosCollection:
+    """Record ``robot.num_runs`` exploration runs on the arm; see the module doc.
 
-    Returns None when every run completed, else the :class:`Interruption`
-    (the artifact then holds the runs recorded so far, the last one marked incomplete).
+    Its ``interruption`` is None when every run completed, else the :class:`Interruption` (the
+    tables then hold the runs recorded so far, the last one marked incomplete).
     """
     require_rclpy()
-    return record(cfg, writer, spec)
+    return record(robot, exploration, recovery, spec)

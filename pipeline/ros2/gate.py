@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.arm.limits import assert_safe
 from pipeline.arm.safety import SafeSet, project
+from pipeline.schemas import RobotConfig
 
 
 class CommandGate:
@@ -39,7 +40,7 @@ class CommandGate:
         return np.clip(projected, float(self.limits.p_min), float(self.limits.p_max))
 
     @classmethod
-    def for_robot(cls, robot: Any) -> CommandGate:
+    def for_robot(cls, robot: RobotConfig) -> CommandGate:
         """The gate of a robot config: its ``limits`` inside its ``rating``."""
         return cls(robot.limits, int(robot.n_valves), robot.rating)
 

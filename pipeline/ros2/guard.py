@@ -34,7 +34,7 @@ from pipeline.arm.limits import UnsafeCommandError, assert_safe
 from pipeline.data.ros_messages import message_class, read_pressures, write_pressures
 from pipeline.ros2.handshake import HandshakeAnswer
 from pipeline.ros2.node import StopSignals, arm_domain, qos_profile, require_rclpy, ros_node
-from pipeline.schemas import RobotKind
+from pipeline.schemas import RobotConfig, RobotKind, Ros2RobotConfig
 
 log = logging.getLogger(__name__)
 _SPIN_SLICE_S = 0.005  # wall: longest wait inside the executor
@@ -86,7 +86,7 @@ class SinglePublisher:
         return self.refusal
 
 
-def rating_preload(robot: Any) -> np.ndarray:
+def rating_preload(robot: Ros2RobotConfig) -> np.ndarray:
     """The rating's preload on every valve [kPa], float64, checked against the rating."""
     preload = np.full(int(robot.n_valves), float(robot.rating.preload))
     return assert_safe(preload, robot.rating, "the arm's rating robot.rating")
@@ -95,7 +95,7 @@ def rating_preload(robot: Any) -> np.ndarray:
 class GuardNode:
     """Forwards commands inside the rating; the preload instead of any other or when stale."""
 
-    def __init__(self, node: Any, executor: Any, robot: Any):
+    def __init__(self, node: Any, executor: Any, robot: Ros2RobotConfig):
         self._node, self._executor, self._robot = node, executor, robot
         self._field, self._n_valves = str(robot.command_field), int(robot.n_valves)
         self._type = message_class(robot.command_type)
@@ -193,9 +193,8 @@ class GuardNode:
         return f"{signals.received} received"
 
 
-def guard(cfg: Any) -> None:
-    """Serve the guard on ``cfg.robot``'s topics (``robot=ros2``) until stopped."""
-    robot = cfg.robot
+def guard(robot: RobotConfig) -> None:
+    """Serve the guard on ``robot``'s topics (``robot=ros2``) until stopped."""
     if RobotKind(robot.kind) is not RobotKind.ros2:
         raise ValueError(f"stage=guard guards the valves of a ROS 2 robot; got robot={robot.name} "
                          f"(add robot=ros2)")

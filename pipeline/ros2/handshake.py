@@ -37,8 +37,9 @@ def handshake_qos() -> Any:
 
 def rating_of(robot: Any) -> dict[str, float]:
     """The rating a config enforces, as the handshake states it."""
-    return {name: (int(robot.rating[name]) if name == "n_valves" else float(robot.rating[name]))
-            for name in RATING_FIELDS}
+    rating = robot.rating
+    return {name: (int(getattr(rating, name)) if name == "n_valves"
+                   else float(getattr(rating, name))) for name in RATING_FIELDS}
 
 
 def answer_of(robot: Any, role: str, node_name: str) -> dict[str, Any]:
@@ -66,7 +67,7 @@ def handshake_problem(answer: dict[str, Any], robot: Any, subscribers: list[str]
     if differing:
         return (f"the {role} '{node}' enforces another rating than robot.rating of this config "
                 f"({'; '.join(differing)}): start the guard with the same robot config")
-    rehearsal = bool(robot.get("rehearsal", False)) or float(robot.time_scale) != 1.0
+    rehearsal = bool(robot.rehearsal) or float(robot.time_scale) != 1.0
     if rehearsal and role != "twin":
         return (f"robot.rehearsal=true / robot.time_scale={robot.time_scale}, but the arm side is "
                 f"a {role} ('{node}'), not the digital twin: a rehearsal never drives a real arm")

@@ -8,7 +8,7 @@ import signal
 from collections.abc import Iterator
 from typing import Any
 
-from pipeline.schemas import QosDurability, QosReliability
+from pipeline.schemas import QosConfig, QosDurability, QosReliability, Ros2RobotConfig
 
 log = logging.getLogger(__name__)
 
@@ -28,10 +28,10 @@ class ArmRefused(RuntimeError):
     that does not match, a second listener or pose source, clocks apart): the stage refuses."""
 
 
-def arm_domain(robot: Any) -> int | None:
+def arm_domain(robot: Ros2RobotConfig) -> int | None:
     """The ROS domain a stage of ``robot`` runs on: the twin's (``robot.rehearsal_domain_id``)
     in a rehearsal (``robot.rehearsal=true``), else ``robot.domain_id`` (None: ROS_DOMAIN_ID)."""
-    if bool(robot.get("rehearsal", False)):
+    if robot.rehearsal:
         return int(robot.rehearsal_domain_id)
     return None if robot.domain_id is None else int(robot.domain_id)
 
@@ -46,8 +46,8 @@ def require_rclpy() -> Any:
 
 
 
-def qos_profile(qos: Any) -> Any:
-    """An rclpy ``QoSProfile`` from a :class:`pipeline.config.QosConfig` node."""
+def qos_profile(qos: QosConfig) -> Any:
+    """An rclpy ``QoSProfile`` from a :class:`pipeline.config.QosConfig`."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     reliability = {QosReliability.reliable: ReliabilityPolicy.RELIABLE,

@@ -54,7 +54,7 @@ from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.guard import Deadman, SinglePublisher, rating_preload
 from pipeline.ros2.handshake import HandshakeAnswer
 from pipeline.ros2.node import StopSignals, qos_profile, require_rclpy, ros_node
-from pipeline.schemas import RobotKind
+from pipeline.schemas import RobotConfig, RobotKind, Ros2RobotConfig, TwinConfig
 
 log = logging.getLogger(__name__)
 NODE_NAME = "sorolearn_twin"
@@ -71,7 +71,7 @@ class ArmSimulator:
     the frames not yet taken and the next chunk starts from the state it arrived at.
     """
 
-    def __init__(self, twin: Any, preload: float, n_valves: int):
+    def __init__(self, twin: TwinConfig, preload: float, n_valves: int):
         session_key = jax.random.key(int(twin.seed))
         # this session's physics (the nominal ones unless physics.session_std spreads them)
         self.params = params = sim_arm.session_params(
@@ -140,7 +140,7 @@ class ArmSimulator:
 class TwinNode:
     """Publishes the simulator's poses on schedule; applies the commands it receives."""
 
-    def __init__(self, node: Any, executor: Any, robot: Any, simulator: ArmSimulator,
+    def __init__(self, node: Any, executor: Any, robot: Ros2RobotConfig, simulator: ArmSimulator,
                  record: IO[str] | None):
         self._node, self._executor, self._robot = node, executor, robot
         self._simulator, self._record = simulator, record
@@ -258,9 +258,8 @@ class TwinNode:
         return f"{signals.received} received"
 
 
-def serve(cfg: Any) -> None:
-    """Serve the digital twin on ``cfg.robot``'s topics (``robot=ros2``) until stopped."""
-    robot = cfg.robot
+def serve(robot: RobotConfig) -> None:
+    """Serve the digital twin on ``robot``'s topics (``robot=ros2``) until stopped."""
     if RobotKind(robot.kind) is not RobotKind.ros2:
         raise ValueError(f"stage=twin serves the topics of a ROS 2 robot; got robot={robot.name} "
                          f"(add robot=ros2 and the same robot.* overrides as the collect)")

@@ -19,7 +19,10 @@ Artifact: ``commands.parquet``, ``mocap.parquet``, ``runs.parquet`` and figures 
 
 from __future__ import annotations
 
+import datetime as _dt
 import logging
+import shutil
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -29,38 +32,64 @@ from omegaconf import OmegaConf
 from pipeline import keys
 from pipeline.arm.limits import validate_limits
 from pipeline.data.importers import READERS, list_recordings, recording_id
-from pipeline.data.raw import CollectionInterrupted, write_raw
-from pipeline.data.schemas import CMD_COLUMNS, XYZ
+from pipeline.data.raw import CollectionInterrupted, check_positions, plot_runs, raw_summary
+from pipeline.data.schemas import CMD_COLUMNS, COMMANDS, MOCAP, RUNS, XYZ, write_table
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
-from pipeline.schemas import RobotKind
+from pipeline.schemas import ImportRobotConfig, RobotKind
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
 
 
 def collect(cfg: Any) -> Artifact:
-    validate_limits(cfg.robot.limits, cfg.robot.n_valves)
+    robot = OmegaConf.to_object(cfg.robot)
+    validate_limits(robot.limits, robot.n_valves)
     store = ArtifactStore(cfg.paths.artifact_dir)
     spec, inputs = keys.collect_spec(cfg)
-    kind = RobotKind(cfg.robot.kind)
+    kind = RobotKind(robot.kind)
     if kind is RobotKind.sim:
-        build = lambda writer: _collect_sim(cfg, writer, spec)  # noqa: E731
+        exploration = OmegaConf.to_object(cfg.exploration)
+        build = lambda writer: _collect_sim(robot, exploration, writer, spec)  # noqa: E731
     elif kind in keys.IMPORT_KINDS:
-        build = lambda writer: _import_recordings(cfg, writer, spec)  # noqa: E731
+        build = lambda writer: _import_recordings(robot, writer, spec)  # noqa: E731
     else:
-        return _collect_ros2(cfg, store, spec, inputs)
+        return _collect_ros2(cfg, robot, store, spec, inputs)
     return produce(store, STAGE, spec, inputs, build, force=cfg.force)
 
 
-def _collect_ros2(cfg: Any, store: ArtifactStore, spec: dict[str, Any],
+def write_raw(writer: ArtifactWriter, robot: Any, spec: dict[str, Any], commands: pd.DataFrame,
+              mocap: pd.DataFrame, runs: pd.DataFrame) -> None:
+    """The three tables and a figure; the positions must lie in ``robot.workspace``."""
+    check_positions(mocap, runs, robot.workspace)
+    provenance = {"stage": STAGE, "robot": robot.name}
+    write_table(commands, writer.file("commands.parquet"), COMMANDS, spec, provenance)
+    write_table(mocap, writer.file("mocap.parquet"), MOCAP, spec, provenance)
+    write_table(runs, writer.file("runs.parquet"), RUNS, spec, provenance)
+    plot_runs(writer.file("figures/runs.png"), commands, mocap)
+    writer.summary = raw_summary(commands, mocap, runs)
+
+
+def _collect_ros2(cfg: Any, robot: Any, store: ArtifactStore, spec: dict[str, Any],
                   inputs: dict[str, str]) -> Artifact:
+    from pipeline.arm.exploration import plot_walks
     from pipeline.ros2.collector import collect_ros2  # the optional ros extra
 
-    _set_aside_incomplete(store, artifact_key(spec, inputs), bool(cfg.robot.reuse_incomplete))
+    _set_aside_incomplete(store, artifact_key(spec, inputs), bool(robot.reuse_incomplete))
+    exploration = OmegaConf.to_object(cfg.exploration)
     interruptions = []
 
     def build(writer: ArtifactWriter) -> None:
-        interruptions.append(collect_ros2(cfg, writer, spec))
+        started = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
+        recovery = Path(cfg.paths.output_dir) / "recovery" / f"{STAGE}-{writer.key}-{started}"
+        recorded = collect_ros2(robot, exploration, recovery, spec)
+        write_raw(writer, robot, spec, recorded.commands, recorded.mocap, recorded.runs)
+        plot_walks(writer.file("figures/exploration_alphas.png"), recorded.figure_key,
+                   exploration, robot.limits, robot.control_hz, robot.n_valves)
+        writer.summary["ros2"] = recorded.link
+        if recorded.interruption is not None:
+            writer.summary["interrupted"] = recorded.interruption.reason
+        shutil.rmtree(recorded.recovery)  # the artifact's temporary folder now holds every row
+        interruptions.append(recorded.interruption)
 
     artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)
     interruption = interruptions[0] if interruptions else None
@@ -103,13 +132,12 @@ class SimSessions(NamedTuple):
     frame_command: list[np.ndarray]
 
 
-def walk_sessions(cfg: Any, mocap_hz: float) -> SimSessions:
+def walk_sessions(robot: Any, exploration: Any, mocap_hz: float) -> SimSessions:
     """``robot.num_runs`` exploration walks at ``robot.control_hz``."""
     from pipeline.arm import sim_arm
     from pipeline.arm.exploration import exploration_plan
 
-    robot = cfg.robot
-    plan = exploration_plan(cfg.exploration, robot.limits, robot.n_valves, robot.num_runs)
+    plan = exploration_plan(exploration, robot.limits, robot.n_valves, robot.num_runs)
     runs, n = plan.commands.shape[:2]
     frames = sim_arm.frame_command_index(n, robot.control_hz, mocap_hz)
     return SimSessions([f"sim-{i:03d}" for i in range(runs)], ["sim"] * runs,
@@ -117,15 +145,16 @@ def walk_sessions(cfg: Any, mocap_hz: float) -> SimSessions:
                        [frames] * runs)
 
 
-def replay_sessions(cfg: Any, mocap_hz: float) -> SimSessions:
+def replay_sessions(robot: Any, exploration: Any, mocap_hz: float) -> SimSessions:
     """The valve commands of the recordings of ``robot.replay`` at their recorded times (from
     the recording's first mocap frame), each session as long as its recording."""
-    replay = cfg.robot.replay
+    replay = robot.replay
     read = READERS[RobotKind(replay.kind).value]
-    reader_cfg = OmegaConf.create({"limits": OmegaConf.to_container(cfg.robot.limits)})
+    reader = ImportRobotConfig(name=f"replay:{replay.kind}", kind=replay.kind,
+                               data_dir=replay.data_dir, limits=robot.limits)
     sessions = SimSessions([], [], [], [], [])
     for path in list_recordings(replay):
-        commands, mocap = read(path, reader_cfg, {})
+        commands, mocap = read(path, reader, {})
         start = float(mocap["t"].iloc[0])
         sessions.run_ids.append(f"sim-{recording_id(path)}")
         sessions.sources.append(f"replay:{path.name}")
@@ -145,7 +174,8 @@ def frame_commands(times: np.ndarray, num_frames: int, mocap_hz: float) -> np.nd
     return np.clip(index, 0, len(times) - 1).astype(np.int32)
 
 
-def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None:
+def _collect_sim(robot: Any, exploration: Any, writer: ArtifactWriter, spec: dict[str, Any]
+                 ) -> None:
     # JAX only for the simulated arm: importing recordings, and every stage that reuses this
     # one's artifact, start without it
     import jax
@@ -153,11 +183,11 @@ def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None
     from pipeline.arm import sim_arm
     from pipeline.arm.exploration import plan_keys, plot_walks
 
-    robot, exploration = cfg.robot, cfg.exploration
     params = sim_arm.SimParams.from_config(robot)
     preload = np.full(robot.n_valves, float(robot.limits.preload))
     _, session_key, figure_key = plan_keys(exploration)
-    sessions = (replay_sessions if robot.get("replay") else walk_sessions)(cfg, params.mocap_hz)
+    sessions = (replay_sessions if robot.replay else walk_sessions)(robot, exploration,
+                                                                    params.mocap_hz)
     runs = len(sessions.run_ids)
     num_frames = [len(f) for f in sessions.frame_command]
     # padded to the longest session (holding its last command), cut back after simulating
@@ -184,7 +214,7 @@ def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None
                             "complete": True,
                             "n_commands": [len(c) for c in sessions.commands],
                             "n_frames": num_frames})
-    write_raw(writer, cfg, spec, commands_df, mocap_df, runs_df)
+    write_raw(writer, robot, spec, commands_df, mocap_df, runs_df)
     plot_walks(writer.file("figures/exploration_alphas.png"), figure_key, exploration,
                robot.limits, robot.control_hz, robot.n_valves)
     true = [recorded["true_position"][i, :n] for i, n in enumerate(num_frames)]
@@ -198,12 +228,12 @@ def _collect_sim(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None
             for name, values in recorded["physics"].items()}
 
 
-def _import_recordings(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None:
-    read = READERS[RobotKind(cfg.robot.kind).value]
+def _import_recordings(robot: Any, writer: ArtifactWriter, spec: dict[str, Any]) -> None:
+    read = READERS[RobotKind(robot.kind).value]
     commands, mocap, runs, incomplete = [], [], [], {}
-    for path in list_recordings(cfg.robot):
+    for path in list_recordings(robot):
         notes: dict[str, Any] = {}
-        run_commands, run_mocap = read(path, cfg.robot, notes)
+        run_commands, run_mocap = read(path, robot, notes)
         commands.append(run_commands)
         mocap.append(run_mocap)
         runs.append({"run_id": recording_id(path), "source": path.name, "complete": True,
@@ -212,7 +242,7 @@ def _import_recordings(cfg: Any, writer: ArtifactWriter, spec: dict[str, Any]) -
             incomplete[recording_id(path)] = int(notes["incomplete_last_line"])
         log.info("collect: imported %s (%d commands, %d frames)", path.name, len(run_commands),
                  len(run_mocap))
-    write_raw(writer, cfg, spec, pd.concat(commands, ignore_index=True),
+    write_raw(writer, robot, spec, pd.concat(commands, ignore_index=True),
               pd.concat(mocap, ignore_index=True), pd.DataFrame(runs))
     # lines dropped because a file ended inside them (no final newline), per run
     writer.summary["incomplete_lines_dropped"] = incomplete

@@ -137,7 +137,7 @@ def build_cv(cfg: Any, writer, runs: list[dict], work_dir: Path, spec: dict,
                    for m in members if m.held_out],
          "model_hz": data.model_hz}, indent=2))
     params, losses = model_cv.fit_members(
-        runs, members, cfg.model, window=int(data.window), stride=int(data.stride),
+        runs, members, OmegaConf.to_object(cfg.model), window=int(data.window), stride=int(data.stride),
         order=str(data.order), checkpoint_dir=work_dir, resume=not cfg.force)
     final = params[-1]
     save_dynamics(writer.file("model.msgpack"), final)

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from omegaconf import OmegaConf
+
 
 def guard(cfg: Any) -> None:
     from pipeline.ros2.guard import guard as serve  # the optional ros extra
 
-    serve(cfg)
+    serve(OmegaConf.to_object(cfg.robot))

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from omegaconf import OmegaConf
+
 
 def twin(cfg: Any) -> None:
     from pipeline.ros2.twin import serve  # the optional ros extra
 
-    serve(cfg)
+    serve(OmegaConf.to_object(cfg.robot))

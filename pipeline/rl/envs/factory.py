@@ -374,13 +374,13 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
     runs = runs_at_model_rate(table, float(cfg.dataset.model_hz), str(cfg.dataset.model_grid))
     if GoalSource(cfg.env.goal_source) is GoalSource.predicted:
         # the model's open-loop predictions along the recorded commands: reachable in its world
-        goal_paths = {run["run_id"]: predict_run(dynamics_params, run) for run in runs}
+        goal_paths = {run.run_id: predict_run(dynamics_params, run) for run in runs}
     else:
-        goal_paths = {run["run_id"]: run["pos"] for run in runs}
+        goal_paths = {run.run_id: run.positions_m for run in runs}
     at_model_rate = pd.concat(
-        [pd.DataFrame({"run_id": run["run_id"], "x": goal_paths[run["run_id"]][:, 0],
-                       "y": goal_paths[run["run_id"]][:, 1],
-                       "z": goal_paths[run["run_id"]][:, 2]}) for run in runs],
+        [pd.DataFrame({"run_id": run.run_id, "x": goal_paths[run.run_id][:, 0],
+                       "y": goal_paths[run.run_id][:, 1],
+                       "z": goal_paths[run.run_id][:, 2]}) for run in runs],
         ignore_index=True)
     member_params = [load_dynamics(member.file("model.msgpack")) for member in members]
     agreement_mm = cfg.env.get("goal_agreement_mm")
@@ -392,8 +392,9 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
         held_out = at_model_rate["run_id"].isin(split.get("test") or [])
         at_model_rate = conservative_goals(at_model_rate, spread, float(agreement_mm) / 1000.0,
                                            held_out.to_numpy())
-    first_poses = pd.DataFrame([{"run_id": run["run_id"], "x": run["pos"][0, 0],
-                                 "y": run["pos"][0, 1], "z": run["pos"][0, 2]} for run in runs])
+    first_poses = pd.DataFrame([{"run_id": run.run_id, "x": run.positions_m[0, 0],
+                                 "y": run.positions_m[0, 1], "z": run.positions_m[0, 2]}
+                                for run in runs])
     every = int(cfg.env.goal_every)
     rest = data_goals_and_rest_pose(first_poses, [])  # rest pose from the measured first poses
     if split.get("protocol") == "cv":
@@ -401,9 +402,9 @@ def environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | Non
         # the measured positions of each run as recorded when its fold held it out
         held_out_ids = [fold["held_out"] for fold in split["folds"]]
         measured = pd.concat(
-            [pd.DataFrame({"run_id": run["run_id"], "x": run["pos"][:, 0],
-                           "y": run["pos"][:, 1], "z": run["pos"][:, 2]})
-             for run in runs if run["run_id"] in held_out_ids], ignore_index=True)
+            [pd.DataFrame({"run_id": run.run_id, "x": run.positions_m[:, 0],
+                           "y": run.positions_m[:, 1], "z": run.positions_m[:, 2]})
+             for run in runs if run.run_id in held_out_ids], ignore_index=True)
         data = {"train_goals": data_goals_and_rest_pose(at_model_rate, [], every)["train_goals"],
                 "held_out_goals": data_goals_and_rest_pose(measured, held_out_ids,
                                                            every)["held_out_goals"]}

@@ -239,6 +239,6 @@ def runs_at_model_rate(aligned: pd.DataFrame, model_hz: float, grid: str = "cloc
 
 def load_runs(aligned_path: str | Path, rate_hz: float, grid: str = "clock") -> list[Run]:
     """The runs of an aligned table file (an align artifact's ``aligned.parquet``) at ``rate_hz``
-    on ``grid`` (:func:`runs_at_model_rate`): how stages and studies alike read recorded runs."""
+    on ``grid`` (:func:`runs_at_model_rate`): how fit_model and the studies read recorded runs."""
     aligned, _ = read_table(aligned_path, ALIGNED)
     return runs_at_model_rate(aligned, rate_hz, grid)

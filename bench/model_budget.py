@@ -19,13 +19,11 @@ import jax
 import numpy as np
 import pandas as pd
 
-from pipeline.data.alignment import align_tables, runs_at_model_rate
-from pipeline.data.importers import read_sorolex_csv
 from pipeline.dynamics.scoring import evaluate_open_loop
 from pipeline.dynamics.training import fit
-from pipeline.schemas import AlignConfig, ModelConfig
+from pipeline.schemas import ModelConfig
+from pipeline.studies import recorded_runs
 
-LIMITS = argparse.Namespace(p_min=-3.0, p_max=7.0, sum_max=13.0, preload=2.0)
 CHUNK = 10  # training steps between checks of the clock
 DEFAULT_TEST = ["Step_control_17_10_11_29", "Step_control_17_10_12_38"]
 
@@ -41,20 +39,15 @@ def configurations() -> dict[str, tuple[dict, float, int]]:
     return {"default": (default, 10.0, 128), "paper": (paper, 100.0, 512)}
 
 
-def load_runs(data_dir: Path) -> pd.DataFrame:
-    commands, mocap = [], []
-    for path in sorted(data_dir.glob("Step_control_*.csv")):
-        c, m = read_sorolex_csv(path, LIMITS)
-        commands.append(c)
-        mocap.append(m)
-    aligned, _ = align_tables(pd.concat(commands), pd.concat(mocap), AlignConfig())
-    return aligned
+def recordings(data_dir: Path) -> tuple[str, ...]:
+    """The overrides that read the recordings in ``data_dir`` (``robot=sorolex_csv``)."""
+    return ("robot=sorolex_csv", f"robot.data_dir={data_dir}")
 
 
-def run_one(name, settings, model_hz, window, aligned, test_ids, budget_s):
-    runs = runs_at_model_rate(aligned, model_hz)
-    train = [r for r in runs if r["run_id"] not in test_ids]
-    test = [r for r in runs if r["run_id"] in test_ids]
+def run_one(name, settings, model_hz, window, data_dir, test_ids, budget_s):
+    _, runs = recorded_runs(*recordings(data_dir), rate_hz=model_hz, grid="clock")
+    train = [r for r in runs if r.run_id not in test_ids]
+    test = [r for r in runs if r.run_id in test_ids]
     # Each recipe trains until its own step count or the budget (compilation included) is spent,
     # checking the clock every CHUNK steps.
     settings = dict(settings, eval_every=CHUNK, checkpoint_every=CHUNK)
@@ -79,9 +72,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "SOROLEX_DIR", Path(__file__).resolve().parents[1].parent / "shared/data/sorolex")))
     parser.add_argument("--test-runs", default=",".join(DEFAULT_TEST))
     args = parser.parse_args(argv)
-    aligned = load_runs(args.data_dir)
     test_ids = args.test_runs.split(",")
-    rows = [run_one(name, *spec, aligned, test_ids, args.budget)
+    rows = [run_one(name, *spec, args.data_dir, test_ids, args.budget)
             for name, spec in configurations().items()]
     table = pd.DataFrame(rows).set_index("config")
     ratio = table.loc["default", ["steps_per_s", "held_out_mean_mm", "held_out_p95_mm"]] / \

@@ -22,16 +22,16 @@ import jax
 import numpy as np
 import pandas as pd
 
-from bench.model_budget import load_runs
-from pipeline.data.alignment import runs_at_model_rate
+from pipeline.data.runs import Run, runs_by_id
 from pipeline.dynamics.cv import cv_members, fit_members
 from pipeline.dynamics.scoring import evaluate_open_loop
 from pipeline.dynamics.training import fit
 from pipeline.schemas import ModelConfig
+from pipeline.studies import recorded_runs
 
 
-def held_out_error(runs: list[dict], members, params) -> float:
-    by_id = {run["run_id"]: run for run in runs}
+def held_out_error(runs: list[Run], members, params) -> float:
+    by_id = runs_by_id(runs)
     return float(np.mean([evaluate_open_loop(p, by_id[m.held_out])["mean_mm"]
                           for m, p in zip(members, params) if m.held_out]))
 
@@ -43,13 +43,14 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     parser.add_argument("--data-dir", type=Path, default=Path(os.environ.get(
         "SOROLEX_DIR", Path(__file__).resolve().parents[1].parent / "shared/data/sorolex")))
     args = parser.parse_args(argv)
-    runs = runs_at_model_rate(load_runs(args.data_dir), 10.0)
+    _, runs = recorded_runs("robot=sorolex_csv", f"robot.data_dir={args.data_dir}",
+                            rate_hz=10.0, grid="clock")
     if args.folds:
         runs = runs[: args.folds]
     settings = {**vars(ModelConfig()), "num_steps": args.steps, "eval_every": args.steps,
                 "checkpoint_every": args.steps}
     window = 128
-    members = cv_members([run["run_id"] for run in runs], final=True)
+    members = cv_members([run.run_id for run in runs], final=True)
     rows = []
 
     started, started_cpu = time.perf_counter(), time.process_time()
@@ -59,7 +60,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                  "train_cpu_s": time.process_time() - started_cpu,
                  "loro_mean_mm": held_out_error(runs, members, params)})
 
-    by_id = {run["run_id"]: run for run in runs}
+    by_id = runs_by_id(runs)
     started, started_cpu = time.perf_counter(), time.process_time()
     sequential = [fit([by_id[i] for i in m.train_ids], dict(settings, seed=m.seed),
                       window=window, progress=False)[0] for m in members]

@@ -6,7 +6,7 @@ mean of the fitted offsets), and prints per run: the mean error, the mean absolu
 bias per axis, and the mean lateral (x-z) distance from the rest pose, simulated and measured.
 In-sample when the artifact's fit on all runs saw the run (it did, for the shared runs).
 
-Usage: ``python experiments/calibration_check.py <calibrate artifact folder>``.
+Usage: ``python -m experiments.calibration_check <calibrate artifact folder>``.
 """
 
 from __future__ import annotations
@@ -17,27 +17,28 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from experiments.calibration_data import load_runs
 from pipeline.arm import calibration as calib
 from pipeline.arm.sim_arm import SimParams
+from pipeline.studies import recorded_runs
+
+HZ = 20.0
+REST_FRAMES = 20  # the first second
 
 
 def main(folder: str) -> None:
     physics = json.loads((Path(folder) / "physics.json").read_text())["physics"]
     physics.pop("substeps")
-    runs = load_runs()
+    _, runs = recorded_runs("robot=sorolex_csv", rate_hz=HZ, grid="clock")
     batch = calib.RunBatch.from_runs(runs)
-    predicted = calib.open_loop_template(SimParams.noise_free(physics, 20.0, 2), batch)
+    predicted = calib.open_loop_template(SimParams.noise_free(physics, HZ, 2), batch)
     print("run    error mm  |error| x, y, z mm   bias x, y, z mm     lateral distance from rest "
           "mm: simulated / measured")
     for i, run in enumerate(runs):
-        n = len(run["p"])
-        error = (predicted[i, :n] - run["pos"]) * 1e3
-        measured = (run["pos"] - run["pos"][:20].mean(0)) * 1e3
+        n = len(run)
+        error = (predicted[i, :n] - run.positions_m) * 1e3
+        measured = (run.positions_m - run.positions_m[:REST_FRAMES].mean(0)) * 1e3
         simulated = (predicted[i, :n] - predicted[i, 0]) * 1e3
-        print(f"{run['run_id'][-5:]}  {np.linalg.norm(error, axis=1).mean():6.2f}    "
+        print(f"{run.run_id[-5:]}  {np.linalg.norm(error, axis=1).mean():6.2f}    "
               f"{np.abs(error).mean(0).round(2)}  {error.mean(0).round(2)}   "
               f"{np.hypot(simulated[:, 0], simulated[:, 2]).mean():5.1f} / "
               f"{np.hypot(measured[:, 0], measured[:, 2]).mean():5.1f}")

@@ -1,7 +1,7 @@
 """What the real runs say about the arm's structure, before any simulator is fitted.
 
-Reads the aligned runs of ``robot=sorolex_csv`` (the align artifact of the default config; run
-``python -m pipeline stage=align robot=sorolex_csv`` first) at 20 Hz and prints, per section:
+Reads the aligned runs of ``robot=sorolex_csv`` (its align artifact, made when missing:
+:func:`pipeline.studies.recorded_runs`) at 20 Hz and prints, per section:
 
 - ``rest``: each run's rest pose (first second, at the 2 kPa preload), pressure ranges and the
   ceiling of the pressure sum;
@@ -16,7 +16,7 @@ Reads the aligned runs of ``robot=sorolex_csv`` (the align artifact of the defau
 - ``residual``: per run, the in-run error of a linear FIR fitted to that run alone and the
   spectrum of what it leaves.
 
-Usage: ``python experiments/calibration_data.py [section ...]`` (all sections by default).
+Usage: ``python -m experiments.calibration_data [section ...]`` (all sections by default).
 """
 
 from __future__ import annotations
@@ -24,25 +24,17 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-from hydra import compose, initialize_config_dir
 
-from pipeline import keys
-from pipeline.config import PROJECT_ROOT, register_configs
-from pipeline.data.alignment import runs_at_model_rate
-from pipeline.data.schemas import ALIGNED, read_table
-from pipeline.infra.artifacts import ArtifactStore
+from pipeline.data.runs import Run
+from pipeline.studies import recorded_runs
 
 HZ = 20.0
 REST_FRAMES = 20  # the first second
 
 
-def load_runs() -> list[dict]:
-    register_configs()
-    with initialize_config_dir(str(PROJECT_ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", ["robot=sorolex_csv"])
-    artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", keys.key("align", cfg))
-    aligned, _ = read_table(artifact.file("aligned.parquet"), ALIGNED)
-    return runs_at_model_rate(aligned, HZ)
+def load_runs() -> list[Run]:
+    """The runs of ``robot=sorolex_csv`` at ``HZ`` on a regular grid."""
+    return recorded_runs("robot=sorolex_csv", rate_hz=HZ, grid="clock")[1]
 
 
 def lagged(x: np.ndarray, lags: int) -> np.ndarray:
@@ -68,19 +60,19 @@ def design(p: np.ndarray, kind: str, lags: int) -> np.ndarray:
     return np.concatenate([np.ones((len(p), 1)), lagged(features(p, kind), lags)], 1)
 
 
-def displacement(run: dict) -> np.ndarray:
-    return run["pos"] - run["pos"][:REST_FRAMES].mean(0)
+def displacement(run: Run) -> np.ndarray:
+    return run.positions_m - run.positions_m[:REST_FRAMES].mean(0)
 
 
-def loro_mm(runs: list[dict], make_x) -> list[float]:
+def loro_mm(runs: list[Run], make_x) -> list[float]:
     """Leave-one-run-out mean error (mm); the held-out run's rest pose is its first second."""
     errors = []
     for i, run in enumerate(runs):
         train = [r for j, r in enumerate(runs) if j != i]
         weights = np.linalg.lstsq(np.concatenate([make_x(r) for r in train]),
                                   np.concatenate([displacement(r) for r in train]), rcond=None)[0]
-        predicted = make_x(run) @ weights + run["pos"][:REST_FRAMES].mean(0)
-        errors.append(1e3 * np.linalg.norm(predicted - run["pos"], axis=1).mean())
+        predicted = make_x(run) @ weights + run.positions_m[:REST_FRAMES].mean(0)
+        errors.append(1e3 * np.linalg.norm(predicted - run.positions_m, axis=1).mean())
     return errors
 
 
@@ -97,14 +89,14 @@ def lag_filter(p: np.ndarray, delay: int = 3, tau: float = 0.5) -> np.ndarray:
 def section_rest(runs):
     print("run    rest (x, y, z) mm       p min..max kPa   sum min..max kPa   mean p kPa")
     for r in runs:
-        rest = r["pos"][:REST_FRAMES].mean(0) * 1e3
-        total = r["p"].sum(1)
-        print(f"{r['run_id'][-5:]}  {rest.round(1)}  {r['p'].min():5.2f}..{r['p'].max():4.2f}"
-              f"      {total.min():4.1f}..{total.max():4.1f}         {r['p'].mean():.2f}")
+        rest, p = r.positions_m[:REST_FRAMES].mean(0) * 1e3, r.pressures_kpa
+        total = p.sum(1)
+        print(f"{r.run_id[-5:]}  {rest.round(1)}  {p.min():5.2f}..{p.max():4.2f}"
+              f"      {total.min():4.1f}..{total.max():4.1f}         {p.mean():.2f}")
 
 
 def section_step(runs, lags=80):
-    x = np.concatenate([design(r["p"], "linear", lags) for r in runs])
+    x = np.concatenate([design(r.pressures_kpa, "linear", lags) for r in runs])
     weights = np.linalg.lstsq(x, np.concatenate([displacement(r) for r in runs]), rcond=None)[0]
     step = np.cumsum(weights[1:].reshape(lags, 3, 3), 0) * 1e3  # [lag, chamber, axis] mm/kPa
     print("step response to +1 kPa on one chamber, |x-z| mm (and y mm):")
@@ -124,7 +116,7 @@ def section_step(runs, lags=80):
 
 def section_fir(runs, lags=80):
     for kind in ("linear", "quadratic", "rise_fall"):
-        errors = loro_mm(runs, lambda r, kind=kind: design(r["p"], kind, lags))
+        errors = loro_mm(runs, lambda r, kind=kind: design(r.pressures_kpa, kind, lags))
         print(f"FIR {kind:9s} leave-one-run-out mean {np.mean(errors):.2f} mm, per run "
               f"{np.round(errors, 2)}")
 
@@ -132,21 +124,22 @@ def section_fir(runs, lags=80):
 def section_gains(runs):
     print("run    |gain| mm/kPa per chamber   direction deg     mean p kPa   sum max kPa")
     for r in runs:
-        filtered = lag_filter(r["p"])
+        filtered = lag_filter(r.pressures_kpa)
         x = np.concatenate([np.ones((len(filtered), 1)), filtered], 1)
-        gains = np.linalg.lstsq(x, r["pos"], rcond=None)[0][1:] * 1e3  # [chamber, axis]
+        gains = np.linalg.lstsq(x, r.positions_m, rcond=None)[0][1:] * 1e3  # [chamber, axis]
         # with a fixed pressure sum (the low-ceiling runs) only gain differences are identified
         pair = np.hypot(*(gains[0] - gains[1])[[0, 2]])
-        print(f"{r['run_id'][-5:]}  {np.hypot(gains[:, 0], gains[:, 2]).round(2)}  "
+        print(f"{r.run_id[-5:]}  {np.hypot(gains[:, 0], gains[:, 2]).round(2)}  "
               f"{np.degrees(np.arctan2(gains[:, 2], gains[:, 0])).round(0)}   "
-              f"{r['p'].mean():.2f}        {r['p'].sum(1).max():.1f}   |g0 - g1| {pair:.1f}")
+              f"{r.pressures_kpa.mean():.2f}        {r.pressures_kpa.sum(1).max():.1f}   "
+              f"|g0 - g1| {pair:.1f}")
 
 
 def section_stiffening(runs):
-    filtered = {r["run_id"]: lag_filter(r["p"]) for r in runs}
+    filtered = {r.run_id: lag_filter(r.pressures_kpa) for r in runs}
 
     def make_x(run, k):
-        pf = filtered[run["run_id"]]
+        pf = filtered[run.run_id]
         mean = pf.mean(1, keepdims=True)
         return np.concatenate([np.ones((len(pf), 1)), (pf - mean) * np.exp(-k * (mean - 2)),
                                mean - 2], 1)
@@ -159,13 +152,13 @@ def section_stiffening(runs):
 
 def section_residual(runs, lags=60):
     for r in runs:
-        x = design(r["p"], "linear", lags)
-        residual = (x @ np.linalg.lstsq(x, r["pos"], rcond=None)[0] - r["pos"]) * 1e3
+        x = design(r.pressures_kpa, "linear", lags)
+        residual = (x @ np.linalg.lstsq(x, r.positions_m, rcond=None)[0] - r.positions_m) * 1e3
         power = (np.abs(np.fft.rfft(residual - residual.mean(0), axis=0))**2).sum(1)
         freq = np.fft.rfftfreq(len(residual), 1 / HZ)
         share = [power[(freq >= lo) & (freq < hi)].sum() / power.sum()
                  for lo, hi in ((0, 0.05), (0.05, 0.5), (0.5, np.inf))]
-        print(f"{r['run_id'][-5:]}: in-run linear FIR {np.linalg.norm(residual, axis=1).mean():.2f}"
+        print(f"{r.run_id[-5:]}: in-run linear FIR {np.linalg.norm(residual, axis=1).mean():.2f}"
               f" mm; residual power <0.05 Hz {share[0]:.2f}, 0.05-0.5 Hz {share[1]:.2f}, "
               f">0.5 Hz {share[2]:.2f}")
 

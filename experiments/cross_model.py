@@ -55,7 +55,7 @@ from typing import Any
 
 import pandas as pd
 
-from experiments.paper_figures import run_stage
+from pipeline.studies import run_stage
 
 VARIANTS = ("plain", "ensemble", "randomized", "both", "incremental", "incremental_randomized",
             "incremental_randomized_ensemble", "incremental_randomized_ensemble_agreed")
@@ -117,8 +117,9 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
     from pipeline.rl.policy_io import best_seed
 
     files = lambda names: f"robot.files=[{','.join(names)}]"  # noqa: E731
-    other = run_stage(output_dir, "fit_model", *base, files(test))["fit_model"]
-    evaluated = run_stage(output_dir, "evaluate", *base, files(train),
+    where = f"paths.output_dir={output_dir}"
+    other = run_stage("fit_model", where, *base, files(test))["fit_model"]
+    evaluated = run_stage("evaluate", where, *base, files(train),
                           *variant_overrides(variant, ensemble_seeds, goal_agreement_mm),
                           f"evaluation.policies=[{agent}]", "evaluation.baselines=[preload]",
                           "evaluation.plant=false", "evaluation.cross_model=false",

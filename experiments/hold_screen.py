@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from experiments.paper_figures import run_stage
+from pipeline.studies import run_stage
 
 COLUMNS = {"median_final_mm": "median", "p90_final_mm": "p90", "success_1mm": "<=1mm",
            "arrived_1mm": "arrived", "held_arrivals": "held",
@@ -35,8 +35,9 @@ def screen(output_dir: Path, variants: list[str], overrides: list[str]) -> pd.Da
     """One row per (variant, controller, plant) of the evaluate stage's summary."""
     rows = []
     for variant in variants:
-        evaluated = run_stage(output_dir, "evaluate", "evaluation.baselines=[preload]",
-                              *overrides, *variant.split())["evaluate"]
+        evaluated = run_stage("evaluate", f"paths.output_dir={output_dir}",
+                              "evaluation.baselines=[preload]", *overrides,
+                              *variant.split())["evaluate"]
         summary = pd.read_parquet(evaluated.file("summary.parquet"))
         rows.append(summary.assign(variant=variant or "as it is", evaluate=evaluated.key))
     table = pd.concat(rows, ignore_index=True)

@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.studies import append_jsonl, recorded_runs
+
 DEFAULT_OUT = "outputs/model_cv_study/study.jsonl"
 
 
@@ -41,27 +43,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--out", default=DEFAULT_OUT)
     parser.add_argument("--report", action="store_true", help="print the table of --out")
     return parser.parse_args(argv)
-
-
-def load_runs(overrides: list[str]):
-    """(config, runs at the model rate) of robot=sorolex_csv through collect and align."""
-    from hydra import compose, initialize_config_dir
-
-    from pipeline.__main__ import run
-    from pipeline.config import PROJECT_ROOT, register_configs
-    from pipeline.data.alignment import runs_at_model_rate
-    from pipeline.data.schemas import ALIGNED, read_table
-    from pipeline.infra.artifacts import ArtifactStore
-    from pipeline.keys import key
-
-    register_configs()
-    with initialize_config_dir(config_dir=str(PROJECT_ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=["robot=sorolex_csv", "stage=align", *overrides])
-    run(cfg)
-    aligned_artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", key("align", cfg))
-    aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
-    return cfg, runs_at_model_rate(aligned, float(cfg.dataset.model_hz),
-                                   str(cfg.dataset.model_grid))
 
 
 def subsampled(members: list, drop: int) -> list:
@@ -85,9 +66,9 @@ def study_row(args: argparse.Namespace) -> dict:
     from pipeline.dynamics import cv as model_cv
     from pipeline.dynamics.scoring import LEARNED, position_errors_mm
 
-    cfg, runs = load_runs(args.overrides)
+    cfg, runs = recorded_runs("robot=sorolex_csv", *args.overrides)
     seeds = [int(s) for s in args.seeds.split(",")]
-    ids = [run["run_id"] for run in runs]
+    ids = [run.run_id for run in runs]
     members = model_cv.cv_members(ids, seeds, final=False)
     if args.drop_runs:
         members = subsampled(members, args.drop_runs)
@@ -97,7 +78,7 @@ def study_row(args: argparse.Namespace) -> dict:
                                      stride=int(data.stride), order=str(data.order))
     train_s, train_cpu_s = time.perf_counter() - started, time.process_time() - started_cpu
     metrics = model_cv.cv_metrics(runs, members, params)
-    by_id = {run["run_id"]: run for run in runs}
+    by_id = {run.run_id: run for run in runs}
     per_run = {}
     for run_id in sorted(by_id):
         run = by_id[run_id]
@@ -111,7 +92,7 @@ def study_row(args: argparse.Namespace) -> dict:
             return float(held.loc[held["model"] == model, stat].mean())
 
         per_run[run_id] = {
-            **{f"model_{k}": v for k, v in position_errors_mm(mean, run["pos"]).items()},
+            **{f"model_{k}": v for k, v in position_errors_mm(mean, run.positions_m).items()},
             "member_mean_mm": of(LEARNED, "mean_mm"), "member_p95_mm": of(LEARNED, "p95_mm"),
             "linear_mean_mm": of("linear_lagged", "mean_mm"),
             "linear_p95_mm": of("linear_lagged", "p95_mm"),
@@ -119,7 +100,7 @@ def study_row(args: argparse.Namespace) -> dict:
             "mean_position_p95_mm": of("mean_position", "p95_mm"),
             "train_runs_mean_mm": float(train["mean_mm"].mean()),
             "train_runs_p95_mm": float(train["p95_mm"].mean()),
-            "coverage_2sigma": (model_cv.band_coverage(mean, std, run["pos"])
+            "coverage_2sigma": (model_cv.band_coverage(mean, std, run.positions_m)
                                 if len(seeds) > 1 else float("nan")),
         }
     average = pd.DataFrame(per_run).T.mean().to_dict()
@@ -157,21 +138,13 @@ def report(path: str) -> str:
     return "\n".join(lines)
 
 
-def append_row(path: str, row: dict) -> None:
-    """One JSON line more in the study file ``path`` (the folders made where missing)."""
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "a") as file:
-        file.write(json.dumps(row) + "\n")
-
-
 def main(argv=None) -> None:
     args = parse_args(argv)
     if args.report:
         print(report(args.out))
         return
     row = study_row(args)
-    append_row(args.out, row)
+    append_jsonl(args.out, row)
     a = row["average"]
     print(f"{row['tag']}: LORO {a['model_mean_mm']:.2f} / {a['model_p95_mm']:.2f} mm "
           f"(linear {a['linear_mean_mm']:.2f} / {a['linear_p95_mm']:.2f}, training runs "

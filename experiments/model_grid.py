@@ -1,9 +1,9 @@
 """Does a command-locked model grid improve the learned dynamics' held-out accuracy?
 
-Leave-one-run-out over the 7 runs of ``shared/data/sorolex``, loaded with the pipeline's own
-code (``importers.read_sorolex_csv`` -> ``alignment.align_tables`` with ``AlignConfig()`` defaults ->
-``alignment.runs_at_model_rate(aligned, hz, grid)``), trained with ``train_model.fit`` and scored
-with ``train_model.evaluate_open_loop`` on the held-out run's own grid. For comparability across
+Leave-one-run-out over the 7 runs of ``shared/data/sorolex``, loaded as the stages load them
+(``robot=sorolex_csv`` through ``stage=align``, then the runs at ``hz`` on ``grid``:
+:func:`pipeline.studies.recorded_runs`), trained with ``training.fit`` and scored with
+``scoring.evaluate_open_loop`` on the held-out run's own grid. For comparability across
 grids the held-out prediction is also linearly interpolated onto the held-out run's regular
 10 Hz clock grid and scored there against the clock-grid positions (``clock10_*`` fields), so
 every variant is then scored at the same time points.
@@ -19,17 +19,15 @@ One JSON line per (variant, fold) is appended to ``outputs/model_grid/results.js
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import resource
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 
-from pipeline.config import sorolex_dir
+from pipeline.studies import recorded_runs
 
 OUT = Path("outputs/model_grid/results.jsonl")
 
@@ -56,28 +54,11 @@ PUBLISHED_CLOCK10 = {  # mean mm per held-out run, from the brief (not measured 
 }
 
 
-def load_aligned() -> pd.DataFrame:
-    from pipeline.data.alignment import align_tables
-    from pipeline.data.importers import read_sorolex_csv
-    from pipeline.schemas import AlignConfig
-
-    limits = SimpleNamespace(p_min=-3, p_max=7, sum_max=13, preload=2)
-    commands, mocap = [], []
-    for path in sorted(glob.glob(str(sorolex_dir() / "Step_control_*.csv"))):
-        c, m = read_sorolex_csv(Path(path), limits)
-        commands.append(c)
-        mocap.append(m)
-    aligned, _ = align_tables(pd.concat(commands, ignore_index=True),
-                              pd.concat(mocap, ignore_index=True), AlignConfig())
-    return aligned
-
-
 def fold_id(run_id: str) -> str:
     return "_".join(run_id.split("_")[-2:])
 
 
 def run_variant(variant: str, folds: list[str] | None, seed: int | None = None) -> None:
-    from pipeline.data.alignment import runs_at_model_rate
     from pipeline.dynamics.scoring import (
         baseline_linear_lagged,
         evaluate_open_loop,
@@ -91,30 +72,30 @@ def run_variant(variant: str, folds: list[str] | None, seed: int | None = None) 
     if seed is not None:  # recorded as its own variant, e.g. "cmd10_seed1"
         model_cfg["seed"] = seed
         variant = f"{variant}_seed{seed}"
-    aligned = load_aligned()
-    runs = runs_at_model_rate(aligned, hz, grid)
-    clock_runs = {r["run_id"]: r for r in runs_at_model_rate(aligned, 10.0, "clock")}
-    order = folds or [fold_id(r["run_id"]) for r in runs]
+    runs = recorded_runs("robot=sorolex_csv", rate_hz=hz, grid=grid)[1]
+    clock_runs = {r.run_id: r for r in recorded_runs("robot=sorolex_csv", rate_hz=10.0,
+                                                      grid="clock")[1]}
+    order = folds or [fold_id(r.run_id) for r in runs]
     OUT.parent.mkdir(parents=True, exist_ok=True)
     for fold in order:
-        held = next(r for r in runs if fold_id(r["run_id"]) == fold)
+        held = next(r for r in runs if fold_id(r.run_id) == fold)
         train = [r for r in runs if r is not held]
         wall0, cpu0 = time.time(), time.process_time()
         params, _, losses = fit(train, model_cfg, window=window, progress=False)
         wall_fit, cpu_fit = time.time() - wall0, time.process_time() - cpu0
         lstm = evaluate_open_loop(params, held)
         # Same model's prediction, interpolated onto the held-out run's 10 Hz clock grid.
-        clock = clock_runs[held["run_id"]]
+        clock = clock_runs[held.run_id]
         predicted = predict_run(params, held)
-        on_clock = np.stack([np.interp(clock["t"], held["t"], predicted[:, j])
+        on_clock = np.stack([np.interp(clock.times_s, held.times_s, predicted[:, j])
                              for j in range(3)], axis=1)
-        lstm_clock10 = position_errors_mm(on_clock, clock["pos"])
+        lstm_clock10 = position_errors_mm(on_clock, clock.positions_m)
         linear = baseline_linear_lagged(train, held)  # 30 lags (library default)
         linear_2s = baseline_linear_lagged(train, held, num_lags=round(2.0 * hz))
         row = {
             "variant": variant, "grid": grid, "model_hz": hz, "window": window,
-            "fold": fold, "held_out": held["run_id"], "held_out_steps": len(held["t"]),
-            "train_steps_total": int(sum(len(r["t"]) for r in train)),
+            "fold": fold, "held_out": held.run_id, "held_out_steps": len(held),
+            "train_steps_total": int(sum(len(r) for r in train)),
             "model": model_cfg,
             "mean_mm": lstm["mean_mm"], "p95_mm": lstm["p95_mm"],
             "clock10_mean_mm": lstm_clock10["mean_mm"], "clock10_p95_mm": lstm_clock10["p95_mm"],

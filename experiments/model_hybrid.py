@@ -16,8 +16,9 @@ With several ``--seeds`` the fold's prediction is the average of its residual mo
 ensemble); ``--with-plain`` adds the learned model alone (trained on the measured positions,
 same seeds) to that average: an ensemble of the hybrid and the plain model.
 
-Appends a row in ``experiments.model_cv_study``'s format to ``--out`` (``--report`` there prints
-it beside the other rows); the twin's fold predictions are kept in ``<out folder>/twin_folds.npz``
+Appends a row in ``experiments.model_cv_study``'s format to ``--out``, by default that study's
+file (``--report`` there prints it beside the other rows); the twin's fold predictions are kept
+in ``<out folder>/twin_folds.npz``
 and reused when the calibration settings and runs are the same.
 """
 
@@ -34,39 +35,39 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from experiments.model_cv_study import DEFAULT_OUT, append_row, load_runs
+from pipeline.data.runs import Run
+from pipeline.studies import append_jsonl, recorded_runs
+
+STUDY_FILE = "outputs/model_cv_study/study.jsonl"  # model_cv_study's rows
 
 
-def twin_folds(cfg, runs: list[dict], cache: Path) -> dict[str, dict[str, np.ndarray]]:
+def twin_folds(cfg, runs: list[Run], overrides: list[str], cache: Path
+               ) -> dict[str, dict[str, np.ndarray]]:
     """``{held-out run: {run: [T, 3] m}}``: the fold's calibrated twin's open-loop prediction of
-    every run on the model grid (cached in ``cache``, keyed by the settings and runs)."""
+    every run on the model grid (cached in ``cache``, keyed by the settings and runs);
+    ``overrides``: those ``cfg`` was composed from, for the runs at the calibration rate."""
     import jax
     from omegaconf import OmegaConf
 
     from pipeline.arm import calibration as calib
     from pipeline.arm.sim_arm import SimParams
-    from pipeline.data.alignment import runs_at_model_rate
-    from pipeline.data.schemas import ALIGNED, read_table
     from pipeline.dynamics.calibration_report import fold_weights
-    from pipeline.infra.artifacts import ArtifactStore
-    from pipeline.keys import key
 
     settings = cfg.calibration
-    ids = [run["run_id"] for run in runs]
+    ids = [run.run_id for run in runs]
     digest = hashlib.sha256(json.dumps(
         [OmegaConf.to_container(settings, resolve=True), ids, float(cfg.dataset.model_hz),
-         [float(np.sum(run["pos"])) for run in runs]], sort_keys=True).encode()).hexdigest()[:12]
+         [float(np.sum(run.positions_m)) for run in runs]], sort_keys=True).encode()
+    ).hexdigest()[:12]
     if cache.is_file():
         stored = np.load(cache, allow_pickle=False)
         if str(stored["digest"]) == digest:
             return {held: {run: stored[f"{held}|{run}"] for run in ids} for held in ids}
 
-    aligned_artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", key("align", cfg))
-    aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
     rate_hz, model_hz = float(settings.rate_hz), float(cfg.dataset.model_hz)
     stride = round(rate_hz / model_hz)
-    fine = runs_at_model_rate(aligned, rate_hz, "clock")
-    if [run["run_id"] for run in fine] != ids:
+    _, fine = recorded_runs(*overrides, rate_hz=rate_hz, grid="clock")
+    if [run.run_id for run in fine] != ids:
         raise SystemExit(f"the runs at {rate_hz} Hz are not those of the model grid")
     batch = calib.RunBatch.from_runs(fine)
     init = calib.sim_physics_values(settings.init)
@@ -84,7 +85,7 @@ def twin_folds(cfg, runs: list[dict], cache: Path) -> dict[str, dict[str, np.nda
     rest = calib.training_mean_offsets(result.offsets, weights)
     predicted = calib.open_loop(template, param, result.z, batch, rest)  # [F, R, T, 3]
     print(f"calibrated {len(ids)} folds in {time.perf_counter() - started:.0f} s", flush=True)
-    folds = {held: {run["run_id"]: predicted[f, r, :batch.lengths[r]][::stride][:len(run["pos"])]
+    folds = {held: {run.run_id: predicted[f, r, :batch.lengths[r]][::stride][:len(run)]
                     for r, run in enumerate(runs)}
              for f, held in enumerate(ids)}
     cache.parent.mkdir(parents=True, exist_ok=True)
@@ -98,16 +99,18 @@ def hybrid_row(args: argparse.Namespace) -> dict:
     from pipeline.dynamics import cv as model_cv
     from pipeline.dynamics.scoring import position_errors_mm, predict_run
 
-    cfg, runs = load_runs(args.overrides)
-    ids = [run["run_id"] for run in runs]
-    twin = twin_folds(cfg, runs, Path(args.out).parent / "twin_folds.npz")
+    overrides = ["robot=sorolex_csv", *args.overrides]
+    cfg, runs = recorded_runs(*overrides)
+    ids = [run.run_id for run in runs]
+    twin = twin_folds(cfg, runs, overrides, Path(args.out).parent / "twin_folds.npz")
     for held in ids:  # the predictions cover the model grid
         for run in runs:
-            if len(twin[held][run["run_id"]]) != len(run["pos"]):
-                raise SystemExit(f"fold {held}: the twin's prediction of {run['run_id']} is "
+            if len(twin[held][run.run_id]) != len(run):
+                raise SystemExit(f"fold {held}: the twin's prediction of {run.run_id} is "
                                  f"shorter than the run")
-    copies = [{**run, "run_id": f"{run['run_id']}@{held}",
-               "pos": (run["pos"] - twin[held][run["run_id"]]).astype(run["pos"].dtype)}
+    copies = [run.replace(run_id=f"{run.run_id}@{held}",
+                          positions_m=(run.positions_m - twin[held][run.run_id]).astype(
+                              run.positions_m.dtype))
               for held in ids for run in runs]
     seeds = [int(seed) for seed in args.seeds.split(",")]
     # (fold, kind, member): the residual models on the fold's copies, the plain ones on the runs
@@ -123,8 +126,8 @@ def hybrid_row(args: argparse.Namespace) -> dict:
                                      window=int(data.window), stride=int(data.stride),
                                      order=str(data.order))
     train_s, train_cpu_s = time.perf_counter() - started, time.process_time() - started_cpu
-    by_copy = {run["run_id"]: run for run in copies}
-    by_id = {run["run_id"]: run for run in runs}
+    by_copy = {run.run_id: run for run in copies}
+    by_id = {run.run_id: run for run in runs}
     per_run = {}
     for held in ids:
         fold = [(kind, p) for (h, kind, _), p in zip(members, params, strict=True) if h == held]
@@ -133,11 +136,11 @@ def hybrid_row(args: argparse.Namespace) -> dict:
             return [predict_run(p, by_copy[f"{run_id}@{held}"]) + twin[held][run_id]
                     if kind == "hybrid" else predict_run(p, by_id[run_id]) for kind, p in fold]
 
-        pos, held_out = by_id[held]["pos"], predictions(held)
+        pos, held_out = by_id[held].positions_m, predictions(held)
         single = [position_errors_mm(one, pos) for one in held_out]
         errors = position_errors_mm(np.mean(held_out, axis=0), pos)
         twin_errors = position_errors_mm(twin[held][held], pos)
-        train = [position_errors_mm(np.mean(predictions(r), axis=0), by_id[r]["pos"])
+        train = [position_errors_mm(np.mean(predictions(r), axis=0), by_id[r].positions_m)
                  for r in ids if r != held]
         per_run[held] = {
             "model_mean_mm": errors["mean_mm"], "model_p95_mm": errors["p95_mm"],
@@ -161,10 +164,10 @@ def main(argv=None) -> None:
     parser.add_argument("--seeds", default="0", help="comma-separated model seeds")
     parser.add_argument("--with-plain", action="store_true",
                         help="average the hybrid with the learned model alone (same seeds)")
-    parser.add_argument("--out", default=DEFAULT_OUT)
+    parser.add_argument("--out", default=STUDY_FILE)
     args = parser.parse_args(argv)
     row = hybrid_row(args)
-    append_row(args.out, row)
+    append_jsonl(args.out, row)
     for held, figures in row["per_run"].items():
         print(f"{held}: hybrid {figures['model_mean_mm']:.2f} / {figures['model_p95_mm']:.2f} mm,"
               f" twin alone {figures['twin_mean_mm']:.2f} / {figures['twin_p95_mm']:.2f}, "

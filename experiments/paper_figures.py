@@ -40,6 +40,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.studies import run_stage
+
 log = logging.getLogger("paper_figures")
 
 EMA_WEIGHT = 0.025  # the paper's smoothing of the loss curves (weight of the newest loss)
@@ -70,16 +72,6 @@ def reference(*overrides: str) -> Any:
     from pipeline.config import compose as compose_config
 
     return compose_config(*overrides)
-
-
-def run_stage(base: tuple[str, ...], stage: str, *overrides: str) -> dict[str, Any]:
-    """Run ``stage`` (after what it needs upstream) through the pipeline's router."""
-    from pipeline.__main__ import run
-
-    started = time.perf_counter()
-    results = run(compose(base, f"stage={stage}", *overrides))
-    log.info("%s %s: %.0f s", stage, " ".join(overrides), time.perf_counter() - started)
-    return results
 
 
 def _captioned(fig, caption: str) -> None:
@@ -138,8 +130,8 @@ def exploration_figures(out: Path, base: tuple[str, ...], captions: dict[str, st
     positions = {}
     walk_png = None
     for alpha in alphas:
-        results = run_stage(base, "collect", "robot=sim", "robot.num_runs=1",
-                            f"exploration.alpha={alpha}")
+        results = run_stage("collect", "robot=sim", "robot.num_runs=1",
+                            f"exploration.alpha={alpha}", *base)
         artifact = results["collect"]
         mocap = pd.read_parquet(artifact.file("mocap.parquet"))
         positions[alpha] = mocap[mocap["valid"]] if "valid" in mocap else mocap
@@ -196,8 +188,8 @@ def exploration_figures(out: Path, base: tuple[str, ...], captions: dict[str, st
 def model_figures(out: Path, base: tuple[str, ...], captions: dict[str, str]) -> Any:
     import matplotlib.pyplot as plt
 
-    from pipeline.data.alignment import runs_at_model_rate
-    from pipeline.data.schemas import ALIGNED, read_table
+    from pipeline.data.alignment import load_runs
+    from pipeline.data.runs import runs_by_id
     from pipeline.dynamics.checkpoints import load_dynamics
     from pipeline.dynamics.figures import plot_reconstruction
     from pipeline.dynamics.scoring import LEARNED
@@ -205,8 +197,8 @@ def model_figures(out: Path, base: tuple[str, ...], captions: dict[str, str]) ->
     fits, durations = {}, {}
     for order in ("permuted", "sequential"):
         started = time.perf_counter()
-        fits[order] = run_stage(base, "fit_model", "robot=sorolex_csv", SPLIT_PROTOCOL,
-                                f"dataset.order={order}")
+        fits[order] = run_stage("fit_model", "robot=sorolex_csv", SPLIT_PROTOCOL,
+                                f"dataset.order={order}", *base)
         durations[order] = time.perf_counter() - started
     cfg = compose(base, "robot=sorolex_csv", SPLIT_PROTOCOL)
     model, data = cfg.model, cfg.dataset
@@ -254,9 +246,8 @@ def model_figures(out: Path, base: tuple[str, ...], captions: dict[str, str]) ->
         f"{int(paper.dataset.window)} (the project's default model). {verdict}"), captions)
 
     artifact = fits["permuted"]["fit_model"]
-    aligned, _ = read_table(fits["permuted"]["align"].file("aligned.parquet"), ALIGNED)
-    runs = {r["run_id"]: r for r in runs_at_model_rate(aligned, float(data.model_hz),
-                                                       str(data.model_grid))}
+    runs = runs_by_id(load_runs(fits["permuted"]["align"].file("aligned.parquet"),
+                                float(data.model_hz), str(data.model_grid)))
     params = load_dynamics(artifact.file("model.msgpack"))
     shown = [runs[split["train"][0]]] + ([runs[split["test"][0]]] if split["test"] else [])
     png = plot_reconstruction(out / "fig7_reconstruction.raw.png", params, shown,
@@ -268,7 +259,7 @@ def model_figures(out: Path, base: tuple[str, ...], captions: dict[str, str]) ->
     numbers = ", ".join(f"{rid} ({'train' if rid in split['train'] else 'held out'}) "
                         f"{learned.loc[rid, 'mean_mm']:.2f} mm mean / "
                         f"{learned.loc[rid, 'p95_mm']:.2f} "
-                        "mm p95" for rid in [r["run_id"] for r in shown])
+                        "mm p95" for rid in [r.run_id for r in shown])
     _save(fig, out / "fig7_reconstruction.png", (
         "Fig. 7. Open-loop reconstruction by the permuted-order model of Fig. 6: the position "
         "predicted from the commands alone over the entire run (red) against motion capture "
@@ -296,7 +287,7 @@ def return_figure(out: Path, base: tuple[str, ...], captions: dict[str, str], se
     for i, agent in enumerate(("ppo_ff", "ppo_rnn")):
         overrides = ("experiment=real_arm", *paper_task, f"agent={agent}",
                      f"agent.num_seeds={seeds}", *budget_overrides(steps))
-        artifact = run_stage(base, "train_ppo", *overrides)["train_ppo"]
+        artifact = run_stage("train_ppo", *overrides, *base)["train_ppo"]
         summary = artifact.manifest["summary"]
         durations[agent] = float(summary["compile_seconds"]) + float(summary["train_seconds"])
         cfg = compose(base, *overrides)

@@ -1,7 +1,7 @@
 """Clone the value-iteration optimum of Pendulum-v1 into the PPO actor: a warm start for PPO.
 
 PPO stays at a return of about -144 on Pendulum-v1 where the optimum is about -136
-(``pendulum_optimal.py``). Is that an optimisation problem (PPO never finds the better swing-up
+(``pendulum_optimal.py``, :mod:`pipeline.rl.pendulum_optimum`). Is that an optimisation problem (PPO never finds the better swing-up
 from scratch) or does PPO's own objective lead away from the optimum? This script answers the
 first half of the question: it fits the actor of the ``experiment=pendulum`` network, by
 regression, to the stationary greedy policy of value iteration (torque levels over [-2, 2]) on
@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import optax
 from gymnax.environments.classic_control.pendulum import EnvState
 
-from experiments.pendulum_optimal import greedy_torque, optimal_returns, policy_returns, solve
 from pipeline.rl.networks import initial_hidden, make_network
+from pipeline.rl.pendulum_optimum import greedy_torque, optimal_returns, policy_returns, solve
 from pipeline.rl.policy_io import save_policy
 from pipeline.schemas import AgentConfig
 

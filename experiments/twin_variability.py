@@ -10,9 +10,9 @@ run the refitted values and its open-loop error before and after, then the sprea
 The same refit on runs of the simulated arm itself (``--robot sim_sorolex`` with its own
 overrides) measures the estimator's spread when the physics do not differ.
 
-Usage (after ``python -m pipeline stage=align robot=...`` with the same overrides)::
+Usage (the runs through ``stage=align`` with the same overrides, reused when there)::
 
-    python experiments/twin_variability.py [--robot sorolex_csv] [--steps 150] [override ...]
+    python -m experiments.twin_variability [--robot sorolex_csv] [--steps 150] [override ...]
 """
 
 from __future__ import annotations
@@ -26,13 +26,10 @@ import numpy as np
 import optax
 from omegaconf import OmegaConf
 
-from pipeline import keys
 from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
 from pipeline.config import compose
-from pipeline.data.alignment import runs_at_model_rate
-from pipeline.data.schemas import ALIGNED, read_table
-from pipeline.infra.artifacts import ArtifactStore
+from pipeline.studies import recorded_runs
 
 HZ = 20.0
 SUBSTEPS = 2
@@ -44,13 +41,6 @@ def calibrated_physics() -> dict:
     cfg = compose("robot=sim_sorolex")
     physics = calib.sim_physics_values(cfg.robot.physics)
     return {k: v for k, v in physics.items() if k in sim_arm.PHYSICS_VALUES}
-
-
-def load_runs(overrides: list[str]) -> list[dict]:
-    cfg = compose(*overrides)
-    artifact = ArtifactStore(cfg.paths.artifact_dir).require("align", keys.key("align", cfg))
-    aligned, _ = read_table(artifact.file("aligned.parquet"), ALIGNED)
-    return runs_at_model_rate(aligned, HZ, "clock")
 
 
 def template_of(physics: dict) -> sim_arm.SimParams:
@@ -112,7 +102,7 @@ def main() -> None:
     args = parser.parse_args()
     names = args.fitted.split(",")
     physics = calibrated_physics()
-    runs = load_runs([f"robot={args.robot}", *args.overrides])
+    _, runs = recorded_runs(f"robot={args.robot}", *args.overrides, rate_hz=HZ, grid="clock")
     batch = calib.RunBatch.from_runs(runs)
     template = template_of(physics)
     param = calib.Parameterization.create(names, physics)
@@ -124,7 +114,7 @@ def main() -> None:
     print("run | rms before mm | rms after mm | " + " | ".join(names))
     for i, run in enumerate(runs):
         cells = [", ".join(f"{x:.4g}" for x in values[i][n]) for n in names]
-        print(f"{run['run_id']} | {np.sqrt(trace[0, i]):.2f} | {np.sqrt(final[i]):.2f} | "
+        print(f"{run.run_id} | {np.sqrt(trace[0, i]):.2f} | {np.sqrt(final[i]):.2f} | "
               + " | ".join(cells))
     print("\nspread between runs (std over runs; relative: std of the log)")
     spread = {}
@@ -140,7 +130,7 @@ def main() -> None:
     print(f"  rest offsets: std {np.round(offsets.std(0) * 1e3, 3).tolist()} mm")
     if args.out:
         with open(args.out, "w") as f:
-            json.dump({"runs": [r["run_id"] for r in runs], "names": names,
+            json.dump({"runs": [r.run_id for r in runs], "names": names,
                        "values": [{k: v.tolist() for k, v in d.items()} for d in values],
                        "rms_before_mm": np.sqrt(trace[0]).tolist(),
                        "rms_after_mm": np.sqrt(final).tolist(), "spread": spread}, f, indent=1)

@@ -16,6 +16,7 @@ from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
 from pipeline.arm.twins import load_physics
 from pipeline.chain import stages_to_run
+from pipeline.data.runs import Run
 from pipeline.data.schemas import read_table
 from pipeline.dynamics.calibration_report import PARAMETERS, fold_weights
 from pipeline.schemas import SimPhysics, Stage
@@ -52,7 +53,7 @@ def test_unknown_or_repeated_parameters_are_refused():
         calib.Parameterization.create(["bend_gain", "bend_gain"], INIT)
 
 
-def _tiny_runs(physics: dict, num_frames: int, noise_m: float, seed: int) -> list[dict]:
+def _tiny_runs(physics: dict, num_frames: int, noise_m: float, seed: int) -> list[Run]:
     """Two runs the simulator itself generates at 10 Hz (1 substep), with position noise."""
     template = sim_arm.SimParams.noise_free(physics, 10.0, 1)
     rng = np.random.default_rng(seed)
@@ -64,9 +65,8 @@ def _tiny_runs(physics: dict, num_frames: int, noise_m: float, seed: int) -> lis
         state = sim_arm.settled_state(template, jnp.full(3, 2.0), jnp.zeros(3))
         truth = np.asarray(sim_arm.predict_positions(template, state, jnp.asarray(commands)))
         offset = np.array([0.002, 0.0, -0.001]) * (1 if i else -1)
-        runs.append({"run_id": f"r{i}", "p": commands,
-                     "pos": (truth + offset + rng.normal(0, noise_m, truth.shape)
-                             ).astype(np.float32)})
+        runs.append(Run(f"r{i}", np.arange(num_frames) / 10.0, commands,
+                        (truth + offset + rng.normal(0, noise_m, truth.shape)).astype(np.float32)))
     return runs
 
 
@@ -92,11 +92,11 @@ def test_recovers_known_physics_from_the_simulators_own_noisy_data():
     assert result.losses[-1, 0, result.chosen[0]] < result.losses[0, 0, result.chosen[0]] / 20
     # the physics predict a run from its first pose (no fitted offset) to within its noise
     first_pose = calib.open_loop(template, param, result.z, batch)[0, 0]
-    assert 1e3 * np.linalg.norm(first_pose - runs[0]["pos"], axis=1).mean() < 0.6
+    assert 1e3 * np.linalg.norm(first_pose - runs[0].positions_m, axis=1).mean() < 0.6
     # at the training runs' mean offset the run is off by its own rest offset, (2, 0, -1) mm
     mean_offset = calib.training_mean_offsets(result.offsets, np.ones((1, 2)))
     at_mean = calib.open_loop(template, param, result.z, batch, mean_offset)[0, 0]
-    np.testing.assert_allclose(1e3 * (runs[0]["pos"] - at_mean).mean(0), [-2.0, 0.0, 1.0],
+    np.testing.assert_allclose(1e3 * (runs[0].positions_m - at_mean).mean(0), [-2.0, 0.0, 1.0],
                                atol=0.3)
 
 

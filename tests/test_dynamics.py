@@ -3,6 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pipeline.data.runs import Run
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.model import DynamicsConfig, DynamicsParams
 
@@ -17,8 +18,7 @@ def make_runs(num_runs=2, num_steps=40, seed=0):
         position = (0.03 + 0.002 * np.cumsum(rng.normal(size=(num_steps, 3)), 0)).astype(
             np.float32
         )
-        runs.append({"run_id": f"r{i}", "t": np.arange(num_steps) / 10.0, "p": pressure,
-                     "pos": position})
+        runs.append(Run(f"r{i}", np.arange(num_steps) / 10.0, pressure, position))
     return runs
 
 
@@ -48,7 +48,7 @@ CONFIGS = [
 def test_stepped_equals_sequence(config):
     params = make_params(config)
     run = make_runs(1, 25, seed=5)[0]
-    pressures, initial_pose = jnp.asarray(run["p"]), jnp.asarray(run["pos"][0])
+    pressures, initial_pose = jnp.asarray(run.pressures_kpa), jnp.asarray(run.positions_m[0])
     whole = predict_sequence(params, pressures, initial_pose)
     assert whole.shape == (25, 3)
 
@@ -99,10 +99,10 @@ def test_initial_pose_conditioning_and_displacement():
 def test_normalizer_statistics():
     runs = make_runs()
     normalizer = dynamics.fit_normalizer(runs, predict_displacement=True)
-    all_p = np.concatenate([r["p"] for r in runs])
+    all_p = np.concatenate([r.pressures_kpa for r in runs])
     np.testing.assert_allclose(normalizer.pressure_mean, all_p.mean(0), rtol=1e-5)
     np.testing.assert_allclose(normalizer.pressure_std, all_p.std(0), rtol=1e-4)
-    displacement = np.concatenate([r["pos"] - r["pos"][0] for r in runs])
+    displacement = np.concatenate([r.positions_m - r.positions_m[0] for r in runs])
     np.testing.assert_allclose(normalizer.target_mean, displacement.mean(0), atol=1e-6)
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.data.runs import Run
 from pipeline.dynamics import checkpoints, scoring
 from pipeline.dynamics import cv as model_cv
 from pipeline.dynamics import features as model_features
@@ -33,8 +34,8 @@ def lag_runs(lengths=(40, 30, 50), seed=0):
         for p in pressure:
             state = 0.6 * state + 0.4 * gain @ p
             position.append(np.array([0.03, 0.35, 0.2]) + state)
-        runs.append({"run_id": f"run{i}", "t": np.arange(num_steps) / 10.0,
-                     "p": pressure.astype(np.float32), "pos": np.array(position, np.float32)})
+        runs.append(Run(f"run{i}", np.arange(num_steps) / 10.0, pressure.astype(np.float32),
+                        np.array(position, np.float32)))
     return runs
 
 
@@ -66,7 +67,7 @@ def test_vmapped_members_equal_single_fits():
     members = [Member(("run0", "run1"), "run2", 3), Member(("run2",), "run0", 1)]
     params, losses = model_cv.fit_members(runs, members, TINY, window=8, progress=False)
     for member, member_params, member_losses in zip(members, params, losses):
-        train_runs = [r for r in runs if r["run_id"] in member.train_ids]
+        train_runs = [r for r in runs if r.run_id in member.train_ids]
         alone, normalizer, table = train_model.fit(train_runs, dict(TINY, seed=member.seed),
                                                    window=8, progress=False)
         np.testing.assert_allclose(member_losses, table.train_loss, rtol=2e-4)
@@ -103,7 +104,7 @@ def test_warning_fires_when_the_model_loses_to_the_linear_baseline(caplog):
     members = model_cv.cv_members(["run0", "run1"], final=False)
     params = [dynamics.DynamicsParams(
         dynamics.init_network(jax.random.PRNGKey(0), config),
-        dynamics.fit_normalizer([r for r in runs if r["run_id"] in m.train_ids], False),
+        dynamics.fit_normalizer([r for r in runs if r.run_id in m.train_ids], False),
         config) for m in members]
     metrics = model_cv.cv_metrics(runs, members, params, num_lags=5)
     assert set(metrics["split"]) == {"cv", "cv_train"}
@@ -201,7 +202,7 @@ def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
     aligned_artifact = store.require("align", key("align", cfg))
     _, train_params, eval_params = config_environment(cfg, artifact, aligned_artifact)
     aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
-    measured = np.concatenate([r["pos"] for r in runs_at_model_rate(aligned, 10.0)])
+    measured = np.concatenate([r.positions_m for r in runs_at_model_rate(aligned, 10.0)])
     np.testing.assert_allclose(np.asarray(eval_params.goal_set), measured, atol=1e-7)
     assert train_params.goal_set.shape == eval_params.goal_set.shape
     assert not np.allclose(np.asarray(train_params.goal_set), measured)  # model predictions

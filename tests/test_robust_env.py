@@ -584,7 +584,7 @@ def test_prediction_spread_is_the_largest_distance_to_the_first_models_predictio
     by_hand = np.maximum(np.linalg.norm(predict_run(second, run) - reference, axis=-1),
                          np.linalg.norm(predict_run(third, run) - reference, axis=-1))
     spread = prediction_spread([first, second, third], run)
-    assert spread.shape == (len(run["p"]),) and spread.max() > 0
+    assert spread.shape == (len(run),) and spread.max() > 0
     np.testing.assert_allclose(spread, by_hand, rtol=1e-6)
 
 

@@ -2,6 +2,7 @@ import jax
 import numpy as np
 import pytest
 
+from pipeline.data.runs import Run
 from pipeline.dynamics import checkpoints, scoring
 from pipeline.dynamics import training as train_model
 from pipeline.dynamics.training import ModelTrainConfig
@@ -20,8 +21,8 @@ def first_order_runs(num_runs=3, num_steps=60, seed=0):
         for p in pressure:
             state = 0.6 * state + 0.4 * gain @ p
             position.append(rest + state)
-        runs.append({"run_id": f"run{i}", "t": np.arange(num_steps) / 10.0,
-                     "p": pressure.astype(np.float32), "pos": np.array(position, np.float32)})
+        runs.append(Run(f"run{i}", np.arange(num_steps) / 10.0, pressure.astype(np.float32),
+                        np.array(position, np.float32)))
     return runs
 
 
@@ -117,8 +118,9 @@ def test_position_errors_known_answer():
 
 
 def test_baseline_mean_position_known_answer():
-    train = [{"pos": np.array([[0.0, 0.0, 0.0], [0.002, 0.0, 0.0]])}]
-    test = {"pos": np.array([[0.001, 0.0, 0.0], [0.001, 0.003, 0.0]])}
+    times, pressures = np.arange(2) / 10.0, np.zeros((2, 3))
+    train = [Run("a", times, pressures, np.array([[0.0, 0.0, 0.0], [0.002, 0.0, 0.0]]))]
+    test = Run("b", times, pressures, np.array([[0.001, 0.0, 0.0], [0.001, 0.003, 0.0]]))
     errors = scoring.baseline_mean_position(train, test)
     assert errors["mean_mm"] == pytest.approx(1.5)
 
@@ -136,7 +138,7 @@ def test_lagged_features_and_linear_baseline_known_answer():
     p = rng.uniform(0, 5, (200, 3))
     previous = np.concatenate([p[:1], p[:-1]])
     pos = 0.01 + 1e-3 * (p[:, [0, 1, 2]] - 0.5 * previous + 0.1 * p**2)
-    run = {"p": p, "pos": pos}
+    run = Run("r", np.arange(200) / 10.0, p, pos)
     errors = scoring.baseline_linear_lagged([run], run, num_lags=2)
     assert errors["mean_mm"] < 1e-6
 

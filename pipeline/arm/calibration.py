@@ -129,25 +129,25 @@ class RunBatch:
     lengths: np.ndarray  # [R] int
 
     @classmethod
-    def from_runs(cls, runs: Sequence[Mapping[str, Any]]) -> RunBatch:
-        """From ``{run_id, p [T_r, 3] kPa, pos [T_r, 3] m}`` dicts (a regular grid each); the
+    def from_runs(cls, runs: Sequence[Any]) -> RunBatch:
+        """From runs (:class:`~pipeline.data.runs.Run`, a regular grid each); the
         first pressure of each run is the preload it has settled at."""
         if not runs:
             raise ValueError("calibration needs at least one run")
-        lengths = np.array([len(r["p"]) for r in runs])
+        lengths = np.array([len(r) for r in runs])
         length = int(lengths.max())
         commands = np.zeros((len(runs), length, 3), np.float32)
         positions = np.zeros((len(runs), length, 3), np.float32)
         mask = np.zeros((len(runs), length), np.float32)
         for i, run in enumerate(runs):
             n = lengths[i]
-            commands[i, :n] = run["p"]
-            commands[i, n:] = run["p"][-1]
-            positions[i, :n] = run["pos"]
-            positions[i, n:] = run["pos"][-1]
+            commands[i, :n] = run.pressures_kpa
+            commands[i, n:] = run.pressures_kpa[-1]
+            positions[i, :n] = run.positions_m
+            positions[i, n:] = run.positions_m[-1]
             mask[i, :n] = 1.0
         preload = commands[:, 0].copy()
-        return cls(tuple(str(r["run_id"]) for r in runs), commands, positions, mask, preload,
+        return cls(tuple(r.run_id for r in runs), commands, positions, mask, preload,
                    lengths)
 
 

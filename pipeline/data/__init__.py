@@ -1,1 +1,2 @@
-"""Data: table schemas, importers of recordings, alignment, training windows, raw streams."""
+"""Data: table schemas, importers of recordings, alignment, runs as records, training windows,
+raw streams."""

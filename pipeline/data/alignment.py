@@ -24,16 +24,20 @@ from __future__ import annotations
 
 import itertools
 import logging
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from pipeline.data.runs import Run
 from pipeline.data.schemas import (
+    ALIGNED,
     CMD_COLUMNS,
     P_COLUMNS,
     XYZ,
     DataError,
+    read_table,
 )
 from pipeline.schemas import GapPolicy
 
@@ -213,8 +217,8 @@ def align_tables(commands: pd.DataFrame, mocap: pd.DataFrame, settings: Any,
 
 
 def runs_at_model_rate(aligned: pd.DataFrame, model_hz: float, grid: str = "clock"
-                       ) -> list[dict[str, Any]]:
-    """Aligned rows as the model's runs: ``{run_id, t [T], p [T, 3] kPa, pos [T, 3] m}``.
+                       ) -> list[Run]:
+    """Aligned rows as the model's runs (:class:`~pipeline.data.runs.Run`), sorted by run id.
 
     ``grid``: ``clock`` (a regular grid) or ``commands`` (locked to the command times, see
     :func:`resample_command_locked`).
@@ -226,11 +230,15 @@ def runs_at_model_rate(aligned: pd.DataFrame, model_hz: float, grid: str = "cloc
     else:
         raise ValueError(f"dataset.model_grid must be clock or commands, got {grid!r}")
     return [
-        {
-            "run_id": str(run_id),
-            "t": run["t"].to_numpy(np.float64),
-            "p": run[P_COLUMNS].to_numpy(np.float32),
-            "pos": run[XYZ].to_numpy(np.float32),
-        }
+        Run(run_id=str(run_id), times_s=run["t"].to_numpy(np.float64),
+            pressures_kpa=run[P_COLUMNS].to_numpy(np.float32),
+            positions_m=run[XYZ].to_numpy(np.float32))
         for run_id, run in resampled.groupby("run_id", sort=True)
     ]
+
+
+def load_runs(aligned_path: str | Path, rate_hz: float, grid: str = "clock") -> list[Run]:
+    """The runs of an aligned table file (an align artifact's ``aligned.parquet``) at ``rate_hz``
+    on ``grid`` (:func:`runs_at_model_rate`): how fit_model and the studies read recorded runs."""
+    aligned, _ = read_table(aligned_path, ALIGNED)
+    return runs_at_model_rate(aligned, rate_hz, grid)

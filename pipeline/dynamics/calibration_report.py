@@ -18,6 +18,7 @@ import pandas as pd
 
 from pipeline.arm import calibration as calib
 from pipeline.arm import sim_arm
+from pipeline.data.runs import Run
 from pipeline.data.schemas import XYZ, Column, TableSchema
 from pipeline.dynamics.scoring import (
     baseline_linear_lagged,
@@ -76,29 +77,29 @@ def predictions(template: sim_arm.SimParams, param: calib.Parameterization,
     return predicted
 
 
-def _scored(prediction: np.ndarray, model_run: dict, stride: int) -> dict:
+def _scored(prediction: np.ndarray, model_run: Run, stride: int) -> dict:
     """Errors of a rate_hz prediction on the model_hz grid (every ``stride``-th frame)."""
     sub = prediction[::stride]
-    n = min(len(sub), len(model_run["pos"]))
-    return position_errors_mm(sub[:n], model_run["pos"][:n])
+    n = min(len(sub), len(model_run.positions_m))
+    return position_errors_mm(sub[:n], model_run.positions_m[:n])
 
 
-def evaluation_table(folds: list, runs: list[dict], model_runs: list[dict],
+def evaluation_table(folds: list, runs: list[Run], model_runs: list[Run],
                      predicted: dict[str, np.ndarray], stride: int) -> pd.DataFrame:
     """Per run: held-out ("test", leave-one-run-out) and in-sample ("train", the fit on all
     runs) open-loop errors of the simulators in ``predicted`` (name: ``[folds, R, T, 3]`` m)
     and of the baselines."""
-    by_id = {r["run_id"]: r for r in model_runs}
+    by_id = {r.run_id: r for r in model_runs}
     rows = []
     for fold_index, fold in enumerate(folds):
         held_out = [fold] if fold != ALL_RUNS else list(range(len(runs)))
         for i in held_out:
             run = runs[i]
-            model_run = by_id[run["run_id"]]
-            train = [by_id[r["run_id"]] for j, r in enumerate(runs)
+            model_run = by_id[run.run_id]
+            train = [by_id[r.run_id] for j, r in enumerate(runs)
                      if fold == ALL_RUNS or j != fold]
             split = "train" if fold == ALL_RUNS else "test"
-            n = len(run["p"])
+            n = len(run)
             scored = {name: _scored(positions[fold_index, i, :n], model_run, stride)
                       for name, positions in predicted.items()}
             for model, errors in (
@@ -106,8 +107,8 @@ def evaluation_table(folds: list, runs: list[dict], model_runs: list[dict],
                 ("mean_position", baseline_mean_position(train, model_run)),
                 ("linear_lagged", baseline_linear_lagged(train, model_run)),
             ):
-                rows.append({"run_id": run["run_id"], "split": split, "model": model,
-                             "steps": len(model_run["p"]), **errors})
+                rows.append({"run_id": run.run_id, "split": split, "model": model,
+                             "steps": len(model_run), **errors})
     return pd.DataFrame(rows)
 
 
@@ -142,10 +143,10 @@ def parameter_table(fold_names: list[str], param: calib.Parameterization,
                          for row in parameter_rows(name, param, result.physics[f], init)])
 
 
-def offsets_table(runs: list[dict], result: calib.FitResult) -> pd.DataFrame:
+def offsets_table(runs: list[Run], result: calib.FitResult) -> pd.DataFrame:
     """The :data:`OFFSETS` table: the fit on all runs' rest offset of each run."""
     offsets = result.offsets[-1]
-    return pd.DataFrame({"run_id": [r["run_id"] for r in runs],
+    return pd.DataFrame({"run_id": [r.run_id for r in runs],
                          **{c: offsets[:, k] for k, c in enumerate(XYZ)}})
 
 
@@ -160,11 +161,11 @@ def losses_table(result: calib.FitResult, fold_names: list[str]) -> pd.DataFrame
     })
 
 
-def summary(runs: list[dict], param: calib.Parameterization, result: calib.FitResult,
+def summary(runs: list[Run], param: calib.Parameterization, result: calib.FitResult,
             metrics: pd.DataFrame) -> dict[str, Any]:
     """The artifact's summary: runs, parameters, chosen restarts, the final loss, and the mean
     of each model's ``mean_mm``/``p95_mm`` per split (``<split>_<model>_<stat>``)."""
-    values = {"runs": [r["run_id"] for r in runs], "parameters": list(param.names),
+    values = {"runs": [r.run_id for r in runs], "parameters": list(param.names),
               "chosen_restarts": result.chosen.tolist(),
               "final_loss_mm2": float(result.losses[-1, -1, result.chosen[-1]])}
     for split in ("test", "train"):
@@ -203,7 +204,7 @@ def parameter_markdown(table: pd.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot_reconstruction(path: Path, runs: list[dict], folds: list, predicted: np.ndarray,
+def plot_reconstruction(path: Path, runs: list[Run], folds: list, predicted: np.ndarray,
                         default_prediction: np.ndarray, max_runs: int = 3) -> Path:
     """Measured vs simulated x, y, z of a few runs: held out where folds allow."""
     import matplotlib
@@ -220,18 +221,18 @@ def plot_reconstruction(path: Path, runs: list[dict], folds: list, predicted: np
         run = runs[i]
         fold_index = folds.index(i) if i in folds else len(folds) - 1
         label = "held out" if i in folds else "in sample"
-        n = len(run["p"])
-        t = run["t"] - run["t"][0]
+        n = len(run)
+        t = run.times_s - run.times_s[0]
         fitted = predicted[fold_index, i, :n]
-        error = 1e3 * np.linalg.norm(fitted - run["pos"], axis=1).mean()
+        error = 1e3 * np.linalg.norm(fitted - run.positions_m, axis=1).mean()
         for k, axis in enumerate(XYZ):
             ax = axes[k, col]
-            ax.plot(t, run["pos"][:, k] * 1e3, lw=0.7, color="k", label="measured")
+            ax.plot(t, run.positions_m[:, k] * 1e3, lw=0.7, color="k", label="measured")
             ax.plot(t, fitted[:, k] * 1e3, lw=0.7, color="C3", label=f"calibrated ({label})")
             ax.plot(t, default_prediction[i, :n, k] * 1e3, lw=0.5, color="C0", alpha=0.6,
                     label="hand-set")
             ax.set_ylabel(f"{axis} [mm]")
-        axes[0, col].set_title(f"{run['run_id']}: calibrated {error:.2f} mm mean ({label})",
+        axes[0, col].set_title(f"{run.run_id}: calibrated {error:.2f} mm mean ({label})",
                                fontsize=9)
         axes[-1, col].set_xlabel("time [s]")
     axes[0, 0].legend(fontsize=7)

@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
+from pipeline.data.runs import Run
 from pipeline.data.windows import make_windows
 from pipeline.dynamics import checkpoints
 from pipeline.dynamics import model as dynamics
@@ -125,7 +126,7 @@ def _member_spec(config: ModelTrainConfig, members: Sequence[Member], window: in
 
 
 def fit_members(
-    runs: Sequence[dict],
+    runs: Sequence[Run],
     members: Sequence[Member],
     model_cfg: Any,
     *,
@@ -152,13 +153,13 @@ def fit_members(
     config = ModelTrainConfig.from_any(model_cfg)
     if not members:
         raise ValueError("fit_members needs at least one member")
-    runs = sorted(runs, key=lambda run: str(run["run_id"]))
+    runs = sorted(runs, key=lambda run: run.run_id)
     member_starts = _member_windows(runs, members, window, stride)
     templates, state, sample_keys = _initial_members(runs, members, config)
     capacity = max(len(starts) for starts in member_starts)
     data = TrainData(
         inputs=jnp.asarray(np.stack([np.concatenate(run_inputs(t, runs)) for t in templates])),
-        position=jnp.asarray(np.concatenate([r["pos"] for r in runs]), jnp.float32),
+        position=jnp.asarray(np.concatenate([r.positions_m for r in runs]), jnp.float32),
         reference_pose=jnp.asarray(reference_poses(runs, config.reference_pose)),
         window_starts=jnp.asarray(np.stack(
             [np.pad(s, (0, capacity - len(s))) for s in member_starts]), jnp.int32),
@@ -199,18 +200,18 @@ def fit_members(
     return params, history
 
 
-def _member_windows(runs: Sequence[dict], members: Sequence[Member], window: int, stride: int
+def _member_windows(runs: Sequence[Run], members: Sequence[Member], window: int, stride: int
                     ) -> list[np.ndarray]:
     """Per member, the starts of its training windows in the concatenation of ``runs`` (sorted
     by id); ``ValueError`` naming the member for unknown ids or no window."""
-    index_of = {str(run["run_id"]): i for i, run in enumerate(runs)}
+    index_of = {run.run_id: i for i, run in enumerate(runs)}
     for member in members:
         unknown = [i for i in (*member.train_ids, *([member.held_out] if member.held_out else []))
                    if i not in index_of]
         if unknown or not member.train_ids:
             raise ValueError(f"member {member}: unknown run ids {unknown} (runs: "
                              f"{sorted(index_of)}) or no training run")
-    windows = make_windows([len(run["p"]) for run in runs], window, stride)
+    windows = make_windows([len(run) for run in runs], window, stride)
     member_starts = []
     for member in members:
         chosen = np.isin(windows.run_index, [index_of[i] for i in member.train_ids])
@@ -221,11 +222,11 @@ def _member_windows(runs: Sequence[dict], members: Sequence[Member], window: int
     return member_starts
 
 
-def _initial_members(runs: Sequence[dict], members: Sequence[Member], config: ModelTrainConfig
+def _initial_members(runs: Sequence[Run], members: Sequence[Member], config: ModelTrainConfig
                      ) -> tuple[list[DynamicsParams], TrainState, jax.Array]:
     """Per member its template (normalizer of its training runs, initial network of its seed),
     the stacked initial training state and the stacked batch keys [M, 2]."""
-    by_id = {str(run["run_id"]): run for run in runs}
+    by_id = {run.run_id: run for run in runs}
     optimizer = make_optimizer(config)
     architecture = config.architecture()
     templates, states, sample_keys = [], [], []
@@ -246,7 +247,7 @@ def _initial_members(runs: Sequence[dict], members: Sequence[Member], config: Mo
 # ---------------------------------------------------------------------------------------------
 # scoring
 # ---------------------------------------------------------------------------------------------
-def cv_metrics(runs: Sequence[dict], members: Sequence[Member],
+def cv_metrics(runs: Sequence[Run], members: Sequence[Member],
                params: Sequence[DynamicsParams], num_lags: int = LINEAR_LAGS) -> pd.DataFrame:
     """Open-loop errors over entire runs, per member and run (the ``model_metrics`` table).
 
@@ -257,7 +258,7 @@ def cv_metrics(runs: Sequence[dict], members: Sequence[Member],
     ``loses_to_linear``: on the model's ``cv`` rows, its mean error is not below the linear
     baseline's on that fold.
     """
-    by_id = {str(run["run_id"]): run for run in runs}
+    by_id = {run.run_id: run for run in runs}
     rows = []
     fold = 0
     for member, member_params in zip(members, params):
@@ -266,17 +267,18 @@ def cv_metrics(runs: Sequence[dict], members: Sequence[Member],
         scored = ([("cv", by_id[member.held_out])] if member.held_out else []) + [
             ("cv_train" if member.held_out else "train", run) for run in train_runs]
         for split, run in scored:
-            linear = lagged_features(run["p"], num_lags) @ coefficients
-            errors = {LEARNED: position_errors_mm(predict_run(member_params, run), run["pos"]),
+            linear = lagged_features(run.pressures_kpa, num_lags) @ coefficients
+            errors = {LEARNED: position_errors_mm(predict_run(member_params, run),
+                                                  run.positions_m),
                       "mean_position": baseline_mean_position(train_runs, run),
-                      "linear_lagged": position_errors_mm(linear, run["pos"])}
+                      "linear_lagged": position_errors_mm(linear, run.positions_m)}
             loses = bool(split == "cv" and errors[LEARNED]["mean_mm"]
                          >= errors["linear_lagged"]["mean_mm"])
             for model in MODELS:
-                rows.append({"run_id": str(run["run_id"]), "split": split,
+                rows.append({"run_id": run.run_id, "split": split,
                              "fold": fold if member.held_out else -1,
                              "held_out": member.held_out or "", "seed": member.seed,
-                             "model": model, "steps": len(run["p"]), **errors[model],
+                             "model": model, "steps": len(run), **errors[model],
                              "loses_to_linear": loses and model == LEARNED})
         fold += bool(member.held_out)
     return pd.DataFrame(rows)
@@ -316,7 +318,7 @@ def cv_summary(metrics: pd.DataFrame) -> pd.DataFrame:
     return table.reset_index()
 
 
-def ensemble_predictions(members_params: Sequence[DynamicsParams], run: dict
+def ensemble_predictions(members_params: Sequence[DynamicsParams], run: Run
                          ) -> tuple[np.ndarray, np.ndarray]:
     """Mean and per-axis std over members of the open-loop predictions, both [T, 3] m."""
     predictions = np.stack([predict_run(p, run) for p in members_params])

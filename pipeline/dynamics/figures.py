@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.data.runs import Run
 from pipeline.data.schemas import XYZ
 from pipeline.dynamics.scoring import predict_run
 
@@ -51,7 +52,7 @@ def zoom_window(t: np.ndarray, width_s: float) -> tuple[float, float]:
     return middle - 0.5 * width_s, middle + 0.5 * width_s
 
 
-def plot_reconstruction(path: Path, params, runs: list[dict], labels: list[str],
+def plot_reconstruction(path: Path, params, runs: list[Run], labels: list[str],
                         zoom_s: float = 30.0) -> Path:
     """Measured vs open-loop predicted x, y, z over time (paper Fig. 7), the error
     ``|predicted - measured|`` under them, and beside each run a zoom into ``zoom_s`` seconds
@@ -68,14 +69,15 @@ def plot_reconstruction(path: Path, params, runs: list[dict], labels: list[str],
                                           "height_ratios": [1, 1, 1, 0.9]})
     for col, (model, run, label) in enumerate(zip(models, runs, labels)):
         predicted = predict_run(model, run)
-        t = run["t"] - run["t"][0]
-        error = 1e3 * np.linalg.norm(predicted - run["pos"], axis=1)
+        t = run.times_s - run.times_s[0]
+        error = 1e3 * np.linalg.norm(predicted - run.positions_m, axis=1)
         low, high = zoom_window(t, zoom_s)
         inside = (t >= low) & (t <= high)
         full, zoom = axes[:, 2 * col], axes[:, 2 * col + 1]
         for k, axis in enumerate(XYZ):
             for ax, keep in ((full[k], slice(None)), (zoom[k], inside)):
-                ax.plot(t[keep], run["pos"][keep, k] * 1e3, lw=0.8, color="k", label="measured")
+                ax.plot(t[keep], run.positions_m[keep, k] * 1e3, lw=0.8, color="k",
+                        label="measured")
                 ax.plot(t[keep], predicted[keep, k] * 1e3, lw=0.8, color="C3",
                         label="model (open loop)")
             full[k].axvspan(low, high, color="C0", alpha=0.08)
@@ -91,7 +93,7 @@ def plot_reconstruction(path: Path, params, runs: list[dict], labels: list[str],
         for k in range(3):
             full[k].tick_params(labelbottom=False)
             zoom[k].tick_params(labelbottom=False)
-        full[0].set_title(f"{label} {run['run_id']}: mean error {error.mean():.2f} mm, p95 "
+        full[0].set_title(f"{label} {run.run_id}: mean error {error.mean():.2f} mm, p95 "
                           f"{np.percentile(error, 95):.2f} mm", fontsize=10)
         zoom[0].set_title(f"zoom: {low:.0f}–{high:.0f} s", fontsize=10)
     axes[0, 0].legend(fontsize=7, loc="upper right")

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from pipeline.data.runs import Run
 from pipeline.dynamics import features as model_features
 from pipeline.schemas import ModelArchitecture, frozen_twin
 
@@ -246,17 +247,17 @@ def init_network(key: jax.Array, config: DynamicsConfig) -> Any:
 # ---------------------------------------------------------------------------------------------
 # normalization
 # ---------------------------------------------------------------------------------------------
-def fit_normalizer(runs: Sequence[dict], predict_displacement: bool) -> Normalizer:
+def fit_normalizer(runs: Sequence[Run], predict_displacement: bool) -> Normalizer:
     """Statistics over all steps of ``runs`` (dicts with "p" [T, 3] kPa and "pos" [T, 3] m).
 
     Displacements are measured from each run's first pose, as the training windows are by default
     (``reference_pose="run_start"`` in ``train_model``).
     """
-    pressures = np.concatenate([np.asarray(run["p"], np.float64) for run in runs])
-    positions = np.concatenate([np.asarray(run["pos"], np.float64) for run in runs])
+    pressures = np.concatenate([np.asarray(run.pressures_kpa, np.float64) for run in runs])
+    positions = np.concatenate([np.asarray(run.positions_m, np.float64) for run in runs])
     if predict_displacement:
         targets = np.concatenate(
-            [np.asarray(run["pos"], np.float64) - np.asarray(run["pos"][0], np.float64)
+            [np.asarray(run.positions_m, np.float64) - np.asarray(run.positions_m[0], np.float64)
              for run in runs]
         )
     else:

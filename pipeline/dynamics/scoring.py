@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from pipeline.data.runs import Run
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.model import DynamicsParams
 
@@ -33,29 +34,29 @@ def position_errors_mm(predicted: np.ndarray, observed: np.ndarray) -> dict:
     return {"mean_mm": float(error_mm.mean()), "p95_mm": float(np.percentile(error_mm, 95))}
 
 
-def predict_run(params: DynamicsParams, run: dict) -> np.ndarray:
+def predict_run(params: DynamicsParams, run: Run) -> np.ndarray:
     """Open-loop [T, 3] positions (m) over the whole run, from its first observed pose."""
-    pressure = jnp.asarray(run["p"], jnp.float32)
-    initial_pose = jnp.asarray(run["pos"][0], jnp.float32)
+    pressure = jnp.asarray(run.pressures_kpa, jnp.float32)
+    initial_pose = jnp.asarray(run.positions_m[0], jnp.float32)
     return np.asarray(_predict_sequence(params, pressure, initial_pose))
 
 
-def evaluate_open_loop(params: DynamicsParams, run: dict) -> dict:
+def evaluate_open_loop(params: DynamicsParams, run: Run) -> dict:
     """Open-loop error over the ENTIRE run: ``{"mean_mm", "p95_mm"}``."""
-    return position_errors_mm(predict_run(params, run), run["pos"])
+    return position_errors_mm(predict_run(params, run), run.positions_m)
 
 
-def validation_errors(params: DynamicsParams, val_runs: Sequence[dict]
+def validation_errors(params: DynamicsParams, val_runs: Sequence[Run]
                       ) -> tuple[float, float, float]:
     """(standardized MSE, mean mm, p95 mm) of the open-loop prediction, pooled over val runs."""
     losses, errors = [], []
     for run in val_runs:
         predicted = predict_run(params, run)
-        initial_pose = jnp.asarray(run["pos"][0])
+        initial_pose = jnp.asarray(run.positions_m[0])
         predicted_normalized = dynamics.normalize_target(params, predicted, initial_pose)
-        observed_normalized = dynamics.normalize_target(params, run["pos"], initial_pose)
+        observed_normalized = dynamics.normalize_target(params, run.positions_m, initial_pose)
         losses.append(np.square(np.asarray(predicted_normalized - observed_normalized)).ravel())
-        errors.append(1000.0 * np.linalg.norm(predicted - run["pos"], axis=-1))
+        errors.append(1000.0 * np.linalg.norm(predicted - run.positions_m, axis=-1))
     errors = np.concatenate(errors)
     return (
         float(np.concatenate(losses).mean()),
@@ -64,10 +65,11 @@ def validation_errors(params: DynamicsParams, val_runs: Sequence[dict]
     )
 
 
-def baseline_mean_position(train_runs: Sequence[dict], run: dict) -> dict:
+def baseline_mean_position(train_runs: Sequence[Run], run: Run) -> dict:
     """Errors of the constant prediction "mean training position" over ``run``."""
-    mean_position = np.concatenate([r["pos"] for r in train_runs]).astype(np.float64).mean(0)
-    return position_errors_mm(np.broadcast_to(mean_position, run["pos"].shape), run["pos"])
+    mean_position = np.concatenate([r.positions_m for r in train_runs]).astype(np.float64).mean(0)
+    observed = run.positions_m
+    return position_errors_mm(np.broadcast_to(mean_position, observed.shape), observed)
 
 
 def lagged_features(pressure: np.ndarray, num_lags: int) -> np.ndarray:
@@ -83,27 +85,27 @@ def lagged_features(pressure: np.ndarray, num_lags: int) -> np.ndarray:
     return np.concatenate([np.ones((num_steps, 1)), lagged, lagged**2], axis=1)
 
 
-def fit_linear_lagged(train_runs: Sequence[dict], num_lags: int) -> np.ndarray:
+def fit_linear_lagged(train_runs: Sequence[Run], num_lags: int) -> np.ndarray:
     """Least-squares coefficients [1 + 6 * num_lags, 3] from lagged pressures to position (m)."""
-    features = np.concatenate([lagged_features(r["p"], num_lags) for r in train_runs])
-    targets = np.concatenate([np.asarray(r["pos"], np.float64) for r in train_runs])
+    features = np.concatenate([lagged_features(r.pressures_kpa, num_lags) for r in train_runs])
+    targets = np.concatenate([np.asarray(r.positions_m, np.float64) for r in train_runs])
     coefficients, *_ = np.linalg.lstsq(features, targets, rcond=None)
     return coefficients
 
 
-def predict_linear_lagged(train_runs: Sequence[dict], run: dict, num_lags: int = LINEAR_LAGS
+def predict_linear_lagged(train_runs: Sequence[Run], run: Run, num_lags: int = LINEAR_LAGS
                           ) -> np.ndarray:
     """[T, 3] positions (m) over ``run`` of the linear model fitted on ``train_runs``."""
-    return lagged_features(run["p"], num_lags) @ fit_linear_lagged(train_runs, num_lags)
+    return lagged_features(run.pressures_kpa, num_lags) @ fit_linear_lagged(train_runs, num_lags)
 
 
-def baseline_linear_lagged(train_runs: Sequence[dict], run: dict, num_lags: int = LINEAR_LAGS
+def baseline_linear_lagged(train_runs: Sequence[Run], run: Run, num_lags: int = LINEAR_LAGS
                            ) -> dict:
     """Errors over ``run`` of the linear model on lagged pressures and their squares."""
-    return position_errors_mm(predict_linear_lagged(train_runs, run, num_lags), run["pos"])
+    return position_errors_mm(predict_linear_lagged(train_runs, run, num_lags), run.positions_m)
 
 
-def evaluation_table(params, train_runs: list[dict], test_runs: list[dict]) -> pd.DataFrame:
+def evaluation_table(params, train_runs: list[Run], test_runs: list[Run]) -> pd.DataFrame:
     """Open-loop errors over entire runs for the model and the baselines, per run and split
     (the ``model_metrics`` table of the split protocol: ``fold`` -1, no ``held_out``)."""
     rows = []
@@ -117,8 +119,8 @@ def evaluation_table(params, train_runs: list[dict], test_runs: list[dict]) -> p
             loses = split == "test" and errors[LEARNED]["mean_mm"] >= errors["linear_lagged"][
                 "mean_mm"]
             for model, values in errors.items():
-                rows.append({"run_id": run["run_id"], "split": split, "fold": -1,
+                rows.append({"run_id": run.run_id, "split": split, "fold": -1,
                              "held_out": "", "seed": 0, "model": model,
-                             "steps": len(run["p"]), **values,
+                             "steps": len(run), **values,
                              "loses_to_linear": bool(loses and model == LEARNED)})
     return pd.DataFrame(rows)

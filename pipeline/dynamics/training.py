@@ -1,9 +1,8 @@
 """Training of the learned dynamics (``model.py``); its files are ``checkpoints.py``, its
 open-loop scores and baselines ``scoring.py``.
 
-Runs are dicts on a regular grid at the model rate::
-
-    {"run_id": str, "t": float64 [T] s, "p": float32 [T, 3] kPa, "pos": float32 [T, 3] m}
+Runs are :class:`pipeline.data.runs.Run` records on a regular grid at the model rate
+(``times_s`` [T] s, ``pressures_kpa`` [T, 3] kPa, ``positions_m`` [T, 3] m).
 
 Training minimizes the mean squared standardized error over sliding windows (``windows.py``).
 Each window starts from the zero/conditioned carry and is given as initial pose the pose its run
@@ -33,6 +32,7 @@ import optax
 import pandas as pd
 from tqdm.auto import tqdm
 
+from pipeline.data.runs import Run
 from pipeline.data.windows import gather_windows, make_windows, sample_batch
 from pipeline.dynamics import checkpoints
 from pipeline.dynamics import model as dynamics
@@ -265,28 +265,29 @@ train_chunk = jax.jit(train_chunk_unjitted,
 # ---------------------------------------------------------------------------------------------
 # fit
 # ---------------------------------------------------------------------------------------------
-def run_inputs(params: DynamicsParams, runs: Sequence[dict]) -> list[np.ndarray]:
+def run_inputs(params: DynamicsParams, runs: Sequence[Run]) -> list[np.ndarray]:
     """Per run, the [T_i, D] float32 standardized network inputs over the whole run.
 
     The runs are padded (with their last pressure) to a common length and computed in one
     vmapped call; the features are causal, so the padding does not change the real rows.
     """
-    lengths = [len(run["p"]) for run in runs]
+    lengths = [len(run) for run in runs]
     longest = max(lengths)
     padded = np.stack([
-        np.concatenate([run["p"], np.repeat(run["p"][-1:], longest - len(run["p"]), axis=0)])
+        np.concatenate([run.pressures_kpa,
+                        np.repeat(run.pressures_kpa[-1:], longest - len(run), axis=0)])
         for run in runs
     ]).astype(np.float32)
     inputs = np.asarray(_batched_network_inputs(params, jnp.asarray(padded)))
     return [inputs[i, :length] for i, length in enumerate(lengths)]
 
 
-def reference_poses(runs: Sequence[dict], source: str) -> np.ndarray:
+def reference_poses(runs: Sequence[Run], source: str) -> np.ndarray:
     """[N, 3] float32: per row of the concatenated runs, the initial pose of a window there."""
     if source == "window_start":
-        return np.concatenate([r["pos"] for r in runs]).astype(np.float32)
+        return np.concatenate([r.positions_m for r in runs]).astype(np.float32)
     return np.concatenate(
-        [np.broadcast_to(r["pos"][0], r["pos"].shape) for r in runs]
+        [np.broadcast_to(r.positions_m[0], r.positions_m.shape) for r in runs]
     ).astype(np.float32)
 
 
@@ -303,24 +304,24 @@ _batched_network_inputs = jax.jit(jax.vmap(dynamics.network_inputs, in_axes=(Non
 
 
 def _fit_spec(config: ModelTrainConfig, window: int, stride: int, order: str,
-              train_runs: Sequence[dict]) -> dict:
+              train_runs: Sequence[Run]) -> dict:
     """What a checkpoint of this fit must match to be resumed from."""
     spec = {
         "model": dataclasses.asdict(config),
         "window": window,
         "stride": stride,
         "order": order,
-        "train_run_ids": [str(run["run_id"]) for run in train_runs],
+        "train_run_ids": [run.run_id for run in train_runs],
     }
     return json.loads(json.dumps(spec))  # tuples -> lists, as they come back from the file
 
 
-def train_data(template: DynamicsParams, runs: Sequence[dict], window_starts: np.ndarray,
+def train_data(template: DynamicsParams, runs: Sequence[Run], window_starts: np.ndarray,
                reference_pose: str) -> TrainData:
     """The :class:`TrainData` of ``runs`` (their inputs standardized by ``template``)."""
     return TrainData(
         inputs=jnp.asarray(np.concatenate(run_inputs(template, runs))),
-        position=jnp.asarray(np.concatenate([r["pos"] for r in runs]), jnp.float32),
+        position=jnp.asarray(np.concatenate([r.positions_m for r in runs]), jnp.float32),
         reference_pose=jnp.asarray(reference_poses(runs, reference_pose)),
         window_starts=jnp.asarray(window_starts, jnp.int32),
         num_windows=jnp.asarray(len(window_starts), jnp.int32),
@@ -328,13 +329,13 @@ def train_data(template: DynamicsParams, runs: Sequence[dict], window_starts: np
 
 
 def fit(
-    train_runs: Sequence[dict],
+    train_runs: Sequence[Run],
     model_cfg: Any,
     *,
     window: int,
     stride: int = 1,
     order: str = "permuted",
-    val_runs: Sequence[dict] = (),
+    val_runs: Sequence[Run] = (),
     checkpoint_dir: str | Path | None = None,
     resume: bool = True,
     progress: bool = True,
@@ -365,7 +366,7 @@ def fit(
     """
     started = time.perf_counter()
     config = ModelTrainConfig.from_any(model_cfg)
-    windows = make_windows([len(run["p"]) for run in train_runs], window, stride)
+    windows = make_windows([len(run) for run in train_runs], window, stride)
     if len(windows.starts) == 0:
         raise ValueError(f"no training window of length {window} fits in any training run")
     spec = _fit_spec(config, window, stride, order, train_runs)
@@ -404,7 +405,7 @@ def fit(
 
 
 def _training_loop(run_chunk, state: TrainState, history: dict, template: DynamicsParams,
-                   config: ModelTrainConfig, val_runs: Sequence[dict], last_step: int,
+                   config: ModelTrainConfig, val_runs: Sequence[Run], last_step: int,
                    checkpoint_dir: Path | None, spec: dict, deadline: float | None,
                    progress: bool) -> TrainState:
     """Chunks of ``run_chunk(state, num_steps) -> (state, losses)`` up to ``last_step``, with

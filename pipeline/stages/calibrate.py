@@ -87,8 +87,8 @@ def calibrate(cfg: Any) -> Artifact:
 
 def write_outputs(writer, config, provenance, folds, runs, param, init, result, metrics,
                   predicted, substeps) -> None:
-    run_ids = [r["run_id"] for r in runs]
-    fold_names = [f if f == report.ALL_RUNS else runs[f]["run_id"] for f in folds]
+    run_ids = [r.run_id for r in runs]
+    fold_names = [f if f == report.ALL_RUNS else runs[f].run_id for f in folds]
     fitted = report.fitted_physics(init, result, substeps)
     writer.file("physics.json").write_text(json.dumps(
         {"physics": fitted, "units": {k: calib.UNITS.get(k, "") for k in fitted},

@@ -37,8 +37,9 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import keys
-from pipeline.data.alignment import runs_at_model_rate
-from pipeline.data.schemas import ALIGNED, MODEL_METRICS, read_table, write_table
+from pipeline.data.alignment import load_runs
+from pipeline.data.runs import Run
+from pipeline.data.schemas import MODEL_METRICS, write_table
 from pipeline.data.windows import split_runs
 from pipeline.dynamics import cv as model_cv
 from pipeline.dynamics.checkpoints import save_dynamics
@@ -66,11 +67,11 @@ def fit_model(cfg: Any) -> Artifact:
             log.info("fit_model: force=true: training afresh (removing the checkpoints in %s)",
                      work_dir)
             shutil.rmtree(work_dir)
-        aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
-        runs = runs_at_model_rate(aligned, float(data.model_hz), str(data.model_grid))
+        runs = load_runs(aligned_artifact.file("aligned.parquet"), float(data.model_hz),
+                         str(data.model_grid))
         if spec["dataset"]["protocol"] == "cv":
             return build_cv(cfg, writer, runs, work_dir, spec, inputs)
-        by_id = {run["run_id"]: run for run in runs}
+        by_id = {run.run_id: run for run in runs}
         train_ids, test_ids = split_runs(list(by_id), float(data.train_fraction),
                                          int(data.split_seed))
         if not train_ids:
@@ -122,11 +123,11 @@ def fit_model(cfg: Any) -> Artifact:
     return artifact
 
 
-def build_cv(cfg: Any, writer, runs: list[dict], work_dir: Path, spec: dict,
+def build_cv(cfg: Any, writer, runs: list[Run], work_dir: Path, spec: dict,
              inputs: dict) -> None:
     """The ``cv`` protocol: leave-one-run-out folds and the all-runs model, one program."""
     data = cfg.dataset
-    ids = sorted(run["run_id"] for run in runs)
+    ids = sorted(run.run_id for run in runs)
     members = model_cv.cv_members(ids, (int(cfg.model.seed),), final=True)
     log.info("fit_model: leave-one-run-out over %d runs %s at %.3g Hz (%d fold models and the "
              "model on all runs, one program)", len(ids), ids, float(data.model_hz),
@@ -154,7 +155,7 @@ def build_cv(cfg: Any, writer, runs: list[dict], work_dir: Path, spec: dict,
     log.info("fit_model: leave-one-run-out open-loop error [mm] (mean / p95; baselines fitted "
              "on the same folds)\n%s", table.to_string(index=False, float_format="%.2f"))
     plot_losses(writer.file("figures/loss.png"), loss_table)
-    by_id = {run["run_id"]: run for run in runs}
+    by_id = {run.run_id: run for run in runs}
     first_fold = members[0]
     plot_reconstruction(writer.file("figures/reconstruction.png"), [final, params[0]],
                         [by_id[ids[-1]], by_id[first_fold.held_out]],

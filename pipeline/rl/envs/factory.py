@@ -404,10 +404,10 @@ def learned_goals(settings: EnvConfig, inputs: LearnedInputs) -> dict[str, np.nd
     runs, split, dynamics = inputs.runs, inputs.split, inputs.dynamics
     if GoalSource(settings.goal_source) is GoalSource.predicted:
         # the model's open-loop predictions along the recorded commands: reachable in its world
-        goal_paths = {run["run_id"]: predict_run(dynamics, run) for run in runs}
+        goal_paths = {run.run_id: predict_run(dynamics, run) for run in runs}
     else:
-        goal_paths = {run["run_id"]: run["pos"] for run in runs}
-    at_model_rate = pd.concat([_positions(run["run_id"], goal_paths[run["run_id"]])
+        goal_paths = {run.run_id: run.positions_m for run in runs}
+    at_model_rate = pd.concat([_positions(run.run_id, goal_paths[run.run_id])
                                for run in runs], ignore_index=True)
     agreement_mm = settings.goal_agreement_mm
     # without members (evaluation builds the env on the model alone) there is nothing to agree
@@ -418,7 +418,7 @@ def learned_goals(settings: EnvConfig, inputs: LearnedInputs) -> dict[str, np.nd
         held_out = at_model_rate["run_id"].isin(split.get("test") or [])
         at_model_rate = conservative_goals(at_model_rate, spread, float(agreement_mm) / 1000.0,
                                            held_out.to_numpy())
-    first_poses = pd.concat([_positions(run["run_id"], run["pos"][:1]) for run in runs],
+    first_poses = pd.concat([_positions(run.run_id, run.positions_m[:1]) for run in runs],
                             ignore_index=True)
     every = int(settings.goal_every)
     rest = data_goals_and_rest_pose(first_poses, [])  # rest pose from the measured first poses
@@ -426,8 +426,8 @@ def learned_goals(settings: EnvConfig, inputs: LearnedInputs) -> dict[str, np.nd
         # training goals along every run (the model trained on all of them); evaluation goals
         # the measured positions of each run as recorded when its fold held it out
         held_out_ids = [fold["held_out"] for fold in split["folds"]]
-        measured = pd.concat([_positions(run["run_id"], run["pos"]) for run in runs
-                              if run["run_id"] in held_out_ids], ignore_index=True)
+        measured = pd.concat([_positions(run.run_id, run.positions_m) for run in runs
+                              if run.run_id in held_out_ids], ignore_index=True)
         data = {"train_goals": data_goals_and_rest_pose(at_model_rate, [], every)["train_goals"],
                 "held_out_goals": data_goals_and_rest_pose(measured, held_out_ids,
                                                            every)["held_out_goals"]}

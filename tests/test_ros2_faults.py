@@ -236,6 +236,10 @@ def test_the_clock_check_by_hand():
     ({"subscribers": ["sorolearn_guard", "valve_driver"]},
      "refusing to publish on /control_pressure: 2 subscriber(s) of /control_pressure: "
      "['sorolearn_guard', 'valve_driver']; only the guard 'sorolearn_guard' may listen"),
+    ({"answer": answer_of(robot_config(), "twin", "sorolearn_twin"),
+      "subscribers": ["sorolearn_twin"]},
+     "refusing to publish on /control_pressure: robot.rehearsal=false (a real arm), but the arm "
+     "side is the digital twin ('sorolearn_twin')"),
 ])
 def test_collect_refuses_to_start_without_the_guards_answer(tmp_path, link_args, message):
     clock = Clock()
@@ -259,8 +263,20 @@ def test_collect_refuses_to_start_without_the_guards_answer(tmp_path, link_args,
      "(p_max: 9.0 there, 7.0 here)"),
     ({"rehearsal": True}, ("guard", {}), ["sorolearn_guard"],
      "robot.rehearsal=true / robot.time_scale=1.0, but the arm side is a guard"),
-    ({}, ("twin", {"time_scale": 4.0}), ["sorolearn_guard"],
+    ({"rehearsal": True}, ("twin", {"time_scale": 4.0}), ["sorolearn_guard"],
      "the twin 'sorolearn_guard' runs at time_scale 4.0, this stage at robot.time_scale=1.0"),
+    # a real arm's config (no rehearsal, real time) answered by a twin: never recorded as the arm
+    ({}, ("twin", {}), ["sorolearn_guard"],
+     "robot.rehearsal=false (a real arm), but the arm side is the digital twin "
+     "('sorolearn_guard'): its poses would be recorded as the real arm's. To rehearse, add "
+     "robot.rehearsal=true"),
+    ({}, ("twin", {"time_scale": 4.0}), ["sorolearn_guard"],
+     "robot.rehearsal=false (a real arm), but the arm side is the digital twin"),
+    # two twins on the rehearsal domain (one left running) both listen to the commands
+    ({"rehearsal": True}, ("twin", {}), ["sorolearn_guard", "sorolearn_guard"],
+     "2 subscriber(s) of /control_pressure: ['sorolearn_guard', 'sorolearn_guard']; only the "
+     "twin 'sorolearn_guard' may listen (a twin or recorder left running on the rehearsal "
+     "domain? stop it)"),
     ({}, ("guard", {"command_topic": "/other"}), ["sorolearn_guard"],
      "the guard 'sorolearn_guard' guards /other, but robot.command_topic=/control_pressure"),
     ({}, ("guard", {}), ["sorolearn_guard", "bag_replay"],

@@ -139,3 +139,139 @@ def test_a_second_publisher_sends_the_twin_to_the_preload(tmp_path, ros_domain):
     assert all(r.get("ignored") for r in later)  # nothing applied after the refusal
     # what the second publisher sent before the twin saw it on the graph may have been applied
     # (discovery lags delivery): within the rating, and the arm ended at the preload
+
+
+# ---- the arm side killed mid-run; a twin left running -------------------------------------------
+def one_line_error(log: str, kind: str) -> str:
+    """The stage's error: one line naming ``kind``, no traceback (HYDRA_FULL_ERROR unset)."""
+    assert "Traceback" not in log, log
+    (line,) = [line for line in log.splitlines() if f"{kind}: " in line]
+    return line[line.index(f"{kind}: "):]  # after the log record's time and logger
+
+
+def plain_errors(pipe: Pipeline) -> Pipeline:
+    """Known errors as users see them: one line, no traceback."""
+    pipe.env.pop("HYDRA_FULL_ERROR", None)
+    return pipe
+
+
+def killed_mid_run(pipe, stage_process, stage: str, ready: str, victim, running_s: float,
+                   timeout_s: float = 120) -> tuple[int, float]:
+    """Once ``stage`` logs ``ready`` and ran ``running_s`` more, SIGKILL ``victim`` (the arm
+    side): ``(the stage's exit code, time.monotonic() at the kill)``."""
+    try:
+        pipe.wait_for_log(stage, ready, timeout_s=timeout_s)
+        time.sleep(running_s)
+        victim.send_signal(signal.SIGKILL)
+        killed_at = time.monotonic()
+        victim.wait(timeout=30)
+        code = stage_process.wait(timeout=60)
+    finally:
+        for process in (stage_process, victim):
+            if process.poll() is None:
+                process.kill()
+    return code, killed_at
+
+
+def test_the_twin_killed_mid_collect_stops_it_with_one_line_and_keeps_the_records(
+        tmp_path, ros_domain):
+    import pandas as pd
+
+    from pipeline.data.schemas import CMD_COLUMNS
+    from pipeline.infra.artifacts import ArtifactStore
+    from pipeline.keys import key
+    from pipeline.stages.collect import STAGE
+
+    pipe = plain_errors(Pipeline(tmp_path, ros_domain, "exploration.num_steps=200"))
+    record = tmp_path / "twin.jsonl"
+    twin = pipe.start_twin(record)
+    code, _ = killed_mid_run(pipe, pipe.start("collect"), "collect", "run ros2-000 started", twin,
+                             running_s=1.0)
+    log = pipe.log("collect")
+    assert code == 1, log
+    line = one_line_error(log, "CollectionInterrupted")
+    assert "collect interrupted: mocap watchdog: no pose on /mocap_rigid_bodies/" in line, line
+    cfg = pipe.cfg()
+    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, key("collect", cfg))
+    assert artifact.manifest["summary"]["interrupted"].startswith("mocap watchdog: no pose on")
+    runs = pd.read_parquet(artifact.file("runs.parquet"))
+    assert not runs.loc[0, "complete"] and runs.loc[0, "n_frames"] > 100
+    recorded = pd.read_parquet(artifact.file("commands.parquet"))[CMD_COLUMNS].to_numpy()
+    rows = wire(record)
+    assert_safe_wire(rows)
+    assert not any(r.get("deadman") or "refused" in r for r in rows)  # killed mid-walk
+    on_wire = np.array([r["pressures"] for r in rows])
+    # what the twin received before it died is what collect recorded first; collect sent a few
+    # more into the void until the watchdog (robot.watchdog_s: 1 s of wall time) stopped it
+    assert len(on_wire) >= 6
+    np.testing.assert_allclose(recorded[:len(on_wire)], on_wire, atol=1e-9)
+    assert 0 <= len(recorded) - len(on_wire) <= 1.0 / PERIOD_WALL_S + 4
+    assert_safe_wire([{"pressures": p} for p in recorded.tolist()])
+
+
+def test_the_twin_killed_mid_control_stops_it_with_one_line_and_keeps_the_records(
+        tmp_path, ros_domain):
+    import pandas as pd
+
+    from pipeline.data.schemas import CMD_COLUMNS
+    from tests.test_control_ros import ROS, control_artifact, control_overrides, sim_policy
+
+    sim_cfg, policy_file = sim_policy(tmp_path, "ppo_ff", hold_s=60.0)
+    pipe = plain_errors(Pipeline(tmp_path, ros_domain))
+    pipe.overrides = ROS
+    record = tmp_path / "twin.jsonl"
+    twin = pipe.start_twin(record)
+    overrides = control_overrides(sim_cfg, policy_file)
+    code, _ = killed_mid_run(pipe, pipe.start("control", *overrides), "control", "arm ready",
+                             twin, running_s=1.5, timeout_s=240)
+    log = pipe.log("control")
+    assert code == 1, log
+    line = one_line_error(log, "ControlInterrupted")
+    assert "control interrupted: mocap watchdog: " in line, line
+    artifact = control_artifact(pipe, *overrides)
+    assert artifact.manifest["summary"]["interrupted"].startswith("mocap watchdog: ")
+    periods = pd.read_parquet(artifact.file("periods.parquet"))
+    sent = periods[periods["goal_index"] >= 0][CMD_COLUMNS].to_numpy()
+    rows = wire(record)
+    assert_safe_wire(rows, {"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0})  # the rating
+    on_wire = np.array([r["pressures"] for r in rows if not r.get("deadman")])
+    assert len(on_wire) >= 4
+    np.testing.assert_allclose(sent[:len(on_wire)], on_wire, atol=1e-9)
+    # periods after the kill until the watchdog (robot.watchdog_s=1 s: 0.25 s of wall time)
+    assert 0 <= len(sent) - len(on_wire) <= 4
+
+
+def test_a_twin_left_running_refuses_a_rehearsal_before_any_command(tmp_path, ros_domain):
+    from pipeline.infra.artifacts import ArtifactStore
+    from pipeline.keys import key
+    from pipeline.stages.collect import STAGE
+
+    pipe = plain_errors(Pipeline(tmp_path, ros_domain, "exploration.num_steps=40"))
+    records = [tmp_path / "left_over.jsonl", tmp_path / "twin.jsonl"]
+    twins = [pipe.start("twin", f"robot.twin.record_path={record}", "robot.twin.max_duration_s=90",
+                        name=record.stem) for record in records]
+    try:
+        for record in records:
+            pipe.wait_for_log(record.stem, "twin: simulated arm on", timeout_s=120)
+        collect = pipe.start("collect")
+        code = collect.wait(timeout=120)
+    finally:
+        codes = [stop(twin) for twin in twins]
+    log = pipe.log("collect")
+    assert code == 1, log
+    line = one_line_error(log, "ArmRefused")
+    # which of the two the stage sees first is a matter of discovery (a node's name too: until
+    # it is known the graph says _NODE_NAME_UNKNOWN_)
+    subscribers = (line.startswith("ArmRefused: refusing to publish on /control_pressure: 2 "
+                                   "subscriber(s) of /control_pressure: [")
+                   and line.endswith("only the twin 'sorolearn_twin' may listen (a twin or "
+                                     "recorder left running on the rehearsal domain? stop it)"))
+    publishers = "ArmFault: 2 publishers on /mocap_rigid_bodies/rigid_bodies_1/pose: " in line
+    assert subscribers or publishers, line
+    assert "nothing was commanded" in log
+    assert codes == [0, 0], [pipe.log(record.stem) for record in records]
+    for record in records:  # not even the preload: a refused start commands nothing
+        assert wire(record) == []
+    cfg = pipe.cfg()
+    assert ArtifactStore(cfg.paths.artifact_dir).find(STAGE, key("collect", cfg)) is None
+    assert not list((pipe.out / "recovery").glob("*/*"))

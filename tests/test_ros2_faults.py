@@ -253,6 +253,39 @@ def test_collect_refuses_to_start_without_the_guards_answer(tmp_path, link_args,
     assert link.wire == []  # a refused start commands nothing, not even the preload
 
 
+def test_collect_refuses_a_second_twin_discovered_after_the_first_answer(tmp_path):
+    # a twin left running on the rehearsal domain: its subscription to the commands is discovered
+    # 0.3 s after the first twin's answer matched, still before the first command
+    clock = Clock()
+    answer = answer_of(robot_config(rehearsal=True), "twin", "sorolearn_twin")
+    link = FakeLink(clock, answer=answer, subscribers=["sorolearn_twin"])
+    spin_once = link.spin_once
+
+    def discovering(timeout_s: float) -> None:
+        spin_once(timeout_s)
+        if clock() >= 100.3:
+            link.listeners = ["sorolearn_twin", "sorolearn_twin"]
+
+    link.spin_once = discovering
+    run = session(tmp_path, link, clock, rehearsal=True)
+    with pytest.raises(ArmRefused) as err:
+        run.wait_for_arm()
+    assert str(err.value).startswith(
+        "refusing to publish on /control_pressure: 2 subscriber(s) of /control_pressure: "
+        "['sorolearn_twin', 'sorolearn_twin']; only the twin 'sorolearn_twin' may listen (a twin "
+        "or recorder left running on the rehearsal domain? stop it)"), str(err.value)
+    run.stop_safely()
+    assert link.wire == []
+
+
+def test_collect_starts_once_the_arm_side_matched_for_a_second(tmp_path):
+    clock = Clock()
+    link = FakeLink(clock, answer=answer_of(robot_config(), "guard", "sorolearn_guard"))
+    run = session(tmp_path, link, clock)
+    run.wait_for_arm()
+    assert 101.0 <= clock() < 101.1 and run.guard_node == "sorolearn_guard"
+
+
 # ---- the handshake's rules ---------------------------------------------------------------------
 @pytest.mark.parametrize(("robot", "answer", "subscribers", "message"), [
     ({}, ("guard", {}), ["sorolearn_guard"], None),

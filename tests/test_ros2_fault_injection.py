@@ -158,19 +158,19 @@ def plain_errors(pipe: Pipeline) -> Pipeline:
 def killed_mid_run(pipe, stage_process, stage: str, ready: str, victim, running_s: float,
                    timeout_s: float = 120) -> tuple[int, float]:
     """Once ``stage`` logs ``ready`` and ran ``running_s`` more, SIGKILL ``victim`` (the arm
-    side): ``(the stage's exit code, time.monotonic() at the kill)``."""
+    side): ``(the stage's exit code, time.time_ns() at the kill)``."""
     try:
         pipe.wait_for_log(stage, ready, timeout_s=timeout_s)
         time.sleep(running_s)
         victim.send_signal(signal.SIGKILL)
-        killed_at = time.monotonic()
+        killed_ns = time.time_ns()
         victim.wait(timeout=30)
         code = stage_process.wait(timeout=60)
     finally:
         for process in (stage_process, victim):
             if process.poll() is None:
                 process.kill()
-    return code, killed_at
+    return code, killed_ns
 
 
 def test_the_twin_killed_mid_collect_stops_it_with_one_line_and_keeps_the_records(
@@ -275,3 +275,116 @@ def test_a_twin_left_running_refuses_a_rehearsal_before_any_command(tmp_path, ro
     cfg = pipe.cfg()
     assert ArtifactStore(cfg.paths.artifact_dir).find(STAGE, key("collect", cfg)) is None
     assert not list((pipe.out / "recovery").glob("*/*"))
+
+
+# A killed node stays on the ROS graph until its DDS lease runs out (Fast DDS: 20 s by default);
+# the arm side's processes announce a 2 s lease here, as docs/safety.md advises for a lab.
+SHORT_LEASE = """<?xml version="1.0" encoding="UTF-8" ?>
+<dds xmlns="http://www.eprosima.com">
+  <profiles>
+    <participant profile_name="short_lease" is_default_profile="true">
+      <rtps><builtin><discovery_config>
+        <leaseDuration><sec>2</sec></leaseDuration>
+        <leaseAnnouncement><sec>0</sec><nanosec>500000000</nanosec></leaseAnnouncement>
+      </discovery_config></builtin></rtps>
+    </participant>
+  </profiles>
+</dds>
+"""
+REAL_ARM = ["robot=ros2", "robot.stop_timeout_s=0.5", "robot.flush_every_s=0.5",
+            "robot.startup_timeout_s=60", "exploration.pad_steps=2", "exploration.num_steps=200",
+            *(f"robot.limits.{k}={v}" for k, v in LIMITS.items())]
+
+
+class LabSide:
+    """The lab around a real guard, in this process: a motion capture publishing poses at 100 Hz
+    (stamped on receipt's clock, frame ``mocap``) and a valve driver recording what the guard
+    forwards (``received``: (time.time_ns(), kPa)), spun in a thread."""
+
+    def __init__(self, domain: int):
+        self.domain = domain
+        self.received: list[tuple[float, list[float]]] = []
+
+    def __enter__(self) -> LabSide:
+        import threading
+
+        from geometry_msgs.msg import PoseStamped
+        from std_msgs.msg import Float64MultiArray
+
+        from pipeline.ros2.node import ros_node
+
+        self._context = ros_node("lab_side", self.domain)
+        node, executor = self._context.__enter__()
+        poses = node.create_publisher(PoseStamped, "/mocap_rigid_bodies/rigid_bodies_1/pose", 10)
+
+        def publish_pose() -> None:
+            message = PoseStamped()
+            message.header.stamp = node.get_clock().now().to_msg()
+            message.header.frame_id = "mocap"
+            message.pose.position.x, message.pose.position.y = 0.03, 0.35
+            message.pose.position.z = 0.2
+            poses.publish(message)
+
+        node.create_timer(0.01, publish_pose)
+        node.create_subscription(Float64MultiArray, "/control_pressure/guarded",
+                                 lambda m: self.received.append((time.time_ns(), list(m.data))),
+                                 10)
+        self._running = True
+
+        def spin() -> None:
+            while self._running:
+                executor.spin_once(timeout_sec=0.005)
+
+        self._thread = threading.Thread(target=spin, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._running = False
+        self._thread.join(timeout=10)
+        self._context.__exit__(*exc)
+
+
+def test_the_guard_killed_mid_collect_stops_it_with_one_line(tmp_path, ros_domain, monkeypatch):
+    import pandas as pd
+
+    from pipeline.data.schemas import CMD_COLUMNS
+    from pipeline.infra.artifacts import ArtifactStore
+    from pipeline.keys import key
+    from pipeline.stages.collect import STAGE
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    pipe = plain_errors(Pipeline(tmp_path, ros_domain))
+    pipe.overrides = REAL_ARM  # the real arm's config: real time, no rehearsal, on its domain
+    (tmp_path / "lease.xml").write_text(SHORT_LEASE)
+    pipe.env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(tmp_path / "lease.xml")
+    guard = pipe.start("guard", "robot.guard.max_duration_s=300")
+    with LabSide(ros_domain) as lab:
+        pipe.wait_for_log("guard", "answering on", timeout_s=120)
+        collect = pipe.start("collect")
+        code, killed_ns = killed_mid_run(pipe, collect, "collect", "run ros2-000 started", guard,
+                                         running_s=2.0)
+        time.sleep(0.5)
+    log = pipe.log("collect")
+    assert code == 1, log
+    line = one_line_error(log, "CollectionInterrupted")
+    assert ("collect interrupted: ArmFault: the guard 'sorolearn_guard' no longer subscribes to "
+            "/control_pressure (stopped or killed): nothing guards the valves; stopping") in line
+    cfg = pipe.cfg()
+    artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, key("collect", cfg))
+    assert "no longer subscribes" in artifact.manifest["summary"]["interrupted"]
+    assert not pd.read_parquet(artifact.file("runs.parquet")).loc[0, "complete"]
+    recorded = pd.read_parquet(artifact.file("commands.parquet"))[CMD_COLUMNS].to_numpy()
+    # what reached the valve driver: the guard's preloads, then the walk as collect recorded it,
+    # nothing once the guard was killed
+    driver = np.array([p for _, p in lab.received])
+    assert_safe_wire([{"pressures": p} for p in driver.tolist()])
+    assert all(t < killed_ns + 50_000_000 for t, _ in lab.received)
+    walk = [p for p in recorded.tolist() if p != PRELOAD]
+    forwarded = [p for p in driver.tolist() if p != PRELOAD]
+    assert len(forwarded) >= 2 and forwarded == walk[:len(forwarded)]
+    # the graph drops the killed guard after its lease (2 s), counted every 0.5 s: until then
+    # collect sends a few commands into the void (2 Hz)
+    (run,) = artifact.manifest["summary"]["ros2"]["runs"]
+    sent_ns = run["start_ns"] + pd.read_parquet(artifact.file("commands.parquet"))["t"] * 1e9
+    assert 1 <= (sent_ns > killed_ns).sum() <= (2.0 + 0.5 + 1.0) / 0.5

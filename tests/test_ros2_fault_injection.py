@@ -345,6 +345,21 @@ class LabSide:
         self._context.__exit__(*exc)
 
 
+def lab_with_a_guard(tmp_path, ros_domain, monkeypatch):
+    """A pipeline of the real arm's config (real time, no rehearsal, on its domain) and its
+    guard process, started."""
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    pipe = plain_errors(Pipeline(tmp_path, ros_domain))
+    pipe.overrides = REAL_ARM
+    (tmp_path / "lease.xml").write_text(SHORT_LEASE)
+    pipe.env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(tmp_path / "lease.xml")
+    return pipe, pipe.start("guard", "robot.guard.max_duration_s=300")
+
+
+GUARD_KILLED = ("ArmFault: the guard 'sorolearn_guard' no longer subscribes to /control_pressure "
+                "(stopped or killed): nothing guards the valves")
+
+
 def test_the_guard_killed_mid_collect_stops_it_with_one_line(tmp_path, ros_domain, monkeypatch):
     import pandas as pd
 
@@ -353,12 +368,7 @@ def test_the_guard_killed_mid_collect_stops_it_with_one_line(tmp_path, ros_domai
     from pipeline.keys import key
     from pipeline.stages.collect import STAGE
 
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    pipe = plain_errors(Pipeline(tmp_path, ros_domain))
-    pipe.overrides = REAL_ARM  # the real arm's config: real time, no rehearsal, on its domain
-    (tmp_path / "lease.xml").write_text(SHORT_LEASE)
-    pipe.env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(tmp_path / "lease.xml")
-    guard = pipe.start("guard", "robot.guard.max_duration_s=300")
+    pipe, guard = lab_with_a_guard(tmp_path, ros_domain, monkeypatch)
     with LabSide(ros_domain) as lab:
         pipe.wait_for_log("guard", "answering on", timeout_s=120)
         collect = pipe.start("collect")
@@ -368,8 +378,7 @@ def test_the_guard_killed_mid_collect_stops_it_with_one_line(tmp_path, ros_domai
     log = pipe.log("collect")
     assert code == 1, log
     line = one_line_error(log, "CollectionInterrupted")
-    assert ("collect interrupted: ArmFault: the guard 'sorolearn_guard' no longer subscribes to "
-            "/control_pressure (stopped or killed): nothing guards the valves; stopping") in line
+    assert f"collect interrupted: {GUARD_KILLED}" in line, line
     cfg = pipe.cfg()
     artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, key("collect", cfg))
     assert "no longer subscribes" in artifact.manifest["summary"]["interrupted"]
@@ -388,3 +397,37 @@ def test_the_guard_killed_mid_collect_stops_it_with_one_line(tmp_path, ros_domai
     (run,) = artifact.manifest["summary"]["ros2"]["runs"]
     sent_ns = run["start_ns"] + pd.read_parquet(artifact.file("commands.parquet"))["t"] * 1e9
     assert 1 <= (sent_ns > killed_ns).sum() <= (2.0 + 0.5 + 1.0) / 0.5
+
+
+def test_the_guard_killed_mid_control_stops_it_with_one_line(tmp_path, ros_domain, monkeypatch):
+    import pandas as pd
+
+    from pipeline.data.schemas import CMD_COLUMNS
+    from tests.test_control_ros import control_artifact, control_overrides, sim_policy
+
+    sim_cfg, policy_file = sim_policy(tmp_path, "ppo_ff", hold_s=60.0)
+    pipe, guard = lab_with_a_guard(tmp_path, ros_domain, monkeypatch)
+    overrides = control_overrides(sim_cfg, policy_file)
+    with LabSide(ros_domain) as lab:
+        pipe.wait_for_log("guard", "answering on", timeout_s=120)
+        code, killed_ns = killed_mid_run(pipe, pipe.start("control", *overrides), "control",
+                                         "arm ready", guard, running_s=2.0, timeout_s=240)
+        time.sleep(0.5)
+    log = pipe.log("control")
+    assert code == 1, log
+    line = one_line_error(log, "ControlInterrupted")
+    assert f"control interrupted: {GUARD_KILLED}" in line, line
+    artifact = control_artifact(pipe, *overrides)
+    assert "no longer subscribes" in artifact.manifest["summary"]["interrupted"]
+    periods = pd.read_parquet(artifact.file("periods.parquet"))
+    sent = periods[periods["goal_index"] >= 0]
+    driver = [p for _, p in lab.received]
+    assert_safe_wire([{"pressures": p} for p in driver], {"p_min": 0.0, "p_max": 7.0,
+                                                          "sum_max": 13.0})
+    assert all(t < killed_ns + 50_000_000 for t, _ in lab.received)
+    forwarded = [p for p in driver if p != PRELOAD]
+    policy = [p for p in sent[CMD_COLUMNS].to_numpy().tolist() if p != PRELOAD]
+    assert len(forwarded) >= 2 and forwarded == policy[:len(forwarded)]
+    # periods sent into the void after the kill, until the graph dropped the guard (its 2 s
+    # lease, counted every 0.5 s; 2 Hz)
+    assert 1 <= len(policy) - len(forwarded) <= (2.0 + 0.5 + 1.0) / 0.5, len(policy)

@@ -431,3 +431,30 @@ def test_the_guard_killed_mid_control_stops_it_with_one_line(tmp_path, ros_domai
     # periods sent into the void after the kill, until the graph dropped the guard (its 2 s
     # lease, counted every 0.5 s; 2 Hz)
     assert 1 <= len(policy) - len(forwarded) <= (2.0 + 0.5 + 1.0) / 0.5, len(policy)
+
+
+@pytest.mark.parametrize(("offset_s", "message"), [
+    (0.3, r"ArmFault: clocks: a pose stamped 0\.[23]\d\d s after it was received: the motion "
+          r"capture's clock \(its header stamps\) runs ahead of this computer's ROS clock \(pose "
+          r"topic /mocap_rigid_bodies/rigid_bodies_1/pose\)$"),
+    (-0.5, r"ArmFault: clocks: every pose over the last 1 s arrived at least 0\.5\d\d s after its "
+           r"header stamp, above robot\.max_pose_latency_s=0\.25 s: the motion capture's clock "
+           r"runs behind this computer's ROS clock"),
+])
+def test_a_mocap_clock_apart_refuses_collect_with_one_line(tmp_path, ros_domain, offset_s,
+                                                           message):
+    import re
+
+    pipe = plain_errors(Pipeline(tmp_path, ros_domain, "exploration.num_steps=40"))
+    record = tmp_path / "twin.jsonl"
+    twin = pipe.start("twin", f"robot.twin.record_path={record}", "robot.twin.max_duration_s=90",
+                      f"robot.twin.clock_offset_s={offset_s}")
+    try:
+        code = pipe.start("collect").wait(timeout=120)
+    finally:
+        assert stop(twin) == 0, pipe.log("twin")
+    log = pipe.log("collect")
+    assert code == 1, log
+    assert re.search(message, one_line_error(log, "ArmFault")), log
+    assert "nothing was commanded" in log
+    assert wire(record) == []  # refused before the first command

@@ -53,11 +53,11 @@ class Clock:
 
 
 class FakeLink:
-    """Poses every 10 ms of the clock (stamped by it, so latency 0); ``jumps`` {at s: seconds}
-    stall the process once the clock passes ``at``."""
+    """Poses every 10 ms of the clock (stamped by it, so latency 0, or ``clock_offset_s`` ahead
+    of it); ``jumps`` {at s: seconds} stall the process once the clock passes ``at``."""
 
     def __init__(self, clock: Clock, jumps=None, answer=None, publishers=("mocap",),
-                 subscribers=("sorolearn_guard",), poses: bool = True):
+                 subscribers=("sorolearn_guard",), poses: bool = True, clock_offset_s=0.0):
         self.clock, self.jumps = clock, dict(jumps or {})
         self.poses: list = []
         self.wire: list[tuple[float, list[float]]] = []
@@ -67,6 +67,7 @@ class FakeLink:
         self.frame_id, self.frame_id_changed = "mocap", None
         self.handshake = SimpleNamespace(answer=answer, unreadable=None)
         self.publishers, self.listeners, self.emit = list(publishers), list(subscribers), poses
+        self.offset_ns = round(clock_offset_s * NS)  # the stamps' clock ahead of ours
         self._next_pose = clock()
         self.spin_once(0.0)  # a first pose, as collect has before its first command
 
@@ -81,8 +82,9 @@ class FakeLink:
                 self._next_pose = self.clock()
         self.clock.t += max(timeout_s, 1e-4)
         while self.emit and self._next_pose <= self.clock():
-            stamp = round(self._next_pose * NS)
-            self.poses.append((stamp, stamp, (0.03, 0.35, 0.2)))
+            receipt = round(self._next_pose * NS)
+            stamp = receipt + self.offset_ns
+            self.poses.append((stamp, receipt, (0.03, 0.35, 0.2)))
             self.newest_stamp_ns, self.last_pose_at = stamp, self.clock()
             self._next_pose += 0.01
 
@@ -274,6 +276,25 @@ def test_collect_refuses_a_second_twin_discovered_after_the_first_answer(tmp_pat
         "refusing to publish on /control_pressure: 2 subscriber(s) of /control_pressure: "
         "['sorolearn_twin', 'sorolearn_twin']; only the twin 'sorolearn_twin' may listen (a twin "
         "or recorder left running on the rehearsal domain? stop it)"), str(err.value)
+    run.stop_safely()
+    assert link.wire == []
+
+
+@pytest.mark.parametrize(("offset_s", "message"), [
+    (0.3, "clocks: a pose stamped 0.300 s after it was received: the motion capture's clock (its "
+          "header stamps) runs ahead of this computer's ROS clock (pose topic /mocap/pose)"),
+    (-0.3, "clocks: every pose over the last 1 s arrived at least 0.300 s after its header "
+           "stamp, above robot.max_pose_latency_s=0.25 s: the motion capture's clock runs behind "
+           "this computer's ROS clock"),
+])
+def test_collect_refuses_to_start_when_the_clocks_are_apart(tmp_path, offset_s, message):
+    clock = Clock()
+    link = FakeLink(clock, answer=answer_of(robot_config(), "guard", "sorolearn_guard"),
+                    clock_offset_s=offset_s)
+    run = session(tmp_path, link, clock)
+    with pytest.raises(ArmFault) as err:
+        run.wait_for_arm()
+    assert str(err.value).startswith(message), str(err.value)
     run.stop_safely()
     assert link.wire == []
 

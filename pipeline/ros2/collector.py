@@ -282,6 +282,8 @@ class Session:
             self.link.spin_once(_SPIN_SLICE_S)
         self.guard_node = str(answer["node"])
         self.check_sources(force=True)
+        for stamp, receipt, _ in self.link.poses:  # the clocks, before the first command
+            self.check_clock(stamp, receipt)
         log.info("collect: arm ready (poses on %s from frame '%s'; the %s '%s' answers for the "
                  "arm with the rating %s and is the only subscriber of %s)", robot.pose_topic,
                  self.link.frame_id, answer["role"], answer["node"], answer["rating"],

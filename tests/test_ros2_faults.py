@@ -81,10 +81,11 @@ class FakeLink:
                 self.clock.t += jump
                 self._next_pose = self.clock()
         self.clock.t += max(timeout_s, 1e-4)
+        skew = self.now_ns() - round(self.clock() * NS)  # this computer's ROS clock - the true
         while self.emit and self._next_pose <= self.clock():
-            receipt = round(self._next_pose * NS)
-            stamp = receipt + self.offset_ns
-            self.poses.append((stamp, receipt, (0.03, 0.35, 0.2)))
+            true = round(self._next_pose * NS)
+            stamp = true + self.offset_ns
+            self.poses.append((stamp, true + skew, (0.03, 0.35, 0.2)))
             self.newest_stamp_ns, self.last_pose_at = stamp, self.clock()
             self._next_pose += 0.01
 
@@ -305,6 +306,62 @@ def test_collect_starts_once_the_arm_side_matched_for_a_second(tmp_path):
     run = session(tmp_path, link, clock)
     run.wait_for_arm()
     assert 101.0 <= clock() < 101.1 and run.guard_node == "sorolearn_guard"
+
+
+# ---- control's deadlines and a step of the wall clock --------------------------------------------
+class SteppedLink(FakeLink):
+    """This computer's ROS (wall) clock steps by ``step_s`` once the monotonic clock passed ``at``
+    (s after 100); the motion capture stamps its poses on its own clock."""
+
+    def __init__(self, clock: Clock, at: float, step_s: float, **kwargs):
+        self.at, self.step_ns = at, round(step_s * NS)
+        super().__init__(clock, **kwargs)
+
+    def now_ns(self) -> int:
+        return super().now_ns() + (self.step_ns if self.clock() - 100.0 >= self.at else 0)
+
+
+@pytest.mark.parametrize(("step_s", "reason"), [
+    (-1.0, "ArmFault: clocks: a pose stamped 1.000 s after it was received: the motion capture's "
+           "clock (its header stamps) runs ahead of this computer's ROS clock"),
+    (0.2, None),  # under robot.max_pose_latency_s: the session goes on
+    (2.0, "mocap watchdog: no pose on /mocap/pose for 2.00 s"),
+])
+def test_a_step_of_the_wall_clock_moves_no_control_deadline(tmp_path, monkeypatch, step_s,
+                                                            reason):
+    # the loop's deadlines run on the monotonic clock: whatever the wall clock does, one command
+    # per period, none late or early; a step the clocks' checks see ends at the preload at once
+    from pipeline.control import ros_arm
+    from pipeline.control.goals import GoalSchedule
+    from pipeline.control.loop import ControlLoop
+    from pipeline.control.records import PeriodRecorder
+    from pipeline.control.ros_arm import RosArm
+    from tests.test_control_faults import CONTROL, ROBOT, StepPolicy
+
+    clock = Clock()
+    link = SteppedLink(clock, at=3.3, step_s=step_s,
+                       answer=answer_of(robot_config(), "guard", "sorolearn_guard"))
+    cfg = robot_config()
+    gate = CommandGate.for_robot(cfg)
+    signals = SimpleNamespace(received=None)
+    monkeypatch.setattr(ros_arm, "ArmLink", lambda node, executor, robot: link)
+    monkeypatch.setattr(ros_arm, "Session", lambda *args: Session(*args, clock=clock))
+    arm = RosArm(None, None, cfg, SimpleNamespace(goal_topic=None), gate, signals)
+    schedule = GoalSchedule(np.array([[0.03, 0.35, 0.2]]), np.array([0]), 10, "test")
+    recorder = PeriodRecorder(tmp_path / "rec", 4, {}, {})
+    outcome = ControlLoop(StepPolicy(), schedule, gate, arm, recorder, CONTROL, ROBOT).run()
+    assert outcome.missed_periods == 0 and outcome.holds == 0
+    times = [t for t, _ in link.wire]
+    gaps = np.diff(times[:-1])  # the final preload aside
+    assert gaps.min() > 0.49 and gaps.max() < 0.51, gaps
+    if reason is None:
+        assert outcome.reason is None and len(link.wire) == 11
+        return
+    assert outcome.reason.startswith(reason), outcome.reason
+    assert link.wire[-1][1] == PRELOAD
+    # the first period after the step (at 3.3 s, the loop's first tick at about 2 s) at most
+    assert times[-2] < 3.3 + 0.5 and times[-1] - 3.3 < 0.6, times
+    assert 2 <= len(link.wire) - 1 < 10
 
 
 # ---- the handshake's rules ---------------------------------------------------------------------

@@ -237,8 +237,9 @@ def test_the_twin_killed_mid_control_stops_it_with_one_line_and_keeps_the_record
     on_wire = np.array([r["pressures"] for r in rows if not r.get("deadman")])
     assert len(on_wire) >= 4
     np.testing.assert_allclose(sent[:len(on_wire)], on_wire, atol=1e-9)
-    # periods after the kill until the watchdog (robot.watchdog_s=1 s: 0.25 s of wall time)
-    assert 0 <= len(sent) - len(on_wire) <= 4
+    # periods after the kill until the watchdog (robot.watchdog_s=1 s: 0.25 s of wall time, two
+    # periods; up to 1 s of wall time on a busy machine)
+    assert 0 <= len(sent) - len(on_wire) <= 1.0 / PERIOD_WALL_S
 
 
 def test_a_twin_left_running_refuses_a_rehearsal_before_any_command(tmp_path, ros_domain):

@@ -255,7 +255,9 @@ class Session:
     # ---- start ---------------------------------------------------------------------------------
     def wait_for_arm(self) -> None:
         """Wait for a first pose, the arm side's handshake and its subscription to the commands,
-        all matching for ``_HANDSHAKE_GRACE_S`` (what is discovered late counts too); refuse (:class:`ArmRefused`, one line) if they lack or the handshake does not match."""
+        all matching for ``_HANDSHAKE_GRACE_S`` (what is discovered late counts too), and the
+        clocks of the poses received meanwhile; refuse (:class:`ArmRefused`, one line) if they
+        lack or do not match."""
         robot = self.robot
         deadline = self.clock() + float(robot.startup_timeout_s)
         mismatch_since, matched_since, problem = None, None, None

@@ -55,11 +55,11 @@ class Clock:
 
 
 class FakeLink:
-    """Poses every 10 ms of the clock (stamped by it, so latency 0); ``jumps`` {at s: seconds}
-    stall the process once the clock passes ``at``."""
+    """Poses every 10 ms of the clock (stamped by it, so latency 0, or ``clock_offset_s`` ahead
+    of it); ``jumps`` {at s: seconds} stall the process once the clock passes ``at``."""
 
     def __init__(self, clock: Clock, jumps=None, answer=None, publishers=("mocap",),
-                 subscribers=("sorolearn_guard",), poses: bool = True):
+                 subscribers=("sorolearn_guard",), poses: bool = True, clock_offset_s=0.0):
         self.clock, self.jumps = clock, dict(jumps or {})
         self.poses: list = []
         self.wire: list[tuple[float, list[float]]] = []
@@ -69,6 +69,7 @@ class FakeLink:
         self.frame_id, self.frame_id_changed = "mocap", None
         self.handshake = SimpleNamespace(answer=answer, unreadable=None)
         self.publishers, self.listeners, self.emit = list(publishers), list(subscribers), poses
+        self.offset_ns = round(clock_offset_s * NS)  # the stamps' clock ahead of ours
         self._next_pose = clock()
         self.spin_once(0.0)  # a first pose, as collect has before its first command
 
@@ -82,9 +83,11 @@ class FakeLink:
                 self.clock.t += jump
                 self._next_pose = self.clock()
         self.clock.t += max(timeout_s, 1e-4)
+        skew = self.now_ns() - round(self.clock() * NS)  # this computer's ROS clock - the true
         while self.emit and self._next_pose <= self.clock():
-            stamp = round(self._next_pose * NS)
-            self.poses.append((stamp, stamp, (0.03, 0.35, 0.2)))
+            true = round(self._next_pose * NS)
+            stamp = true + self.offset_ns
+            self.poses.append((stamp, true + skew, (0.03, 0.35, 0.2)))
             self.newest_stamp_ns, self.last_pose_at = stamp, self.clock()
             self._next_pose += 0.01
 
@@ -238,6 +241,10 @@ def test_the_clock_check_by_hand():
     ({"subscribers": ["sorolearn_guard", "valve_driver"]},
      "refusing to publish on /control_pressure: 2 subscriber(s) of /control_pressure: "
      "['sorolearn_guard', 'valve_driver']; only the guard 'sorolearn_guard' may listen"),
+    ({"answer": answer_of(robot_config(), "twin", "sorolearn_twin"),
+      "subscribers": ["sorolearn_twin"]},
+     "refusing to publish on /control_pressure: robot.rehearsal=false (a real arm), but the arm "
+     "side is the digital twin ('sorolearn_twin')"),
 ])
 def test_collect_refuses_to_start_without_the_guards_answer(tmp_path, link_args, message):
     clock = Clock()
@@ -251,6 +258,114 @@ def test_collect_refuses_to_start_without_the_guards_answer(tmp_path, link_args,
     assert link.wire == []  # a refused start commands nothing, not even the preload
 
 
+def test_collect_refuses_a_second_twin_discovered_after_the_first_answer(tmp_path):
+    # a twin left running on the rehearsal domain: its subscription to the commands is discovered
+    # 0.3 s after the first twin's answer matched, still before the first command
+    clock = Clock()
+    answer = answer_of(robot_config(rehearsal=True), "twin", "sorolearn_twin")
+    link = FakeLink(clock, answer=answer, subscribers=["sorolearn_twin"])
+    spin_once = link.spin_once
+
+    def discovering(timeout_s: float) -> None:
+        spin_once(timeout_s)
+        if clock() >= 100.3:
+            link.listeners = ["sorolearn_twin", "sorolearn_twin"]
+
+    link.spin_once = discovering
+    run = session(tmp_path, link, clock, rehearsal=True)
+    with pytest.raises(ArmRefused) as err:
+        run.wait_for_arm()
+    assert str(err.value).startswith(
+        "refusing to publish on /control_pressure: 2 subscriber(s) of /control_pressure: "
+        "['sorolearn_twin', 'sorolearn_twin']; only the twin 'sorolearn_twin' may listen (a twin "
+        "or recorder left running on the rehearsal domain? stop it)"), str(err.value)
+    run.stop_safely()
+    assert link.wire == []
+
+
+@pytest.mark.parametrize(("offset_s", "message"), [
+    (0.3, "clocks: a pose stamped 0.300 s after it was received: the motion capture's clock (its "
+          "header stamps) runs ahead of this computer's ROS clock (pose topic /mocap/pose)"),
+    (-0.3, "clocks: every pose over the last 1 s arrived at least 0.300 s after its header "
+           "stamp, above robot.max_pose_latency_s=0.25 s: the motion capture's clock runs behind "
+           "this computer's ROS clock"),
+])
+def test_collect_refuses_to_start_when_the_clocks_are_apart(tmp_path, offset_s, message):
+    clock = Clock()
+    link = FakeLink(clock, answer=answer_of(robot_config(), "guard", "sorolearn_guard"),
+                    clock_offset_s=offset_s)
+    run = session(tmp_path, link, clock)
+    with pytest.raises(ArmFault) as err:
+        run.wait_for_arm()
+    assert str(err.value).startswith(message), str(err.value)
+    run.stop_safely()
+    assert link.wire == []
+
+
+def test_collect_starts_once_the_arm_side_matched_for_a_second(tmp_path):
+    clock = Clock()
+    link = FakeLink(clock, answer=answer_of(robot_config(), "guard", "sorolearn_guard"))
+    run = session(tmp_path, link, clock)
+    run.wait_for_arm()
+    assert 101.0 <= clock() < 101.1 and run.guard_node == "sorolearn_guard"
+
+
+# ---- control's deadlines and a step of the wall clock --------------------------------------------
+class SteppedLink(FakeLink):
+    """This computer's ROS (wall) clock steps by ``step_s`` once the monotonic clock passed ``at``
+    (s after 100); the motion capture stamps its poses on its own clock."""
+
+    def __init__(self, clock: Clock, at: float, step_s: float, **kwargs):
+        self.at, self.step_ns = at, round(step_s * NS)
+        super().__init__(clock, **kwargs)
+
+    def now_ns(self) -> int:
+        return super().now_ns() + (self.step_ns if self.clock() - 100.0 >= self.at else 0)
+
+
+@pytest.mark.parametrize(("step_s", "reason"), [
+    (-1.0, "ArmFault: clocks: a pose stamped 1.000 s after it was received: the motion capture's "
+           "clock (its header stamps) runs ahead of this computer's ROS clock"),
+    (0.2, None),  # under robot.max_pose_latency_s: the session goes on
+    (2.0, "mocap watchdog: no pose on /mocap/pose for 2.00 s"),
+])
+def test_a_step_of_the_wall_clock_moves_no_control_deadline(tmp_path, monkeypatch, step_s,
+                                                            reason):
+    # the loop's deadlines run on the monotonic clock: whatever the wall clock does, one command
+    # per period, none late or early; a step the clocks' checks see ends at the preload at once
+    from pipeline.control import ros_arm
+    from pipeline.control.goals import GoalSchedule
+    from pipeline.control.loop import ControlLoop
+    from pipeline.control.records import PeriodRecorder
+    from pipeline.control.ros_arm import RosArm
+    from tests.test_control_faults import CONTROL, ROBOT, StepPolicy
+
+    clock = Clock()
+    link = SteppedLink(clock, at=3.3, step_s=step_s,
+                       answer=answer_of(robot_config(), "guard", "sorolearn_guard"))
+    cfg = robot_config()
+    gate = CommandGate.for_robot(cfg)
+    signals = SimpleNamespace(received=None)
+    monkeypatch.setattr(ros_arm, "ArmLink", lambda node, executor, robot: link)
+    monkeypatch.setattr(ros_arm, "Session", lambda *args: Session(*args, clock=clock))
+    arm = RosArm(None, None, cfg, SimpleNamespace(goal_topic=None), gate, signals)
+    schedule = GoalSchedule(np.array([[0.03, 0.35, 0.2]]), np.array([0]), 10, "test")
+    recorder = PeriodRecorder(tmp_path / "rec", 4, {}, {})
+    outcome = ControlLoop(StepPolicy(), schedule, gate, arm, recorder, CONTROL, ROBOT).run()
+    assert outcome.missed_periods == 0 and outcome.holds == 0
+    times = [t for t, _ in link.wire]
+    gaps = np.diff(times[:-1])  # the final preload aside
+    assert gaps.min() > 0.49 and gaps.max() < 0.51, gaps
+    if reason is None:
+        assert outcome.reason is None and len(link.wire) == 11
+        return
+    assert outcome.reason.startswith(reason), outcome.reason
+    assert link.wire[-1][1] == PRELOAD
+    # the first period after the step (at 3.3 s, the loop's first tick at about 2 s) at most
+    assert times[-2] < 3.3 + 0.5 and times[-1] - 3.3 < 0.6, times
+    assert 2 <= len(link.wire) - 1 < 10
+
+
 # ---- the handshake's rules ---------------------------------------------------------------------
 @pytest.mark.parametrize(("robot", "answer", "subscribers", "message"), [
     ({}, ("guard", {}), ["sorolearn_guard"], None),
@@ -261,8 +376,20 @@ def test_collect_refuses_to_start_without_the_guards_answer(tmp_path, link_args,
      "(p_max: 9.0 there, 7.0 here)"),
     ({"rehearsal": True}, ("guard", {}), ["sorolearn_guard"],
      "robot.rehearsal=true / robot.time_scale=1.0, but the arm side is a guard"),
-    ({}, ("twin", {"time_scale": 4.0}), ["sorolearn_guard"],
+    ({"rehearsal": True}, ("twin", {"time_scale": 4.0}), ["sorolearn_guard"],
      "the twin 'sorolearn_guard' runs at time_scale 4.0, this stage at robot.time_scale=1.0"),
+    # a real arm's config (no rehearsal, real time) answered by a twin: never recorded as the arm
+    ({}, ("twin", {}), ["sorolearn_guard"],
+     "robot.rehearsal=false (a real arm), but the arm side is the digital twin "
+     "('sorolearn_guard'): its poses would be recorded as the real arm's. To rehearse, add "
+     "robot.rehearsal=true"),
+    ({}, ("twin", {"time_scale": 4.0}), ["sorolearn_guard"],
+     "robot.rehearsal=false (a real arm), but the arm side is the digital twin"),
+    # two twins on the rehearsal domain (one left running) both listen to the commands
+    ({"rehearsal": True}, ("twin", {}), ["sorolearn_guard", "sorolearn_guard"],
+     "2 subscriber(s) of /control_pressure: ['sorolearn_guard', 'sorolearn_guard']; only the "
+     "twin 'sorolearn_guard' may listen (a twin or recorder left running on the rehearsal "
+     "domain? stop it)"),
     ({}, ("guard", {"command_topic": "/other"}), ["sorolearn_guard"],
      "the guard 'sorolearn_guard' guards /other, but robot.command_topic=/control_pressure"),
     ({}, ("guard", {}), ["sorolearn_guard", "bag_replay"],

@@ -50,8 +50,9 @@ class Pipeline:
                     "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "HYDRA_FULL_ERROR": "1"}
         self.logs = tmp_path
 
-    def start(self, stage: str, *overrides: str) -> subprocess.Popen:
-        with open(self.logs / f"{stage}.log", "w") as log:  # the child keeps its own handle
+    def start(self, stage: str, *overrides: str, name: str | None = None) -> subprocess.Popen:
+        """``stage`` as a process, its output in ``<name or stage>.log``."""
+        with open(self.logs / f"{name or stage}.log", "w") as log:  # the child keeps its own
             return subprocess.Popen(
                 [sys.executable, "-m", "pipeline", f"stage={stage}",
                  f"paths.output_dir={self.out}", f"robot.rehearsal_domain_id={self.domain}",

@@ -5,9 +5,10 @@ subscriber) and its session helpers (:meth:`~pipeline.ros2.collector.Session.wai
 guard's handshake; :meth:`~pipeline.ros2.collector.Session.check_sources` and
 :meth:`~pipeline.ros2.collector.Session.check_clock`: one pose source, one listener, clocks
 together; :meth:`~pipeline.ros2.collector.Session.stop_safely`: the preload published last and
-its delivery awaited). Arm time is ROS time since :meth:`RosArm.start` times ``robot.time_scale``;
-pose times are their header stamps on the same clock. Live goals arrive as
-``geometry_msgs/msg/PointStamped`` (metres) on ``control.goal_topic``.
+its delivery awaited). Arm time is ``robot.time_scale`` times the monotonic seconds since
+:meth:`RosArm.start` (the loop's deadlines: a step of the wall clock moves none); pose and
+publish times are ROS times (header stamps) since the ROS time of the start, on the same scale.
+Live goals arrive as ``geometry_msgs/msg/PointStamped`` (metres) on ``control.goal_topic``.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ class RosArm:
         self.robot, self.signals = robot, signals
         self.scale = float(robot.time_scale)
         self.watchdog_wall_s = float(robot.watchdog_s) / self.scale
-        self._t0_ns = 0
+        self._t0_ns, self._t0_s = 0, 0.0  # the start: ROS ns, monotonic s (session.clock)
         self._goals: list[np.ndarray] = []
         if goal_topic:
             from rclpy.qos import QoSProfile
@@ -57,10 +58,10 @@ class RosArm:
 
     def start(self) -> None:
         self.session.wait_for_arm()
-        self._t0_ns = self.link.now_ns()
+        self._t0_ns, self._t0_s = self.link.now_ns(), self.session.clock()
 
     def now(self) -> float:
-        return self._arm_time(self.link.now_ns())
+        return (self.session.clock() - self._t0_s) * self.scale
 
     def advance(self, until: float) -> None:
         if self.signals.received:

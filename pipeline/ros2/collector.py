@@ -85,7 +85,9 @@ class ArmFault(ArmRefused):
 _CLOCK_TOLERANCE_S = 0.01  # wall: a pose stamped later than its receipt by more: clocks apart
 _CLOCK_WINDOW_S = 1.0  # wall: latencies judged over the poses received in this span
 _SOURCES_EVERY_S = 0.5  # wall: how often the pose topic's publishers are counted
-_HANDSHAKE_GRACE_S = 1.0  # wall: a mismatch must last this long (graph discovery) to refuse
+# wall: a mismatch must last this long (graph discovery) to refuse, and a match to start (a
+# second twin or listener is discovered a little after the first)
+_HANDSHAKE_GRACE_S = 1.0
 
 
 class ClockCheck:
@@ -253,11 +255,13 @@ class Session:
 
     # ---- start ---------------------------------------------------------------------------------
     def wait_for_arm(self) -> None:
-        """Wait for a first pose, the arm side's handshake and its subscription to the commands;
-        refuse (:class:`ArmRefused`, one line) if they lack or the handshake does not match."""
+        """Wait for a first pose, the arm side's handshake and its subscription to the commands,
+        all matching for ``_HANDSHAKE_GRACE_S`` (what is discovered late counts too), and the
+        clocks of the poses received meanwhile; refuse (:class:`ArmRefused`, one line) if they
+        lack or do not match."""
         robot = self.robot
         deadline = self.clock() + float(robot.startup_timeout_s)
-        mismatch_since, problem = None, None
+        mismatch_since, matched_since, problem = None, None, None
         while True:
             if self.signals.received:
                 raise ArmRefused(f"stopped by {self.signals.received} before the first command; "
@@ -267,7 +271,12 @@ class Session:
                     and self.link.subscribers() > 0):
                 problem = handshake_problem(answer, robot, self.link.command_subscribers())
                 if problem is None:
-                    break
+                    matched_since = matched_since or self.clock()
+                    if self.clock() - matched_since >= _HANDSHAKE_GRACE_S:
+                        break
+                    self.link.spin_once(_SPIN_SLICE_S)
+                    continue
+                matched_since = None
                 mismatch_since = mismatch_since or self.clock()
                 if self.clock() - mismatch_since > _HANDSHAKE_GRACE_S:
                     raise ArmRefused(f"refusing to publish on {robot.command_topic}: {problem}")
@@ -276,6 +285,8 @@ class Session:
             self.link.spin_once(_SPIN_SLICE_S)
         self.guard_node = str(answer["node"])
         self.check_sources(force=True)
+        for stamp, receipt, _ in self.link.poses:  # the clocks, before the first command
+            self.check_clock(stamp, receipt)
         log.info("collect: arm ready (poses on %s from frame '%s'; the %s '%s' answers for the "
                  "arm with the rating %s and is the only subscriber of %s)", robot.pose_topic,
                  self.link.frame_id, answer["role"], answer["node"], answer["rating"],

@@ -9,8 +9,9 @@ The guard (``stage=guard``, beside a real arm's valve driver) and the digital tw
 
 A stage that publishes commands (collect, control) starts only once an answer arrived and
 :func:`handshake_problem` finds nothing wrong: the answering node enforces the robot config's
-rating on its command topic, it is the only subscriber of that topic, and a rehearsal
-(``robot.rehearsal=true``, or any ``robot.time_scale`` other than 1) is answered by a twin.
+rating on its command topic, it is the only subscriber of that topic, a rehearsal
+(``robot.rehearsal=true``, or any ``robot.time_scale`` other than 1) is answered by a twin, and
+any other stage (a real arm's) by a guard: a twin's poses are never recorded as the arm's.
 """
 
 from __future__ import annotations
@@ -71,13 +72,19 @@ def handshake_problem(answer: dict[str, Any], robot: Any, subscribers: list[str]
     if rehearsal and role != "twin":
         return (f"robot.rehearsal=true / robot.time_scale={robot.time_scale}, but the arm side is "
                 f"a {role} ('{node}'), not the digital twin: a rehearsal never drives a real arm")
+    if not rehearsal and role == "twin":
+        return (f"robot.rehearsal=false (a real arm), but the arm side is the digital twin "
+                f"('{node}'): its poses would be recorded as the real arm's. To rehearse, add "
+                f"robot.rehearsal=true; to drive the arm, use the arm's ROS domain, where the "
+                f"guard answers")
     if float(answer.get("time_scale", 1.0)) != float(robot.time_scale):
         return (f"the {role} '{node}' runs at time_scale {answer.get('time_scale')}, this stage "
                 f"at robot.time_scale={robot.time_scale}: both sides need the same")
     if subscribers != [node]:
+        hint = ("a twin or recorder left running on the rehearsal domain? stop it" if role == "twin"
+                else "the valve driver subscribes to the guard's output, robot.guard.output_topic")
         return (f"{len(subscribers)} subscriber(s) of {topic}: {subscribers or 'none'}; only the "
-                f"{role} '{node}' may listen (the valve driver subscribes to the guard's output, "
-                f"robot.guard.output_topic)")
+                f"{role} '{node}' may listen ({hint})")
     return None
 
 

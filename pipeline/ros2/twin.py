@@ -8,7 +8,8 @@ does). With ``robot.time_scale`` > 1 the arm's time runs that much faster than t
 (collect must use the same value), so a rehearsal or a test of the ROS 2 path takes seconds.
 
 Frames are due on a fixed schedule; when the process falls behind it publishes the late frames at
-once, each with its nominal stamp (like a camera clock). Commands take effect at the next frame;
+once, each with its nominal stamp (like a camera clock), shifted by ``robot.twin.clock_offset_s``
+(a motion capture clock apart from the stages', default 0). Commands take effect at the next frame;
 a command outside ``robot.limits`` or the arm's ``robot.rating`` is logged as an error, counted
 (the stage then fails at the end) and applied as the valves would: saturated onto the safe set.
 Deadman (:class:`pipeline.ros2.guard.Deadman`, as the guard node): when no command arrived within
@@ -234,7 +235,8 @@ class TwinNode:
         period_s = 1.0 / float(robot.twin.mocap.rate_hz)  # arm seconds
         period_wall_s = period_s / scale
         max_wall_s = robot.twin.max_duration_s
-        start, start_ns = time.monotonic(), self._now_ns()
+        offset_ns = round(float(robot.twin.clock_offset_s) * NS_PER_S)  # a mocap clock apart
+        start, start_ns = time.monotonic(), self._now_ns() + offset_ns
         frame, spun = 0, start
         while not signals.received:
             now = time.monotonic()

@@ -198,6 +198,9 @@ class TwinConfig:
     mocap: MocapConfig = field(default_factory=MocapConfig)
     record_path: str | None = None  # JSON lines: every command received, with receipt time
     max_duration_s: float | None = None  # wall seconds until it exits by itself; None: SIGINT
+    # wall: its poses' header stamps shifted by this, a motion capture clock ahead of (> 0) or
+    # behind (< 0) the stages' clock, to rehearse the clock checks
+    clock_offset_s: float = 0.0
 
 
 @dataclass

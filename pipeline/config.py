@@ -17,6 +17,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
+from pipeline import PROJECT_ROOT
 from pipeline.schemas import (
     AgentConfig,
     CalibrationConfig,
@@ -34,8 +35,6 @@ from pipeline.schemas import (
     RosbagRobotConfig,
     SimRobotConfig,
 )
-
-PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the checkout: conf/ lies here
 
 
 def sorolex_dir() -> Path:

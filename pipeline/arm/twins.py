@@ -18,7 +18,7 @@ from typing import Any
 
 import yaml
 
-from pipeline.config import PROJECT_ROOT
+from pipeline import PROJECT_ROOT
 from pipeline.infra.artifacts import ArtifactStore, MissingArtifactError
 from pipeline.schemas import ConfigError, MocapConfig, SimPhysics, SimRobotConfig
 

@@ -98,3 +98,35 @@ def test_without_the_ros_extra_the_safety_tests_fail_loudly(monkeypatch):
     monkeypatch.setenv("SOROLEARN_WITHOUT_ROS", "1")
     with pytest.raises(pytest.skip.Exception, match="SOROLEARN_WITHOUT_ROS=1"):
         require_ros("rclpy")
+
+
+@pytest.mark.parametrize("recorded_on_twin, real_arm, refused_", [
+    (True, True, True),     # a real-arm collect never reuses the twin's runs
+    (True, False, False),   # a rehearsal may reuse its own
+    (False, True, False),   # the arm's own runs are reused as ever
+])
+def test_a_real_arm_collect_refuses_a_rehearsals_data_under_its_key(
+        make_cfg, recorded_on_twin, real_arm, refused_):
+    from tests.ros_required import require_ros
+
+    require_ros("rclpy")  # collect imports the ros extra before the check
+    from pipeline import keys
+    from pipeline.infra.artifacts import ArtifactStore, produce
+    from pipeline.stages.collect import STAGE, collect
+
+    rehearsal = make_cfg("robot=ros2", "robot.rehearsal=true")
+    cfg = make_cfg("robot=ros2") if real_arm else rehearsal
+    assert keys.key("collect", cfg) == keys.key("collect", rehearsal)  # the key ignores it
+    store = ArtifactStore(cfg.paths.artifact_dir)
+
+    def build(writer):
+        (writer.path / "commands.parquet").write_bytes(b"")
+        writer.summary = {"rehearsal": recorded_on_twin}
+
+    recorded = produce(store, STAGE, *keys.collect_spec(cfg), build)
+    if refused_:
+        with pytest.raises(ConfigError, match="holds a rehearsal recorded on the digital twin"):
+            collect(cfg)
+        assert recorded.path.is_dir()  # nothing moved or deleted
+    else:
+        assert collect(cfg).path == recorded.path

@@ -35,7 +35,7 @@ from pipeline.data.importers import READERS, list_recordings, recording_id
 from pipeline.data.raw import CollectionInterrupted, check_positions, plot_runs, raw_summary
 from pipeline.data.schemas import CMD_COLUMNS, COMMANDS, MOCAP, RUNS, XYZ, write_table
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
-from pipeline.schemas import ImportRobotConfig, RobotKind
+from pipeline.schemas import ConfigError, ImportRobotConfig, RobotKind
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
@@ -74,7 +74,9 @@ def _collect_ros2(cfg: Any, robot: Any, store: ArtifactStore, spec: dict[str, An
     from pipeline.arm.exploration import plot_walks
     from pipeline.ros2.collector import collect_ros2  # the optional ros extra
 
-    _set_aside_incomplete(store, artifact_key(spec, inputs), bool(robot.reuse_incomplete))
+    key = artifact_key(spec, inputs)
+    _refuse_rehearsal_data(store, key, bool(robot.rehearsal), bool(cfg.force))
+    _set_aside_incomplete(store, key, bool(robot.reuse_incomplete))
     exploration = OmegaConf.to_object(cfg.exploration)
     interruptions = []
 
@@ -86,6 +88,7 @@ def _collect_ros2(cfg: Any, robot: Any, store: ArtifactStore, spec: dict[str, An
         plot_walks(writer.file("figures/exploration_alphas.png"), recorded.figure_key,
                    exploration, robot.limits, robot.control_hz, robot.n_valves)
         writer.summary["ros2"] = recorded.link
+        writer.summary["rehearsal"] = bool(robot.rehearsal)  # recorded on the twin
         if recorded.interruption is not None:
             writer.summary["interrupted"] = recorded.interruption.reason
         shutil.rmtree(recorded.recovery)  # the artifact's temporary folder now holds every row
@@ -100,6 +103,21 @@ def _collect_ros2(cfg: Any, robot: Any, store: ArtifactStore, spec: dict[str, An
             f"dataset.align.accept_incomplete=true); the next collect with this config sets them "
             f"aside and records anew unless robot.reuse_incomplete=true") from interruption.error
     return artifact
+
+
+def _refuse_rehearsal_data(store: ArtifactStore, key: str, rehearsal: bool, force: bool) -> None:
+    """A real-arm collect never answers with a rehearsal's data. The rehearsal settings are not
+    part of the key (a rehearsal runs the arm's config on its twin), so a rehearsal recorded with
+    the same ``robot.session`` holds this key: refuse instead of reusing the twin's runs as the
+    arm's."""
+    if rehearsal or force:
+        return
+    existing = store.find(STAGE, key)
+    if existing is not None and existing.manifest.get("summary", {}).get("rehearsal"):
+        raise ConfigError(
+            f"collect: {existing.path} holds a rehearsal recorded on the digital twin under this "
+            f"config's key; a real-arm collect would reuse the twin's runs as the arm's. Name "
+            f"this session anew (robot.session=...), or force=true to record over it")
 
 
 def _set_aside_incomplete(store: ArtifactStore, key: str, reuse: bool) -> None:

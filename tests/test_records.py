@@ -49,11 +49,11 @@ def test_the_deployed_seed_is_the_best_in_the_last_evaluation():
 
 def test_in_models_only_keeps_the_preload_and_drops_plant_and_consecutive_goals():
     from pipeline.evaluation.closed_loop import ClosedLoopSettings, SimArm
-    from pipeline.schemas import EvaluationConfig
+    from pipeline.schemas import EnvConfig, EvaluationConfig
 
     settings = ClosedLoopSettings(
         evaluation=EvaluationConfig(models=["m"], num_episodes=7), max_steps=40, model_hz=10.0,
-        limits=None, observation={}, env_params={},
+        limits=None, env=EnvConfig(),
         sim=SimArm(plant=None, mocap_hz=100.0, rest_pose_std_m=[0.002, 0.0, 0.0]))
     only = settings.only_in_models()
     assert only.sim is None and only.evaluation.baselines == ["preload"]

@@ -338,7 +338,7 @@ def test_a_step_of_the_wall_clock_moves_no_control_deadline(tmp_path, monkeypatc
     from pipeline.control.loop import ControlLoop
     from pipeline.control.records import PeriodRecorder
     from pipeline.control.ros_arm import RosArm
-    from tests.test_control_faults import CONTROL, ROBOT, StepPolicy
+    from tests.test_control_faults import SETTINGS, StepPolicy
 
     clock = Clock()
     link = SteppedLink(clock, at=3.3, step_s=step_s,
@@ -348,10 +348,10 @@ def test_a_step_of_the_wall_clock_moves_no_control_deadline(tmp_path, monkeypatc
     signals = SimpleNamespace(received=None)
     monkeypatch.setattr(ros_arm, "ArmLink", lambda node, executor, robot: link)
     monkeypatch.setattr(ros_arm, "Session", lambda *args: Session(*args, clock=clock))
-    arm = RosArm(None, None, cfg, SimpleNamespace(goal_topic=None), gate, signals)
+    arm = RosArm(None, None, cfg, None, gate, signals)
     schedule = GoalSchedule(np.array([[0.03, 0.35, 0.2]]), np.array([0]), 10, "test")
     recorder = PeriodRecorder(tmp_path / "rec", 4, {}, {})
-    outcome = ControlLoop(StepPolicy(), schedule, gate, arm, recorder, CONTROL, ROBOT).run()
+    outcome = ControlLoop(StepPolicy(), schedule, gate, arm, recorder, SETTINGS).run()
     assert outcome.missed_periods == 0 and outcome.holds == 0
     times = [t for t, _ in link.wire]
     gaps = np.diff(times[:-1])  # the final preload aside

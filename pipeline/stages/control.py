@@ -17,6 +17,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import keys
@@ -184,7 +185,9 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
     env, train_params, eval_params = environment(*trained_settings(train_cfg, model, aligned))
     network, stacked, meta = load_policy(artifact.file("policy.msgpack"))
     num_seeds = int(meta.get("num_seeds", 1))
-    seed = best_seed(artifact) if cfg.control.seed is None else int(cfg.control.seed)
+    evaluation = artifact.file("evaluation.parquet")
+    seed = (best_seed(pd.read_parquet(evaluation), evaluation) if cfg.control.seed is None
+            else int(cfg.control.seed))
     if not 0 <= seed < num_seeds:
         raise ValueError(f"control.seed={seed}: {artifact.file('policy.msgpack')} holds seeds "
                          f"0..{num_seeds - 1}")

@@ -19,6 +19,7 @@ run); later calls reuse them::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import shlex
@@ -44,7 +45,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--seeds", default="0", help="comma-separated model seeds")
     parser.add_argument("--cache", default=DEFAULT_CACHE, help="folder of the fold models")
     parser.add_argument("--fit-only", action="store_true", help="train and cache, no scoring")
-    parser.add_argument("--context-s", default="0,10,30,60", help="context lengths [s]")
+    parser.add_argument("--context-s", default="0,10,30,60,all",
+                        help="context lengths [s]; all: the whole run (in-sample)")
     parser.add_argument("--common-from", type=float, default=60.0,
                         help="the common rest starts here [s]")
     parser.add_argument("--out", default=DEFAULT_OUT)
@@ -69,7 +71,8 @@ def fold_models(cfg, runs, seeds, cache: Path) -> dict:
         started = time.perf_counter()
         params, _ = model_cv.fit_members(runs, missing, cfg.model, window=int(data.window),
                                          stride=int(data.stride), order=str(data.order),
-                                         checkpoint_dir=cache / "checkpoints")
+                                         checkpoint_dir=cache / ("checkpoints-seed" + "-".join(
+                                             str(seed) for seed in seeds)))
         log.info("trained %d fold models in %.0f s", len(missing), time.perf_counter() - started)
         for member, member_params in zip(missing, params):
             save_dynamics(path(member), member_params)
@@ -105,9 +108,14 @@ MECHANISMS = {  # name -> the library's settings (None: a baseline, scored by th
                                            input_affine=False),
     "fine_tune": AdaptationSettings(mechanism="fine_tune", output="diagonal",
                                     input_affine=True),
+    "fine_tune_full": AdaptationSettings(mechanism="fine_tune", output="full",
+                                         input_affine=True),
+    "fine_tune_readout": AdaptationSettings(mechanism="fine_tune", output="diagonal",
+                                            input_affine=True, readout=True),
 }
-BASELINES = ("linear", "linear_offset", "linear_refit", "mean_position", "context_mean")
-LINEAR_REFIT_RIDGE = 1.0e-3
+LINEAR_REFIT_RIDGES = (0.1, 1.0, 10.0)
+BASELINES = ("linear", "linear_offset", *(f"linear_refit_r{r:g}" for r in LINEAR_REFIT_RIDGES),
+             "mean_position", "context_mean")
 
 
 def errors(predicted: np.ndarray, observed: np.ndarray, starts: dict) -> dict:
@@ -130,15 +138,23 @@ def baselines(train_runs, run, steps: int, num_lags: int) -> dict:
     features = lagged_features(run.pressures_kpa, num_lags)
     linear = features @ coefficients
     context = run.positions_m[:steps]
-    refit = adaptation.refit_linear_on_context(coefficients, features[:steps], context,
-                                               LINEAR_REFIT_RIDGE)
     mean_position = np.concatenate([r.positions_m for r in train_runs]).astype(np.float64).mean(0)
     observed_mean = context.mean(0) if steps else mean_position
     shape = run.positions_m.shape
     return {"linear": linear, "linear_offset": adaptation.offset_on_context(linear, context),
-            "linear_refit": features @ refit,
+            **{f"linear_refit_r{ridge:g}": features @ adaptation.refit_linear_on_context(
+                coefficients, features[:steps], context, ridge) for ridge in LINEAR_REFIT_RIDGES},
             "mean_position": np.broadcast_to(mean_position, shape),
             "context_mean": np.broadcast_to(observed_mean, shape)}
+
+
+@functools.cache
+def jitted_predict():
+    import jax
+
+    from pipeline.dynamics import adaptation
+
+    return jax.jit(adaptation.predict_adapted)
 
 
 def score_fold(params, train_runs, run, contexts_s, common_from_s, hz) -> tuple[dict, dict]:
@@ -154,21 +170,21 @@ def score_fold(params, train_runs, run, contexts_s, common_from_s, hz) -> tuple[
         raise SystemExit(f"run {run.run_id} has {len(run)} steps: no rest after {common_from_s}s")
     pressures = jnp.asarray(run.pressures_kpa)
     out, seconds = {}, {}
-    for context_s in contexts_s:
-        steps = adaptation.context_steps(context_s, hz)
-        starts = {"common": common, "own": steps}
+    for context_s in contexts_s:  # "all": the whole run, scored in-sample (the ceiling)
+        steps = len(run) if context_s == "all" else adaptation.context_steps(float(context_s), hz)
+        starts = {"common": common, "own": 0 if context_s == "all" else steps}
         row = {}
         for name, settings in MECHANISMS.items():
             started = time.perf_counter()
             correction = adaptation.adapt(params, run.pressures_kpa[:steps],
                                           run.positions_m[:steps], settings, hz)
-            predicted = np.asarray(adaptation.predict_adapted(
+            predicted = np.asarray(jitted_predict()(
                 params, correction, pressures, jnp.asarray(run.positions_m[0])))
-            seconds[f"{name}@{context_s:g}"] = time.perf_counter() - started
+            seconds[f"{name}@{context_s}"] = time.perf_counter() - started
             row[name] = errors(predicted, run.positions_m, starts)
         for name, predicted in baselines(train_runs, run, steps, LINEAR_LAGS).items():
             row[name] = errors(predicted, run.positions_m, starts)
-        out[f"{context_s:g}"] = row
+        out[context_s] = row
     return out, seconds
 
 
@@ -176,7 +192,7 @@ def study_row(args, cfg, runs, models, seeds) -> dict:
     from pipeline.dynamics.scoring import position_errors_mm, predict_run
 
     hz = float(cfg.dataset.model_hz)
-    contexts = [float(s) for s in args.context_s.split(",")]
+    contexts = [c if c == "all" else f"{float(c):g}" for c in args.context_s.split(",")]
     by_id = {run.run_id: run for run in runs}
     per_run, timing, train_errors = {}, {}, {}
     for (held_out, seed), params in sorted(models.items()):
@@ -222,14 +238,15 @@ def report(path: str) -> str:
                 lines.append(f"| {name} | " + " | ".join(cells) + " |")
             lines.append("")
         runs = sorted(row["per_run"])
-        best = "fine_tune"
+        pick = "30" if "30" in contexts else contexts[-1]
+        best = min(MECHANISMS, key=lambda m: row["average"][pick][m]["common_mean_mm"])
         lines += [f"{best}, mean mm over the rest from {row['common_from_s']:g} s, per held-out "
                   "run", "", "| run | " + " | ".join(f"T = {c} s" for c in contexts)
-                  + " | model | linear_refit (T = 30 s) |", "|---|" + "---|" * (len(contexts) + 2)]
+                  + " | model | linear_refit_r1 (T = 30 s) |", "|---|" + "---|" * (len(contexts) + 2)]
         for run in runs:
             cells = [f"{row['per_run'][run][c][best]['common_mean_mm']:.2f}" for c in contexts]
             model = row["per_run"][run][contexts[0]]["model"]["common_mean_mm"]
-            linear = row["per_run"][run].get("30", {}).get("linear_refit", {})
+            linear = row["per_run"][run].get("30", {}).get("linear_refit_r1", {})
             lines.append(f"| {run} | " + " | ".join(cells) + f" | {model:.2f} | "
                          f"{linear.get('common_mean_mm', float('nan')):.2f} |")
         lines += ["", "seconds per calibration (mean over folds): " + ", ".join(

@@ -131,9 +131,12 @@ def test_linear_refit_by_hand():
     features = np.array([[1.0], [2.0]])
     positions = np.array([[3.0, 0.0, 6.0], [6.0, 0.0, 12.0]])
     prior = np.zeros((1, 3))
-    # argmin (b - 3)^2 + (2b - 6)^2 + 0.5 * 2 * b^2  ->  b = 15 / 6 (first axis)
+    # w = 0.5 * (1 + 4) / 1; argmin (b - 3)^2 + (2b - 6)^2 + 2.5 b^2  ->  b = 15 / 7.5 (axis 0)
     refit = adaptation.refit_linear_on_context(prior, features, positions, ridge=0.5)
-    np.testing.assert_allclose(refit, [[2.5, 0.0, 5.0]])
+    np.testing.assert_allclose(refit, [[2.0, 0.0, 4.0]])
+    # a prior of 1: argmin (b - 3)^2 + (2b - 6)^2 + 2.5 (b - 1)^2  ->  b = 17.5 / 7.5
+    refit = adaptation.refit_linear_on_context(np.ones((1, 3)), features, positions, ridge=0.5)
+    np.testing.assert_allclose(refit[0, 0], 17.5 / 7.5)
     np.testing.assert_array_equal(
         adaptation.refit_linear_on_context(prior, features[:0], positions[:0], 0.5), prior)
     with pytest.raises(ValueError, match="ridge must be > 0"):
@@ -146,3 +149,26 @@ def test_offset_on_context_by_hand():
     np.testing.assert_allclose(adaptation.offset_on_context(predicted, positions)[3], [2, 1, 0])
     np.testing.assert_array_equal(adaptation.offset_on_context(predicted, positions[:0]),
                                   predicted)
+
+
+def test_context_curve_rows():
+    params, run = tiny_model()
+    shift = np.array([0.002, -0.001, 0.003], np.float32)
+    session = run.replace(run_id="held", positions_m=plain(params, run) + shift)
+    others = [run.replace(run_id="a"), run.replace(run_id="b", pressures_kpa=run.pressures_kpa[::-1]
+                                                    .copy())]
+    curve = adaptation.context_curve([session], [others], [params],
+                                     AdaptationSettings(mechanism="offset"), HZ,
+                                     contexts_s=(0.0, 1.0, 4.0, 6.0), scored_from_s=3.0)
+    # 6 s leaves no step of the 60-step run: skipped; 4 s scores from 4 s, the others from 3 s
+    assert list(curve["context_s"]) == [0.0, 0.0, 1.0, 1.0, 4.0, 4.0]
+    assert list(curve["from_s"]) == [3.0, 3.0, 3.0, 3.0, 4.0, 4.0]
+    learned = curve[curve["model"] == "learned"].set_index("context_s")
+    # no context: the plain model, off by the shift everywhere (|shift| = sqrt(14) mm)
+    assert learned.loc[0.0, "mean_mm"] == pytest.approx(np.sqrt(14.0), rel=1e-4)
+    assert learned.loc[1.0, "mean_mm"] < 1e-3 and learned.loc[4.0, "p95_mm"] < 1e-3
+    from pipeline.dynamics.scoring import position_errors_mm, predict_linear_lagged
+    linear = curve[(curve["model"] == "linear_lagged") & (curve["context_s"] == 0.0)]
+    expected = position_errors_mm(predict_linear_lagged(others, session)[30:],
+                                  session.positions_m[30:])
+    assert linear["mean_mm"].item() == pytest.approx(expected["mean_mm"])

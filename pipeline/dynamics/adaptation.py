@@ -30,11 +30,13 @@ The baseline given the same context: the linear lagged-pressure model
 training-runs coefficients the prior.
 
 Settings are typed (:class:`AdaptationSettings`); arrays in, arrays and parameters out.
+:func:`context_curve` scores leave-one-run-out fold models so, per context length.
 """
 
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,10 +45,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import pandas as pd
 from flax import struct
 
+from pipeline.data.runs import Run
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.model import NUM_CHAMBERS, POSITION_DIM, DynamicsParams
+from pipeline.dynamics.scoring import (
+    LEARNED,
+    LINEAR_LAGS,
+    fit_linear_lagged,
+    lagged_features,
+    position_errors_mm,
+)
 
 MECHANISMS = ("none", "offset", "fine_tune")
 OUTPUTS = ("bias", "diagonal", "full")
@@ -255,7 +266,9 @@ def refit_linear_on_context(coefficients: np.ndarray, features: np.ndarray,
                             positions: np.ndarray, ridge: float) -> np.ndarray:
     """The linear model's coefficients [F, 3] refitted on a context: features [n, F] (the
     lagged features of its pressures), positions [n, 3] m, pulled to the training-runs
-    ``coefficients`` [F, 3]: ``argmin |A b - x|² + ridge * n * |b - b_train|²``."""
+    ``coefficients`` [F, 3]: ``argmin |A b - x|² + w |b - b_train|²`` with
+    ``w = ridge * trace(AᵀA) / F`` (``ridge`` 1: the prior weighs as much as the context's
+    average feature)."""
     features = np.asarray(features, np.float64)
     count, width = features.shape
     chex.assert_shape(coefficients, (width, POSITION_DIM))
@@ -263,7 +276,54 @@ def refit_linear_on_context(coefficients: np.ndarray, features: np.ndarray,
         raise ValueError(f"the linear refit's ridge must be > 0, got {ridge}")
     if count == 0:
         return np.asarray(coefficients, np.float64)
-    weight = ridge * count
+    weight = ridge * np.trace(features.T @ features) / width
     gram = features.T @ features + weight * np.eye(width)
     rhs = features.T @ np.asarray(positions, np.float64) + weight * coefficients
     return np.linalg.solve(gram, rhs)
+
+
+# ---------------------------------------------------------------------------------------------
+# the context curve of leave-one-run-out fold models
+# ---------------------------------------------------------------------------------------------
+CONTEXTS_S = (0.0, 10.0, 30.0, 60.0)  # context lengths the curve is measured at [s]
+SCORED_FROM_S = 60.0  # the common rest: every context length scored on the same samples [s]
+LINEAR_RIDGE = 1.0  # the linear baseline's refit on the context (refit_linear_on_context)
+
+
+def context_curve(held_out: Sequence[Run], train_runs: Sequence[Sequence[Run]],
+                  params: Sequence[DynamicsParams], settings: AdaptationSettings,
+                  model_hz: float, contexts_s: Sequence[float] = CONTEXTS_S,
+                  scored_from_s: float = SCORED_FROM_S) -> pd.DataFrame:
+    """Per fold (its held-out run, training runs and model) and context length ``T``: the
+    open-loop error of the model calibrated on the first ``T`` s of the held-out run
+    (``learned``) and of the linear lagged baseline fitted on the training runs and refitted
+    on the same context (``linear_lagged``), over the run from ``max(T, scored_from_s)`` on.
+
+    Rows: ``run_id``, ``context_s``, ``from_s`` [s], ``model``, ``mean_mm``, ``p95_mm``; a
+    context that leaves no step to score is skipped.
+    """
+    if not len(held_out) == len(train_runs) == len(params):
+        raise ValueError(f"one held-out run, training runs and model per fold: got "
+                         f"{len(held_out)}, {len(train_runs)}, {len(params)}")
+    predict = jax.jit(predict_adapted)
+    rows = []
+    for run, fold_runs, fold_params in zip(held_out, train_runs, params):
+        coefficients = fit_linear_lagged(fold_runs, LINEAR_LAGS)
+        features = lagged_features(run.pressures_kpa, LINEAR_LAGS)
+        for context_s in contexts_s:
+            steps = context_steps(context_s, model_hz)
+            start = max(steps, context_steps(scored_from_s, model_hz))
+            if start >= len(run):
+                continue
+            correction = adapt(fold_params, run.pressures_kpa[:steps], run.positions_m[:steps],
+                               settings, model_hz)
+            learned = np.asarray(predict(fold_params, correction, jnp.asarray(run.pressures_kpa),
+                                         jnp.asarray(run.positions_m[0])))
+            linear = features @ refit_linear_on_context(
+                coefficients, features[:steps], run.positions_m[:steps], LINEAR_RIDGE)
+            for model, predicted in ((LEARNED, learned), ("linear_lagged", linear)):
+                rows.append({"run_id": run.run_id, "context_s": float(context_s),
+                             "from_s": start / float(model_hz), "model": model,
+                             **position_errors_mm(predicted[start:], run.positions_m[start:])})
+    return pd.DataFrame(rows, columns=["run_id", "context_s", "from_s", "model", "mean_mm",
+                                       "p95_mm"])

@@ -172,3 +172,27 @@ def test_context_curve_rows():
     expected = position_errors_mm(predict_linear_lagged(others, session)[30:],
                                   session.positions_m[30:])
     assert linear["mean_mm"].item() == pytest.approx(expected["mean_mm"])
+
+
+def test_context_metrics_are_model_metrics_rows(tmp_path):
+    from pipeline.data.schemas import MODEL_METRICS, read_table, write_table
+    from pipeline.dynamics.cv import Member
+
+    params, run = tiny_model()
+    runs = [run.replace(run_id="a"), run.replace(run_id="b", positions_m=plain(params, run))]
+    members = [Member(("b",), "a", 3), Member(("a",), "b", 3), Member(("a", "b"), None, 3)]
+    # the context curve at its defaults needs more than 60 s: 90 s runs at 1 Hz (90 steps)
+    long = [r.replace(times_s=np.arange(90.0), pressures_kpa=np.tile(r.pressures_kpa, (2, 1))[:90],
+                      positions_m=np.tile(r.positions_m, (2, 1))[:90]) for r in runs]
+    rows = adaptation.context_metrics(long, members, [params] * 3,
+                                      AdaptationSettings(mechanism="offset"), 1.0)
+    assert len(rows) == 2 * len(adaptation.CONTEXTS_S) * 2
+    assert set(rows["split"]) == {"cv_context"} and set(rows["from_s"]) == {60.0}
+    assert list(rows.loc[rows["held_out"] == "b", "fold"].unique()) == [1]
+    write_table(rows, tmp_path / "m.parquet", MODEL_METRICS)  # the schema takes them
+    table, _ = read_table(tmp_path / "m.parquet", MODEL_METRICS)
+    summary = adaptation.context_summary(table)
+    assert list(summary["context_s"]) == list(adaptation.CONTEXTS_S)
+    assert (summary["runs"] == 2).all()
+    at_zero = rows[(rows["context_s"] == 0.0) & (rows["model"] == "learned")]["mean_mm"].mean()
+    assert summary.loc[0, "learned_mean_mm"] == pytest.approx(at_zero)

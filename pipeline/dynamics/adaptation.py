@@ -327,3 +327,37 @@ def context_curve(held_out: Sequence[Run], train_runs: Sequence[Sequence[Run]],
                              **position_errors_mm(predicted[start:], run.positions_m[start:])})
     return pd.DataFrame(rows, columns=["run_id", "context_s", "from_s", "model", "mean_mm",
                                        "p95_mm"])
+
+
+def context_metrics(runs: Sequence[Run], members: Sequence[Any],
+                    params: Sequence[DynamicsParams], settings: AdaptationSettings,
+                    model_hz: float) -> pd.DataFrame:
+    """The ``model_metrics`` rows (``split="cv_context"``) of :func:`context_curve` for the fold
+    members (``pipeline.dynamics.cv.Member``: those with a held-out run) and their models."""
+    by_id = {run.run_id: run for run in runs}
+    folds = [(member, member_params) for member, member_params in zip(members, params)
+             if member.held_out]
+    curve = context_curve([by_id[m.held_out] for m, _ in folds],
+                          [[by_id[i] for i in m.train_ids] for m, _ in folds],
+                          [p for _, p in folds], settings, model_hz)
+    fold_of = {m.held_out: (index, m.seed) for index, (m, _) in enumerate(folds)}
+    curve.insert(1, "split", "cv_context")
+    curve["fold"] = [fold_of[run_id][0] for run_id in curve["run_id"]]
+    curve["held_out"] = curve["run_id"]
+    curve["seed"] = [fold_of[run_id][1] for run_id in curve["run_id"]]
+    curve["steps"] = [len(by_id[run_id]) for run_id in curve["run_id"]]
+    curve["loses_to_linear"] = False
+    return curve
+
+
+def context_summary(metrics: pd.DataFrame) -> pd.DataFrame:
+    """Mean / p95 mm per context length and scored rest (rows) of the calibrated model and the refitted linear
+    baseline, averaged over the held-out runs (the ``cv_context`` rows of ``metrics``)."""
+    rows = metrics[metrics["split"] == "cv_context"]
+    index = ["context_s", "from_s"]
+    table = rows.pivot_table(index=index, columns="model", values=["mean_mm", "p95_mm"],
+                             aggfunc="mean")
+    table.columns = [f"{model}_{stat}" for stat, model in table.columns]
+    table["runs"] = rows[rows["model"] == LEARNED].groupby(index)["run_id"].nunique()
+    columns = [f"{m}_{s}" for m in (LEARNED, "linear_lagged") for s in ("mean_mm", "p95_mm")]
+    return table.reindex(columns=[*columns, "runs"]).reset_index()

@@ -153,12 +153,13 @@ def build_cv(cfg: Any, writer, runs: list[Run], work_dir: Path, spec: dict,
     metrics = model_cv.cv_metrics(runs, members, params)
     context = adaptation.context_metrics(runs, members, params, adaptation.AdaptationSettings(),
                                          float(data.model_hz))
-    metrics = pd.concat([metrics, context], ignore_index=True)
+    if len(context):  # the held-out runs longer than the context and the common rest
+        metrics = pd.concat([metrics, context], ignore_index=True)
     curve = adaptation.context_summary(metrics)
-    log.info("fit_model: session context: each fold model calibrated on the first seconds of "
-             "its held-out run, error [mm] over the rest from %g s (linear: refitted on the same "
-             "context)\n%s", adaptation.SCORED_FROM_S,
-             curve.to_string(index=False, float_format="%.2f"))
+    if len(curve):
+        log.info("fit_model: session context: each fold model calibrated on the first seconds "
+                 "of its held-out run, error [mm] over the rest (linear: refitted on the same "
+                 "context)\n%s", curve.to_string(index=False, float_format="{:.2f}".format))
     warnings = model_cv.warn_if_losing(metrics)
     write_metrics(writer.file("metrics.parquet"), metrics, config, provenance)
     table = model_cv.cv_summary(metrics)

@@ -81,7 +81,9 @@ class AdaptationSettings:
         and bias [3], in standardized units), added to what ``output`` and ``input_affine`` fit.
     """
 
-    mechanism: str = "fine_tune"
+    # offset: leave-one-run-out on the recorded runs the best of the mechanisms given a context,
+    # none of them below the model without it (docs/results/session-context.md)
+    mechanism: str = "offset"
     offset_window_s: float | None = None
     output: str = "diagonal"
     input_affine: bool = True

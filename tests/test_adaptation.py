@@ -196,3 +196,22 @@ def test_context_metrics_are_model_metrics_rows(tmp_path):
     assert (summary["runs"] == 2).all()
     at_zero = rows[(rows["context_s"] == 0.0) & (rows["model"] == "learned")]["mean_mm"].mean()
     assert summary.loc[0, "learned_mean_mm"] == pytest.approx(at_zero)
+
+
+@pytest.mark.slow
+def test_fit_model_cv_on_the_recorded_runs_carries_the_context_curve(make_cfg, sorolex_dir):
+    from pipeline.__main__ import run as run_pipeline
+    from pipeline.data.schemas import MODEL_METRICS, read_table
+
+    cfg = make_cfg("stage=fit_model", "robot=sorolex_csv", f"robot.data_dir={sorolex_dir}",
+                   "model.hidden=8", "model.num_steps=4", "model.checkpoint_every=2",
+                   "dataset.window=16")
+    artifact = run_pipeline(cfg)["fit_model"]
+    metrics, _ = read_table(artifact.file("metrics.parquet"), MODEL_METRICS)
+    context = metrics[metrics["split"] == "cv_context"]
+    # 7 held-out runs, all longer than 60 s: every context length, the model and the linear model
+    assert len(context) == 7 * len(adaptation.CONTEXTS_S) * 2
+    assert set(context["from_s"]) == {60.0} and (context["run_id"] == context["held_out"]).all()
+    others = metrics[metrics["split"] != "cv_context"]
+    assert set(others["context_s"]) == {0.0} and set(others["from_s"]) == {0.0}
+    assert set(artifact.manifest["summary"]["context_mean_mm"]) == {"0", "10", "30", "60"}

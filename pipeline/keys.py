@@ -47,7 +47,7 @@ _NON_DETERMINING_AGENT_KEYS = ("progress",)
 # formed (a new setting, a setting renamed) raises that stage's number: every artifact of the
 # stage, and through their input keys every artifact downstream, is then made anew, once. Every
 # setting of the composed config is in its stage's spec with its value, defaults included.
-SPEC_VERSIONS = {"collect": 2, "align": 2, "calibrate": 2, "fit_model": 2, "train_ppo": 3,
+SPEC_VERSIONS = {"collect": 2, "align": 2, "calibrate": 2, "fit_model": 3, "train_ppo": 3,
                  "evaluate": 3, "control": 2}
 
 

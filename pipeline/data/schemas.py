@@ -120,15 +120,19 @@ MODEL_METRICS = TableSchema(
     "model_metrics",
     (_RUN,
      Column("split", "str", "", "cv: a fold model on its held-out run | cv_train: a fold model "
-            "on one of its training runs | train / test: the model later stages use, on its "
-            "training runs / held-out runs (protocol split)"),
+            "on one of its training runs | cv_context: a fold model calibrated on the first "
+            "context_s of its held-out run, on the rest | train / test: the model later stages "
+            "use, on its training runs / held-out runs (protocol split)"),
      Column("fold", "int", "", "index of the fold (-1: the model later stages use)"),
      Column("held_out", "str", "", "the fold's held-out run (empty: no fold)"),
      Column("seed", "int", "", "model seed"),
      Column("model", "str", "", "learned (the fitted model, GRU or LSTM) | mean_position | "
             "linear_lagged (baselines fitted on the same training runs)"),
      Column("steps", "int", "model steps", "length of the run at the model rate"),
-     Column("mean_mm", "float", "mm", "mean open-loop Euclidean error over the entire run"),
+     Column("context_s", "float", "s", "seconds of the run's start given to the model (and the "
+            "linear baseline refitted on them) as session context; 0: none"),
+     Column("from_s", "float", "s", "the error is over the run from here on (0: the entire run)"),
+     Column("mean_mm", "float", "mm", "mean open-loop Euclidean error over the run from from_s"),
      Column("p95_mm", "float", "mm", "95th percentile of that error"),
      Column("loses_to_linear", "bool", "", "the learned model's mean error on this held-out "
             "run is not below the linear lagged baseline's (a warning)")),

@@ -278,7 +278,8 @@ def cv_metrics(runs: Sequence[Run], members: Sequence[Member],
                 rows.append({"run_id": run.run_id, "split": split,
                              "fold": fold if member.held_out else -1,
                              "held_out": member.held_out or "", "seed": member.seed,
-                             "model": model, "steps": len(run), **errors[model],
+                             "model": model, "steps": len(run), "context_s": 0.0,
+                             "from_s": 0.0, **errors[model],
                              "loses_to_linear": loses and model == LEARNED})
         fold += bool(member.held_out)
     return pd.DataFrame(rows)

@@ -121,6 +121,6 @@ def evaluation_table(params, train_runs: list[Run], test_runs: list[Run]) -> pd.
             for model, values in errors.items():
                 rows.append({"run_id": run.run_id, "split": split, "fold": -1,
                              "held_out": "", "seed": 0, "model": model,
-                             "steps": len(run), **values,
+                             "steps": len(run), "context_s": 0.0, "from_s": 0.0, **values,
                              "loses_to_linear": bool(loses and model == LEARNED)})
     return pd.DataFrame(rows)

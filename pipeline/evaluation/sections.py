@@ -13,6 +13,7 @@ from typing import Any
 
 import pandas as pd
 
+from pipeline.dynamics.adaptation import context_summary
 from pipeline.dynamics.cv import cv_summary
 from pipeline.dynamics.scoring import LEARNED
 from pipeline.evaluation.metrics import seed_spread
@@ -157,6 +158,11 @@ def _model_section(model: ArtifactRecord | None) -> Section:
                      "to the same runs and that fold model's error on its own training runs; the "
                      "model the policies use is fitted to all runs.")
         accuracy.add(Table(cv_summary(metrics), "held-out open-loop error per run [mm]"))
+        if "cv_context" in set(metrics["split"]):
+            accuracy.add(Table(context_summary(metrics), "session context: each fold model "
+                               "calibrated on the first context_s of its held-out run, mean "
+                               "error over the rest from from_s [mm], averaged over the runs; "
+                               "linear_lagged refitted on the same context"))
         for warning in held.get("warnings", []):
             accuracy.add(f"**Warning:** {warning}.")
         for name, caption in (("loss.png", "training loss of the model fitted to all runs"),

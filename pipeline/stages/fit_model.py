@@ -7,7 +7,9 @@ pressures held) and cut into sliding windows (``dataset.window``, ``dataset.stri
 * ``cv`` (the default for recorded data, ``protocol=auto`` with any robot but ``sim``):
   leave-one-run-out cross-validation, every run held out once, all fold models and the model
   trained on all runs (the one later stages use) in one vmapped program
-  (:func:`pipeline.dynamics.cv.fit_members`);
+  (:func:`pipeline.dynamics.cv.fit_members`); each fold model is also calibrated on the first
+  seconds of its held-out run (:func:`pipeline.dynamics.adaptation.context_metrics`: the
+  session-context curve, ``split="cv_context"`` rows);
 * ``split`` (the default for the simulated arm, whose default chain it keeps cheap): one seeded
   split of the runs into train and test (``dataset.train_fraction``, ``dataset.split_seed``).
 
@@ -41,6 +43,7 @@ from pipeline.data.alignment import load_runs
 from pipeline.data.runs import Run
 from pipeline.data.schemas import MODEL_METRICS, write_table
 from pipeline.data.windows import split_runs
+from pipeline.dynamics import adaptation
 from pipeline.dynamics import cv as model_cv
 from pipeline.dynamics.checkpoints import save_dynamics
 from pipeline.dynamics.figures import plot_losses, plot_reconstruction
@@ -149,6 +152,15 @@ def build_cv(cfg: Any, writer, runs: list[Run], work_dir: Path, spec: dict,
     config, provenance = write_losses(cfg, writer, loss_table, spec, inputs)
 
     metrics = model_cv.cv_metrics(runs, members, params)
+    context = adaptation.context_metrics(runs, members, params, adaptation.AdaptationSettings(),
+                                         float(data.model_hz))
+    if len(context):  # the held-out runs longer than the context and the common rest
+        metrics = pd.concat([metrics, context], ignore_index=True)
+    curve = adaptation.context_summary(metrics)
+    if len(curve):
+        log.info("fit_model: session context: each fold model calibrated on the first seconds "
+                 "of its held-out run, error [mm] over the rest (linear: refitted on the same "
+                 "context)\n%s", curve.to_string(index=False, float_format="{:.2f}".format))
     warnings = model_cv.warn_if_losing(metrics)
     write_metrics(writer.file("metrics.parquet"), metrics, config, provenance)
     table = model_cv.cv_summary(metrics)
@@ -168,6 +180,8 @@ def build_cv(cfg: Any, writer, runs: list[Run], work_dir: Path, spec: dict,
         **{f"{m}_{k}": float(average[f"{m}_{k}"])
            for m in MODELS for k in ("mean_mm", "p95_mm")},
         "train_runs_mean_mm": float(average["train_runs_mean_mm"]),
+        "context_mean_mm": {f"{row.context_s:g}": float(row.learned_mean_mm)
+                            for row in curve.itertuples()},
         "warnings": warnings,
     }
     log.info("fit_model: leave-one-run-out open-loop error %.2f mm mean, %.2f mm p95 "

@@ -2,7 +2,7 @@
 
 A bag folder (``metadata.yaml`` plus storage files, as ``ros2 bag record`` writes it) is one run.
 The topics, message types and field paths are those of the ``robot=ros2`` config
-(:class:`pipeline.config.RosTopicsConfig`). Commands are timed by the bag's log time (the
+(:class:`pipeline.schemas.RosTopicsConfig`). Commands are timed by the bag's log time (the
 default command type has no header); poses by their header stamp (``stamp_field``; empty: the log
 time). ``t = 0`` is the earlier of the first command and the first pose. Poses with a
 non-finite position become ``valid = False`` frames; a pose whose stamp does not advance is

@@ -143,7 +143,7 @@ def fit_members(
     Args:
         runs: runs at the model rate (``train_model`` docstring); every member's ids among them.
         members: what to train; each member's seed replaces the model settings' ``seed``.
-        model_cfg: the model settings (a :class:`pipeline.config.ModelConfig` or anything
+        model_cfg: the model settings (a :class:`pipeline.schemas.ModelConfig` or anything
             ``ModelTrainConfig.from_any`` reads), the same for all members.
         window, stride, order: sliding windows, as for ``train_model.fit``.
         checkpoint_dir, resume: stacked checkpoints every ``checkpoint_every`` steps and at the

@@ -426,7 +426,7 @@ class Session:
         if self.guard_node is not None and listeners != [self.guard_node]:
             raise ArmFault(f"the guard '{self.guard_node}' no longer subscribes to "
                            f"{robot.command_topic} (stopped or killed): nothing guards the "
-                           f"valves; stopping")
+                           f"valves")
         publishers = self.link.pose_publishers()
         if len(publishers) > 1:
             raise ArmFault(f"{len(publishers)} publishers on {robot.pose_topic}: "

@@ -47,7 +47,7 @@ def require_rclpy() -> Any:
 
 
 def qos_profile(qos: QosConfig) -> Any:
-    """An rclpy ``QoSProfile`` from a :class:`pipeline.config.QosConfig`."""
+    """An rclpy ``QoSProfile`` from a :class:`pipeline.schemas.QosConfig`."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     reliability = {QosReliability.reliable: ReliabilityPolicy.RELIABLE,

@@ -214,4 +214,8 @@ def test_fit_model_cv_on_the_recorded_runs_carries_the_context_curve(make_cfg, s
     assert set(context["from_s"]) == {60.0} and (context["run_id"] == context["held_out"]).all()
     others = metrics[metrics["split"] != "cv_context"]
     assert set(others["context_s"]) == {0.0} and set(others["from_s"]) == {0.0}
-    assert set(artifact.manifest["summary"]["context_mean_mm"]) == {"0", "10", "30", "60"}
+    assert set(artifact.manifest["summary"]["session_context_mm"]) == {"0", "10", "30", "60"}
+    # the closing summary reads the same manifest summary: the curve is not taken for a model
+    from pipeline.evaluation.summary import model_table
+
+    assert model_table(artifact.manifest["summary"])["model"].iloc[0] == "learned"

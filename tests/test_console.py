@@ -79,7 +79,8 @@ def test_model_table_puts_the_model_before_its_baselines():
     table = model_table({"protocol": "cv", "learned_mean_mm": 2.72, "learned_p95_mm": 6.17,
                          "mean_position_mean_mm": 7.8, "mean_position_p95_mm": 13.9,
                          "linear_lagged_mean_mm": 4.0, "linear_lagged_p95_mm": 8.1,
-                         "train_runs_mean_mm": 1.2})
+                         "train_runs_mean_mm": 1.2,
+                         "session_context_mm": {"0": 2.72, "30": 2.9}})  # not a model
     assert table["model"].tolist() == ["learned", "linear_lagged", "mean_position"]
     assert table["mean_mm"].tolist() == [2.72, 4.0, 7.8]
 

@@ -180,8 +180,8 @@ def build_cv(cfg: Any, writer, runs: list[Run], work_dir: Path, spec: dict,
         **{f"{m}_{k}": float(average[f"{m}_{k}"])
            for m in MODELS for k in ("mean_mm", "p95_mm")},
         "train_runs_mean_mm": float(average["train_runs_mean_mm"]),
-        "context_mean_mm": {f"{row.context_s:g}": float(row.learned_mean_mm)
-                            for row in curve.itertuples()},
+        "session_context_mm": {f"{row.context_s:g}": float(row.learned_mean_mm)
+                               for row in curve.itertuples()},
         "warnings": warnings,
     }
     log.info("fit_model: leave-one-run-out open-loop error %.2f mm mean, %.2f mm p95 "

@@ -35,12 +35,6 @@ from pipeline.control.session import (
 )
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 from pipeline.keys import SPEC_VERSIONS
-from pipeline.rl.envs.factory import (
-    ArmSettings,
-    LearnedInputs,
-    environment,
-    read_learned_inputs,
-)
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.schemas import (
     ConfigError,
@@ -50,6 +44,7 @@ from pipeline.schemas import (
     RobotKind,
     SimRobotConfig,
 )
+from pipeline.stages._environment import config_environment
 from pipeline.validation import validate_config
 
 log = logging.getLogger(__name__)
@@ -120,8 +115,9 @@ def policy_artifact(cfg: Any, store: ArtifactStore) -> tuple[Artifact, ArtifactS
 def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
                     ) -> tuple[Any, Artifact | None, Artifact | None]:
     """``(config, fit_model artifact, align artifact)`` that rebuild the artifact's environment
-    with :func:`environment`: the env, robot rate and limits, and model rate it was trained with,
-    read from its manifest and those of its inputs."""
+    with :func:`~pipeline.stages._environment.config_environment`: the env, robot rate and limits,
+    and model rate it was trained with, read from its manifest and those of its inputs, laid over
+    the schemas' defaults (the spec keeps what differs from them)."""
     manifest = artifact.manifest
     spec = manifest["spec"]
     version = spec.get("spec_version", 1)
@@ -133,38 +129,20 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
     if env_name is EnvName.gymnax:
         raise ValueError(f"{artifact.path}: a policy of a gymnax environment "
                          f"({spec['env'].get('gymnax_name')}) cannot drive the arm")
+    env = OmegaConf.merge(OmegaConf.structured(EnvConfig), spec["env"])
     if env_name is EnvName.sim:
-        robot = spec["robot"]
+        robot = OmegaConf.merge(OmegaConf.structured(SimRobotConfig), spec["robot"])
         dataset = {"model_hz": spec["model_hz"]}
-        return OmegaConf.create({"env": spec["env"], "robot": robot, "dataset": dataset}), None, None
+        return OmegaConf.create({"env": env, "robot": robot, "dataset": dataset}), None, None
     model = store.require("fit_model", manifest["inputs"]["fit_model"])
     aligned = store.require("align", model.manifest["inputs"]["align"])
     dataset = model.manifest["spec"]["dataset"]
-    robot = {"control_hz": spec["control_hz"], "limits": spec["limits"], "n_valves": n_valves}
-    config = OmegaConf.create({"env": spec["env"], "robot": robot,
+    robot = {"control_hz": spec["control_hz"], "n_valves": n_valves,
+             "limits": OmegaConf.merge(OmegaConf.structured(PressureLimits), spec["limits"])}
+    config = OmegaConf.create({"env": env, "robot": robot,
                                "dataset": {"model_hz": dataset["model_hz"],
                                            "model_grid": dataset["model_grid"]}})
     return config, model, aligned
-
-
-def trained_settings(train_cfg: Any, model: Artifact | None, aligned: Artifact | None
-                     ) -> tuple[EnvConfig, ArmSettings, LearnedInputs | None]:
-    """The arguments of :func:`environment` from :func:`training_config`'s result: the env
-    settings (the spec's, merged onto the schema's defaults: a full object), what the env takes
-    of the robot and dataset, and the learned env's inputs (None for ``env=sim``)."""
-    env = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), train_cfg.env))
-    robot = train_cfg.robot
-    sim = None
-    if EnvName(env.name) is EnvName.sim:
-        sim = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimRobotConfig), robot))
-    arm = ArmSettings(PressureLimits(**OmegaConf.to_container(robot.limits)),
-                      int(robot.n_valves), float(robot.control_hz),
-                      float(train_cfg.dataset.model_hz), sim)
-    if model is None or aligned is None:
-        return env, arm, None
-    return env, arm, read_learned_inputs(
-        model.file("model.msgpack"), model.file("split.json"), aligned.file("aligned.parquet"),
-        float(train_cfg.dataset.model_hz), str(train_cfg.dataset.model_grid))
 
 
 def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
@@ -182,7 +160,7 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
         log.warning("control: the policy was trained with limits %s, robot.limits are %s: its "
                     "actions map onto the trained range, the gate then projects onto robot.limits",
                     trained_limits, robot_limits)
-    env, train_params, eval_params = environment(*trained_settings(train_cfg, model, aligned))
+    env, train_params, eval_params = config_environment(train_cfg, model, aligned)
     network, stacked, meta = load_policy(artifact.file("policy.msgpack"))
     num_seeds = int(meta.get("num_seeds", 1))
     evaluation = artifact.file("evaluation.parquet")

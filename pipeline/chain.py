@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 
 from pipeline.config import PROJECT_ROOT
 from pipeline.data.importers import list_recordings
-from pipeline.schemas import ConfigError, EnvName, RobotKind, Stage
+from pipeline.schemas import ConfigError, EnvName, ModelProtocol, RobotKind, Stage
 
 
 @dataclass(frozen=True)
@@ -86,13 +86,31 @@ def stages_to_run(cfg: Any) -> list[Stage]:
 # ---------------------------------------------------------------------------------------------
 # fan-out: the configs one stage of a run stands for
 # ---------------------------------------------------------------------------------------------
+def model_protocol(cfg: Any) -> ModelProtocol:
+    """``cv`` or ``split``: ``dataset.protocol``, ``auto`` resolved by the robot (split for the
+    simulated arm, cv for recorded data)."""
+    value = ModelProtocol(cfg.dataset.protocol)
+    if value is ModelProtocol.auto:
+        simulated = RobotKind(cfg.robot.kind) is RobotKind.sim
+        value = ModelProtocol.split if simulated else ModelProtocol.cv
+    return value
+
+
 def ensemble_configs(cfg: Any) -> list[Any]:
     """The configs of the ensemble's further fit_model artifacts (``env.ensemble_seeds``): ``cfg``
-    with ``model.seed + 1``, ..., ``model.seed + ensemble_seeds - 1``."""
+    with ``model.seed + 1``, ..., ``model.seed + ensemble_seeds - 1``.
+
+    A further member is only trained in, never scored on its own: where ``cfg``'s model is
+    scored leave-one-run-out (``cv``), the member trains its model on all the runs alone
+    (``split`` with every run for training), since the folds score the recipe once, in ``cfg``'s
+    own fit, and fitting them again for each seed would only multiply the time."""
     if EnvName(cfg.env.name) is not EnvName.learned:
         return []
     seed = int(cfg.model.seed)
-    return [OmegaConf.merge(cfg, {"model": {"seed": seed + offset}})
+    member: dict[str, Any] = {}
+    if model_protocol(cfg) is ModelProtocol.cv:
+        member["dataset"] = {"protocol": ModelProtocol.split.value, "train_fraction": 1.0}
+    return [OmegaConf.merge(cfg, {**member, "model": {"seed": seed + offset}})
             for offset in range(1, int(cfg.env.get("ensemble_seeds", 1)))]
 
 
@@ -168,9 +186,19 @@ def cross_model_groups(cfg: Any) -> tuple[list[str], list[str]] | None:
 
 def cross_model_group_config(cfg: Any, names: list[str]) -> Any:
     """``cfg`` restricted to the recordings ``names`` (its own data, model and policies), without
-    a cross-model protocol of its own."""
+    a cross-model protocol of its own; its policies train with the protocol's own budget
+    (``evaluation.cross_model_seeds``, ``evaluation.cross_model_budget``)."""
+    evaluation, agent = cfg.evaluation, cfg.agent
+    budget = float(evaluation.get("cross_model_budget", 1.0))
+    seeds = evaluation.get("cross_model_seeds")
+    trained = {"num_seeds": int(agent.num_seeds if seeds is None else seeds)}
+    if budget != 1.0:
+        trained.update({name: max(1, round(budget * int(agent[name])))
+                        for name in ("total_timesteps", "recurrent_total_timesteps")
+                        if agent.get(name) is not None})
     return OmegaConf.merge(cfg, {"robot": {"files": list(names), "num_runs": None},
-                                 "evaluation": {"cross_model": False, "models": []}})
+                                 "evaluation": {"cross_model": False, "models": []},
+                                 "agent": trained})
 
 
 def cross_model_folds(cfg: Any) -> dict[str, tuple[Any, Any]]:

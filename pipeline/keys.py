@@ -20,6 +20,7 @@ from pipeline.chain import (
     control_policy_config,
     cross_model_folds,
     ensemble_configs,
+    model_protocol,
     policy_configs,
 )
 from pipeline.data.importers import list_recordings, recording_digest
@@ -92,16 +93,6 @@ def calibrate_spec(cfg: Any) -> Spec:
     spec = _versioned("calibrate", {"calibration": _container(cfg.calibration),
                                     "dataset": {"model_hz": float(cfg.dataset.model_hz)}})
     return spec, {"align": artifact_key(*align_spec(cfg))}
-
-
-def model_protocol(cfg: Any) -> ModelProtocol:
-    """``cv`` or ``split``: ``dataset.protocol``, ``auto`` resolved by the robot (split for the
-    simulated arm, cv for recorded data)."""
-    value = ModelProtocol(cfg.dataset.protocol)
-    if value is ModelProtocol.auto:
-        simulated = RobotKind(cfg.robot.kind) is RobotKind.sim
-        value = ModelProtocol.split if simulated else ModelProtocol.cv
-    return value
 
 
 def fit_model_spec(cfg: Any) -> Spec:

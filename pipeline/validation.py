@@ -215,6 +215,7 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
     if len(low) != 3 or len(high) != 3 or not all(a < b for a, b in zip(low, high)):
         raise ConfigError(f"robot.workspace: low_m={low} must lie below high_m={high} (x, y, z)")
     _check_env(cfg)
+    _check_cross_model_budget(cfg)
     exploration = cfg.get("exploration")
     if exploration is not None:
         alpha = float(exploration.alpha)
@@ -229,6 +230,21 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
         if float(exploration.p_max) > float(robot.rating.sum_max):
             raise ConfigError(f"exploration.p_max={exploration.p_max} kPa exceeds the arm's "
                               f"rating robot.rating.sum_max={robot.rating.sum_max} kPa")
+
+
+def _check_cross_model_budget(cfg: Any) -> None:
+    """The cross-model protocol's own budget: a seed count and a positive share of the steps."""
+    evaluation = cfg.get("evaluation")
+    if evaluation is None:
+        return
+    seeds = evaluation.get("cross_model_seeds")
+    if seeds is not None and int(seeds) < 1:
+        raise ConfigError(f"evaluation.cross_model_seeds={seeds} must be >= 1 (null: "
+                          f"agent.num_seeds)")
+    budget = float(evaluation.get("cross_model_budget", 1.0))
+    if not (math.isfinite(budget) and budget > 0):
+        raise ConfigError(f"evaluation.cross_model_budget={budget} must be finite and > 0 (the "
+                          f"share of the agent's env steps the cross-model policies train for)")
 
 
 def _check_env(cfg: Any) -> None:

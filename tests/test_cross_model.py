@@ -242,3 +242,26 @@ def test_evaluate_runs_the_cross_model_protocol_on_recorded_runs(make_cfg, sorol
     assert "cross_model/B->A/ppo_ff" in evaluated.manifest["summary"]
     report = evaluated.file("report.md").read_text()
     assert "## Across models" in report and "**Calibrated twins** (sim_sorolex)" in report
+
+
+def test_the_cross_model_policies_train_with_the_protocols_own_budget(make_cfg, tmp_path):
+    from pipeline import keys
+    from pipeline.chain import cross_model_folds
+    from pipeline.validation import validate_config
+
+    robot = ["robot=sorolex_csv", f"robot.data_dir={_recordings(tmp_path / 'runs', 4)}",
+             "agent.num_seeds=20", "agent.total_timesteps=2000000",
+             "agent.recurrent_total_timesteps=4000000"]
+    same = cross_model_folds(make_cfg(*robot))["A->B"][0]
+    assert same.agent.num_seeds == 20 and same.agent.total_timesteps == 2_000_000
+    own = cross_model_folds(make_cfg(*robot, "evaluation.cross_model_seeds=4",
+                                     "evaluation.cross_model_budget=0.25"))
+    for train, _ in own.values():
+        assert train.agent.num_seeds == 4
+        assert train.agent.total_timesteps == 500_000
+        assert train.agent.recurrent_total_timesteps == 1_000_000
+        assert keys.key("train_ppo", train) != keys.key("train_ppo", same)
+    with pytest.raises(ConfigError, match="evaluation.cross_model_budget=0.0"):
+        validate_config(make_cfg(*robot, "evaluation.cross_model_budget=0"))
+    with pytest.raises(ConfigError, match="evaluation.cross_model_seeds=0"):
+        validate_config(make_cfg(*robot, "evaluation.cross_model_seeds=0"))

@@ -651,3 +651,23 @@ def test_goal_redraws_off_leave_every_step_as_it_was_and_a_negative_period_is_re
         assert np.any(np.all(np.isclose(np.asarray(GOALS), np.asarray(state.goal)), axis=1))
     with pytest.raises(ConfigError, match=r"env.goal_redraw_periods=-1 must be >= 0"):
         toy(goal_redraw_periods=-1)
+
+
+def test_the_ensemble_of_a_cv_model_fits_its_further_seeds_on_all_runs_alone(make_cfg,
+                                                                               sorolex_dir):
+    """The folds score the recipe once (the first seed's fit); the further members of the
+    ensemble train the model on every run and nothing else."""
+    cfg = make_cfg("robot=sorolex_csv", f"robot.data_dir={sorolex_dir}", "env.ensemble_seeds=3")
+    assert keys.model_protocol(cfg).value == "cv"
+    members = chain.ensemble_configs(cfg)
+    assert [m.model.seed for m in members] == [1, 2]
+    for member in members:
+        spec, _ = keys.fit_model_spec(member)
+        assert spec["dataset"]["protocol"] == "split"
+        assert spec["dataset"]["train_fraction"] == 1.0
+    _, inputs = keys.train_ppo_spec(cfg)
+    assert inputs["fit_model/seed+1"] == keys.key("fit_model", members[0])
+    # the jobs the chain runs are the ones the keys read
+    jobs = [job for job in chain.model_jobs(cfg) if job.label]
+    assert [keys.key("fit_model", job.cfg) for job in jobs] == [
+        inputs["fit_model/seed+1"], inputs["fit_model/seed+2"]]

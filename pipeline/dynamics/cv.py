@@ -61,6 +61,7 @@ from pipeline.dynamics.training import (
     run_inputs,
     train_chunk_unjitted,
 )
+from pipeline.infra.devices import batch_split
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +167,6 @@ def fit_members(
         num_windows=jnp.asarray([len(s) for s in member_starts], jnp.int32),
     )
     normalizers = _stack([t.normalizer for t in templates])
-
     spec = _member_spec(config, members, window, stride, order)
     losses: list[np.ndarray] = []
     if checkpoint_dir is not None:
@@ -175,6 +175,16 @@ def fit_members(
         last = checkpoints.latest_checkpoint(checkpoint_dir) if resume else None
         if last is not None:
             state, losses = checkpoints.restore_members(last, state, spec)
+    # the members split over the devices (the CPU's cores: pipeline.infra.devices), each part
+    # in parallel; every member trains as it trains in one batch, to float rounding
+    split = batch_split(len(members))
+    if split is not None:
+        state, normalizers, sample_keys = split.put((state, normalizers, sample_keys))
+        data = data._replace(**split.put({"inputs": data.inputs,
+                                          "window_starts": data.window_starts,
+                                          "num_windows": data.num_windows}),
+                             **split.put({"position": data.position,
+                                          "reference_pose": data.reference_pose}, axis=None))
 
     last_step = config.num_steps if stop_after_steps is None else min(config.num_steps,
                                                                       stop_after_steps)

@@ -40,6 +40,10 @@ class EvaluationConfig:
     # other group's (A->B, B->A). null: on for recorded data of at least two runs a group.
     cross_model: bool | None = None
     cross_model_group_a: list[str] = field(default_factory=list)
+    # the groups' policies' budget: seeds (null: agent.num_seeds) and the share of the agent's
+    # env steps (total_timesteps, recurrent_total_timesteps) they train for
+    cross_model_seeds: int | None = None
+    cross_model_budget: float = 1.0
     mpc_horizon: int = 2  # control periods a candidate command is held
     mpc_samples: int = 64
     mpc_iterations: int = 3

@@ -261,7 +261,7 @@ def test_the_cross_model_policies_train_with_the_protocols_own_budget(make_cfg, 
         assert train.agent.total_timesteps == 500_000
         assert train.agent.recurrent_total_timesteps == 1_000_000
         assert keys.key("train_ppo", train) != keys.key("train_ppo", same)
-    with pytest.raises(ConfigError, match="evaluation.cross_model_budget=0.0"):
+    with pytest.raises(ConfigError, match=r"evaluation\.cross_model_budget=0\.0"):
         validate_config(make_cfg(*robot, "evaluation.cross_model_budget=0"))
-    with pytest.raises(ConfigError, match="evaluation.cross_model_seeds=0"):
+    with pytest.raises(ConfigError, match=r"evaluation\.cross_model_seeds=0"):
         validate_config(make_cfg(*robot, "evaluation.cross_model_seeds=0"))

@@ -63,8 +63,9 @@ def final_distances(artifact) -> np.ndarray:
     return pd.read_parquet(artifact.file("goals.parquet"))["final_distance_mm"].to_numpy()
 
 
-def start_twin(pipe: Pipeline, record):
-    return pipe.start("twin", f"robot.twin.record_path={record}", "robot.twin.max_duration_s=900")
+def twin_of(pipe: Pipeline, record):
+    """The twin for a control session of up to 15 minutes of its time."""
+    return pipe.twin(record, max_duration_s=900)
 
 
 def control_artifact(pipe: Pipeline, *overrides: str):
@@ -82,9 +83,8 @@ def test_twin_matches_the_simulated_arm_then_sigterm_stops_at_the_preload(tmp_pa
     pipe = Pipeline(tmp_path, ros_domain)
     pipe.overrides = ROS
     record = tmp_path / "twin_received.jsonl"
-    twin = start_twin(pipe, record)
     overrides = control_overrides(sim_cfg, policy_file)
-    try:
+    with twin_of(pipe, record):
         run = pipe.start("control", *overrides)
         assert run.wait(timeout=240) == 0, pipe.log("control")
         on_twin = final_distances(control_artifact(pipe, *overrides))
@@ -102,8 +102,6 @@ def test_twin_matches_the_simulated_arm_then_sigterm_stops_at_the_preload(tmp_pa
         time.sleep(1.5)  # 6 s of the arm's time: about 12 periods
         run.send_signal(signal.SIGTERM)
         code = run.wait(timeout=60)
-    finally:
-        assert stop(twin) == 0, pipe.log("twin")
     log = pipe.log("control")
     assert code != 0, log
     assert "SIGTERM received: stopping safely" in log
@@ -122,7 +120,7 @@ def test_the_watchdog_stops_at_the_preload_when_the_poses_stop(tmp_path, ros_dom
     pipe = Pipeline(tmp_path, ros_domain)
     pipe.overrides = [*ROS, "robot.stop_timeout_s=10"]
     record = tmp_path / "twin_received.jsonl"
-    twin = start_twin(pipe, record)
+    twin = pipe.start_twin(record, max_duration_s=900)
     try:
         run = pipe.start("control", *control_overrides(sim_cfg, policy_file))
         pipe.wait_for_log("control", "arm ready", timeout_s=240)
@@ -166,11 +164,8 @@ def test_trained_policies_end_at_the_same_distances_on_the_twin_and_in_process(
 
     pipe = Pipeline(tmp_path, ros_domain)
     pipe.overrides = ROS
-    twin = start_twin(pipe, tmp_path / "twin_received.jsonl")
-    try:
+    with twin_of(pipe, tmp_path / "twin_received.jsonl"):
         runner = pipe.start("control", *common)
         assert runner.wait(timeout=300) == 0, pipe.log("control")
-    finally:
-        assert stop(twin) == 0, pipe.log("twin")
     on_twin = final_distances(control_artifact(pipe, *common))
     assert np.median(np.abs(on_twin - in_process)) <= 0.3, (on_twin, in_process)

@@ -61,12 +61,9 @@ def stopped_5_s(pipe, process, stage: str, ready: str, timeout_s: float, running
 def test_collect_stopped_5_s_ends_at_the_preload_without_a_burst(tmp_path, ros_domain):
     pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=200")
     record = tmp_path / "twin.jsonl"
-    twin = pipe.start_twin(record)
-    try:
+    with pipe.twin(record):
         code, resumed_ns = stopped_5_s(pipe, pipe.start("collect"), "collect",
                                        "run ros2-000 started", timeout_s=120, running_s=1.0)
-    finally:
-        assert stop(twin) == 0, pipe.log("twin")
     log = pipe.log("collect")
     assert code != 0, log
     assert "CollectionInterrupted" in log
@@ -86,13 +83,10 @@ def test_control_stopped_5_s_ends_at_the_preload_without_a_burst(tmp_path, ros_d
     pipe = Pipeline(tmp_path, ros_domain)
     pipe.overrides = ROS
     record = tmp_path / "twin.jsonl"
-    twin = pipe.start_twin(record)
-    try:
+    with pipe.twin(record):
         code, resumed_ns = stopped_5_s(
             pipe, pipe.start("control", *control_overrides(sim_cfg, policy_file)), "control",
             "arm ready", timeout_s=240, running_s=1.5)
-    finally:
-        assert stop(twin) == 0, pipe.log("twin")
     log = pipe.log("control")
     assert code != 0, log
     assert "ControlInterrupted" in log

@@ -7,12 +7,14 @@ discovery limited to localhost, so parallel tests (pytest -n 2) never hear each 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -71,9 +73,21 @@ class Pipeline:
     def cfg(self, *overrides: str):
         return compose_config(self.out, *self.overrides, *overrides)
 
-    def start_twin(self, record: Path) -> subprocess.Popen:
+    def start_twin(self, record: Path, max_duration_s: float = 90) -> subprocess.Popen:
         return self.start("twin", f"robot.twin.record_path={record}",
-                          "robot.twin.max_duration_s=90")
+                          f"robot.twin.max_duration_s={max_duration_s}")
+
+    @contextlib.contextmanager
+    def twin(self, record: Path, max_duration_s: float = 90) -> Iterator[subprocess.Popen]:
+        """The digital twin, recording what it receives to ``record``, for the ``with`` block;
+        stopped after it (Ctrl-C), which it must survive with exit code 0."""
+        process = self.start_twin(record, max_duration_s)
+        try:
+            yield process
+        except BaseException:
+            stop(process)
+            raise
+        assert stop(process) == 0, self.log("twin")
 
 
 def stop(process: subprocess.Popen, timeout_s: float = 30.0) -> int:
@@ -101,12 +115,9 @@ def assert_within_limits(pressures: np.ndarray) -> None:
 def test_twin_collect_align_end_to_end(tmp_path, ros_domain):
     pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=8")
     record = tmp_path / "twin_received.jsonl"
-    twin = pipe.start_twin(record)
-    try:
+    with pipe.twin(record):
         collect = pipe.start("collect")
         assert collect.wait(timeout=120) == 0, pipe.log("collect")
-    finally:
-        assert stop(twin) == 0, pipe.log("twin")
 
     cfg = pipe.cfg()
     artifact = ArtifactStore(cfg.paths.artifact_dir).require(STAGE, key("collect", cfg))

@@ -27,8 +27,7 @@ PRELOAD = [2.0, 2.0, 2.0]  # the rating's
 def test_twin_returns_to_the_preload_when_collect_is_killed(tmp_path, ros_domain):
     pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=40")
     record = tmp_path / "twin_received.jsonl"
-    twin = pipe.start_twin(record)
-    try:
+    with pipe.twin(record):
         collect = pipe.start("collect")
         try:
             pipe.wait_for_log("collect", "run ros2-000 started")
@@ -40,8 +39,6 @@ def test_twin_returns_to_the_preload_when_collect_is_killed(tmp_path, ros_domain
                 collect.kill()
         pipe.wait_for_log("twin", "back to the preload", timeout_s=TIMEOUT_WALL_S + 10)
         time.sleep(0.2)
-    finally:
-        assert stop(twin) == 0, pipe.log("twin")
     rows = [json.loads(line) for line in record.read_text().splitlines()]
     commands = [r for r in rows if not r.get("deadman")]
     (deadman,) = [r for r in rows if r.get("deadman")]

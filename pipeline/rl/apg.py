@@ -179,7 +179,7 @@ def _update_step(build: _Build, runner: RunnerState, update_index: jax.Array, en
         runner.train_state.params)
     train_state = runner.train_state.apply_gradients(grads=grads)
     runner = jax.lax.stop_gradient(end)._replace(train_state=train_state, rng=rng)
-    return runner, _update_metrics(build, loss, optax.global_norm(grads), window, update_index,
+    return runner, _update_metrics(build, loss, optax.tree.norm(grads), window, update_index,
                                    env_params)
 
 

@@ -150,12 +150,14 @@ class AgentConfig:
                 raise ConfigError(f"agent.stop_at.consecutive={stop.consecutive} exceeds "
                                   f"agent.num_evals={self.num_evals}: it could never be reached")
             if self.eval_envs < 1:
-                raise ConfigError("agent.stop_at needs the held-out evaluations: agent.eval_envs "
-                                  f"={self.eval_envs} must be >= 1")
+                raise ConfigError(f"agent.eval_envs={self.eval_envs} must be >= 1: "
+                                  f"agent.stop_at reads the held-out evaluations")
+        if self.trainer is not Trainer.ppo:  # the minibatches are PPO's
+            return
         if self.recurrent and self.num_envs % self.num_minibatches:
-            raise ValueError(f"recurrent PPO minibatches over environments: num_envs="
-                             f"{self.num_envs} must be divisible by num_minibatches="
-                             f"{self.num_minibatches}")
+            raise ConfigError(f"recurrent PPO minibatches over environments: num_envs="
+                              f"{self.num_envs} must be divisible by num_minibatches="
+                              f"{self.num_minibatches}")
         if self.steps_per_update % self.num_minibatches:
-            raise ValueError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
-                             f"by num_minibatches={self.num_minibatches}")
+            raise ConfigError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
+                              f"by num_minibatches={self.num_minibatches}")

@@ -176,3 +176,12 @@ def test_new_agent_settings_at_their_defaults_leave_the_train_key_unchanged(make
 def test_bad_agent_settings_are_refused_naming_them(make_cfg, overrides, message):
     with pytest.raises(ConfigError, match=message):
         validate_config(make_cfg(*overrides))
+
+
+def test_the_report_says_where_stop_at_stopped_a_training():
+    from pipeline.evaluation.sections import _stopped_at
+
+    assert _stopped_at(None) is None
+    stopped = {"evaluation": 3, "timesteps_per_seed": 102400, "seconds": 17.6,
+               "median_distance_mm": 0.557, "success_rate": 0.852}
+    assert _stopped_at(stopped) == "102400 steps/seed, 17.6 s: 0.557 mm, 85 %"

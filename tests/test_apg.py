@@ -185,3 +185,15 @@ def test_the_report_says_where_stop_at_stopped_a_training():
     stopped = {"evaluation": 3, "timesteps_per_seed": 102400, "seconds": 17.6,
                "median_distance_mm": 0.557, "success_rate": 0.852}
     assert _stopped_at(stopped) == "102400 steps/seed, 17.6 s: 0.557 mm, 85 %"
+
+
+@pytest.mark.parametrize("option", ["apg", "apg_rnn"])
+def test_an_apg_option_is_the_same_agent_chosen_or_laid_over_another(make_cfg, option):
+    # evaluate lays an option's file over the composed agent (pipeline.chain.agent_option), which
+    # drops the file's defaults: the option says everything that makes its policy type itself
+    from pipeline.chain import agent_option
+
+    chosen = make_cfg(f"agent={option}").agent
+    laid_over = agent_option(option, make_cfg().agent)
+    assert dict(laid_over) == dict(chosen)
+    assert AgentConfig.from_any(chosen).trainer is Trainer.apg

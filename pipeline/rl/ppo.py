@@ -467,7 +467,7 @@ def _run_chunks(config: AgentConfig, chunk: Callable, runner: Any, num_chunks: i
 
 def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = None,
                 seed: int = 0, progress: bool | None = None, desc: str = "ppo",
-                timings: dict[str, float] | None = None, init_params: Any = None
+                timings: dict[str, Any] | None = None, init_params: Any = None
                 ) -> TrainOutput:
     """Train ``agent.num_seeds`` seeds at once (vmap over seeds); arrays come back with a leading
     [num_seeds] axis. ``timings`` (if given) receives ``compile_s``, ``run_s`` and

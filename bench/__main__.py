@@ -15,6 +15,7 @@ BENCHMARKS = {
     "peers": "bench.peers",
     "ensemble_selection": "bench.ensemble_selection",
     "gru_kernel": "bench.gru_kernel",
+    "time_to_controller": "bench.time_to_controller",
 }
 OPTIONAL = {"peers"}  # needs the "peers" extra (torch, stable-baselines3): run only when named
 

@@ -7,6 +7,7 @@ importing the stage that made them, and sweeps share upstream artifacts.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -25,7 +26,14 @@ from pipeline.chain import (
 )
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
-from pipeline.schemas import ConfigError, EnvName, ModelProtocol, RobotKind, incremental_actions
+from pipeline.schemas import (
+    ConfigError,
+    EnvName,
+    ModelProtocol,
+    RobotKind,
+    StopAt,
+    incremental_actions,
+)
 
 Spec = tuple[dict[str, Any], dict[str, str]]
 
@@ -42,6 +50,9 @@ _MODEL_DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order")
 _SPLIT_KEYS = ("train_fraction", "split_seed")
 # agent fields that do not change the result (display only)
 _NON_DETERMINING_AGENT_KEYS = ("progress",)
+# agent settings kept out of the key at these values (their default: training as before they
+# existed), so that the artifacts made before them keep their keys
+_AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt())}
 
 
 # The version of each stage's spec. A change to what a stage's artifact holds or to how its spec is
@@ -135,6 +146,9 @@ def train_ppo_spec(cfg: Any) -> Spec:
     agent = _container(cfg.agent)
     for name in _NON_DETERMINING_AGENT_KEYS:
         agent.pop(name, None)
+    for name, unset in _AGENT_KEYS_UNLESS_SET.items():
+        if name in agent and agent[name] == unset:
+            agent.pop(name)
     spec: dict[str, Any] = _versioned("train_ppo", {"env": env_spec(cfg), "agent": agent,
                                                     "seed": int(cfg.seed)})
     if agent.get("init_policy"):  # a warm start: the starting policy's content decides too

@@ -17,11 +17,13 @@ from omegaconf import OmegaConf
 
 from pipeline.config import PROJECT_ROOT
 from pipeline.schemas import (
+    AgentConfig,
     ConfigError,
     EnvName,
     PressureRating,
     RobotKind,
     SafetyBounds,
+    Trainer,
     incremental_actions,
 )
 
@@ -216,6 +218,7 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
         raise ConfigError(f"robot.workspace: low_m={low} must lie below high_m={high} (x, y, z)")
     _check_env(cfg)
     _check_cross_model_budget(cfg)
+    _check_agent(cfg)
     exploration = cfg.get("exploration")
     if exploration is not None:
         alpha = float(exploration.alpha)
@@ -303,4 +306,19 @@ def _check_env(cfg: Any) -> None:
         raise ConfigError(f"env.randomization.max_delay_s={delay} s must be at most one control "
                           f"period (1 / robot.control_hz = {period:g} s)")
 
+
+def _check_agent(cfg: Any) -> None:
+    """The agent's trainer and its environment (APG differentiates through the soft-arm
+    environment: env=learned or env=sim, not gymnax), and ``agent.stop_at``'s thresholds."""
+    agent = cfg.get("agent")
+    if agent is None:
+        return
+    config = AgentConfig.from_any(agent)
+    env = cfg.get("env")
+    if (config.trainer is Trainer.apg and env is not None
+            and EnvName(env.name) is EnvName.gymnax):
+        raise ConfigError("agent.trainer=apg differentiates through the soft-arm environment "
+                          "(env=learned or env=sim); env=gymnax is a black box: train it with "
+                          "agent=ppo_ff")
+    config.check()
 

@@ -218,13 +218,21 @@ def _chatter_sentence(summary: pd.DataFrame, policies: list[str]) -> str | None:
     return sentence
 
 
+def _stopped_at(stopped: Mapping[str, Any] | None) -> str | None:
+    """Where ``agent.stop_at`` ended a training (its summary's ``stopped_at``), in words."""
+    if not stopped:
+        return None
+    return (f"{stopped['timesteps_per_seed']} steps/seed, {stopped['seconds']} s: "
+            f"{stopped['median_distance_mm']} mm, {100 * stopped['success_rate']:.0f} %")
+
+
 def timing_table(upstream: Mapping[str, ArtifactRecord | None],
                  policies: Mapping[str, ArtifactRecord],
                  evaluate_seconds: float | None = None) -> pd.DataFrame:
     """One row per artifact of the chain: the wall seconds its build took when it was built
     (``build_seconds`` of its manifest; empty for artifacts written before it was recorded), and
     for the policies their compile and training seconds, the devices (cores) their seeds were
-    split over and env steps per second."""
+    split over, env steps per second and where ``agent.stop_at`` stopped them."""
     rows = []
     for stage, artifact in upstream.items():
         if artifact is not None:
@@ -237,7 +245,8 @@ def timing_table(upstream: Mapping[str, ArtifactRecord | None],
                      "compile [s]": summary.get("compile_seconds"),
                      "training [s]": summary.get("train_seconds"),
                      "devices": summary.get("devices"),
-                     "env steps/s": summary.get("env_steps_per_second")})
+                     "env steps/s": summary.get("env_steps_per_second"),
+                     "stopped at": _stopped_at(summary.get("stopped_at"))})
     if evaluate_seconds is not None:
         rows.append({"stage": "evaluate (until this report)", "artifact": "this one",
                      "built in [s]": round(float(evaluate_seconds), 2)})

@@ -48,7 +48,7 @@ from pipeline.rl.minibatches import sequence_minibatches, step_minibatches
 from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import NETWORK_FIELDS
 from pipeline.rl.spaces import action_bounds, to_env_action
-from pipeline.schemas import AgentConfig
+from pipeline.schemas import AgentConfig, Trainer
 
 
 # ---------------------------------------------------------------------------------------------
@@ -406,9 +406,68 @@ def seed_keys(seed: int, num_seeds: int) -> jax.Array:
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
 
 
+def program_builder(config: AgentConfig) -> Callable[..., TrainProgram]:
+    """The ``make_train_program`` of ``agent.trainer``: PPO's (this module) or APG's
+    (:mod:`pipeline.rl.apg`, which builds on this module and is imported where chosen)."""
+    if Trainer(config.trainer) is Trainer.apg:
+        from pipeline.rl.apg import make_train_program as make_apg_program
+
+        return make_apg_program
+    return make_train_program
+
+
+def held_out_figures(evaluation: dict[str, Any]) -> tuple[float, float]:
+    """One evaluation during training, all seeds' episodes pooled: ``(median final distance
+    [mm], share of episodes that succeeded)``; ``evaluation`` holds ``[num_seeds, E]``
+    ``episode_final_distance_m`` and ``episode_success`` (NaN, NaN where there are none)."""
+    distances = np.asarray(evaluation["episode_final_distance_m"], np.float64).reshape(-1)
+    success = np.asarray(evaluation["episode_success"], np.float64).reshape(-1)
+    if not np.isfinite(distances).any():
+        return float("nan"), float("nan")
+    return float(np.nanmedian(distances) * 1000.0), float(success.mean())
+
+
+def _run_chunks(config: AgentConfig, chunk: Callable, runner: Any, num_chunks: int, show: bool,
+                desc: str) -> tuple[Any, list, dict[str, Any]]:
+    """The host loop over the evaluation chunks (``chunk(runner, index) -> (runner, (metrics,
+    evaluation))``, compiled once): the progress bar after each, and ``agent.stop_at``: the loop
+    ends after the chunk whose evaluation completes ``stop_at.consecutive`` good ones in a row
+    (the same compiled program per chunk, nothing computed past the stop). Returns the runner,
+    the chunks' host results and ``{"chunk_seconds": seconds from the loop's start to the end
+    of each chunk run, "stopped_at": None or {"evaluation", "timesteps_per_seed", "seconds",
+    "median_distance_mm", "success_rate"}}``."""
+    from tqdm.auto import tqdm
+
+    stop, streak, stopped = config.stop_at, 0, None
+    chunks, seconds = [], []
+    started = time.perf_counter()
+    with tqdm(total=config.num_updates, desc=desc, unit="update", disable=not show) as bar:
+        for index in range(num_chunks):
+            runner, outputs = chunk(runner, index)
+            chunks.append(jax.device_get(outputs))
+            seconds.append(time.perf_counter() - started)
+            returns = np.asarray(chunks[-1][0]["mean_return"], np.float64)
+            if np.isfinite(returns).any():
+                bar.set_postfix(train_return=f"{np.nanmean(returns):.3g}", refresh=False)
+            bar.update(config.updates_per_eval)
+            if not stop.active:
+                continue
+            median_mm, success = held_out_figures(chunks[-1][1])
+            streak = streak + 1 if stop.reached(median_mm, success) else 0
+            if streak >= stop.consecutive:
+                stopped = {"evaluation": index,
+                           "timesteps_per_seed": (index + 1) * config.updates_per_eval
+                           * config.steps_per_update,
+                           "seconds": round(seconds[-1], 2),
+                           "median_distance_mm": round(median_mm, 4),
+                           "success_rate": round(success, 4)}
+                break
+    return runner, chunks, {"chunk_seconds": seconds, "stopped_at": stopped}
+
+
 def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = None,
                 seed: int = 0, progress: bool | None = None, desc: str = "ppo",
-                timings: dict[str, float] | None = None, init_params: Any = None
+                timings: dict[str, Any] | None = None, init_params: Any = None
                 ) -> TrainOutput:
     """Train ``agent.num_seeds`` seeds at once (vmap over seeds); arrays come back with a leading
     [num_seeds] axis. ``timings`` (if given) receives ``compile_s``, ``run_s`` and
@@ -421,13 +480,15 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
     times from here with the chunk index as an argument; the progress bar advances after each.
     Where there are several local devices (the CPU's cores, :mod:`pipeline.infra.devices`), the
     seeds are split over as many as divide ``num_seeds``, each part run in parallel.
-    The result is :func:`make_train`'s."""
-    from tqdm.auto import tqdm
-
+    With ``agent.stop_at`` set, training ends after the evaluation chunk that reaches it
+    (:func:`_run_chunks`): the arrays then hold the chunks run, and ``timings`` also receives
+    ``stopped_at`` (where, when and with which figures; None if never reached) and
+    ``chunk_seconds`` (the wall time after compilation at the end of each chunk).
+    The result is :func:`make_train`'s for the chunks run."""
     config = AgentConfig.from_any(agent)
     show = config.progress if progress is None else progress
     eval_env_params = env_params if eval_env_params is None else eval_env_params
-    program = make_train_program(config, env, env_params, eval_env_params)
+    program = program_builder(config)(config, env, env_params, eval_env_params)
     keys = seed_keys(seed, config.num_seeds)
     if init_params is not None:
         sizes = {int(np.shape(x)[0]) if np.ndim(x) else 0 for x in jax.tree.leaves(init_params)}
@@ -449,20 +510,14 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
     chunk = jax.jit(jax.vmap(program.chunk, in_axes=(0, None, None, None)), donate_argnums=0,
                     **by_seed).lower(runner, jnp.int32(0), env_params, eval_env_params).compile()
     compiled_at = time.perf_counter()
-    chunks = []
-    with tqdm(total=config.num_updates, desc=desc, unit="update", disable=not show) as bar:
-        for index in range(program.num_chunks):
-            runner, (metrics, evaluation) = chunk(runner, jnp.int32(index), env_params,
-                                                  eval_env_params)
-            chunks.append(jax.device_get((metrics, evaluation)))
-            returns = np.asarray(chunks[-1][0]["mean_return"], np.float64)
-            if np.isfinite(returns).any():
-                bar.set_postfix(train_return=f"{np.nanmean(returns):.3g}", refresh=False)
-            bar.update(config.updates_per_eval)
+    runner, chunks, progress_record = _run_chunks(
+        config, lambda runner, index: chunk(runner, jnp.int32(index), env_params,
+                                            eval_env_params),
+        runner, program.num_chunks, show, desc)
     params = jax.block_until_ready(runner.train_state.params)
     if timings is not None:
         timings.update(compile_s=compiled_at - started, run_s=time.perf_counter() - compiled_at,
-                       devices=1 if split is None else int(split.mesh.size))
+                       devices=1 if split is None else int(split.mesh.size), **progress_record)
     metrics = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *[m for m, _ in chunks])
     evaluation = jax.tree.map(lambda *xs: np.stack(xs, axis=1), *[e for _, e in chunks])
     return TrainOutput(params, metrics, evaluation)

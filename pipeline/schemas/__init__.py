@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from pipeline.schemas.agent import (
     AgentConfig,
+    StopAt,
+    Trainer,
     budget_overrides,
 )
 from pipeline.schemas.choices import (
@@ -127,6 +129,8 @@ __all__ = [
     "SimPhysics",
     "SimRobotConfig",
     "Stage",
+    "StopAt",
+    "Trainer",
     "TwinConfig",
     "WindowOrder",
     "WorkspaceConfig",

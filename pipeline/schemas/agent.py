@@ -1,13 +1,15 @@
-"""The PPO agent's schema.
+"""The agent's schema: the trainer (PPO, or analytic policy gradients through the learned
+model), its policy network and budget, and when training may stop early.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
-from pipeline.schemas.choices import Activation
-from pipeline.schemas.values import dataclass_values
+from pipeline.schemas.choices import Activation, Choice
+from pipeline.schemas.values import ConfigError, dataclass_values
 
 
 def budget_overrides(steps: int) -> list[str]:
@@ -18,11 +20,47 @@ def budget_overrides(steps: int) -> list[str]:
 
 
 
+class Trainer(Choice):
+    """How the policy learns: ``ppo`` (``pipeline/rl/ppo.py``, the environment a black box) or
+    ``apg`` (``pipeline/rl/apg.py``, analytic policy gradients through the differentiable
+    environment, the learned model)."""
+
+    ppo = "ppo"
+    apg = "apg"
+
+
+@dataclass
+class StopAt:
+    """Stop training once the held-out evaluations during training (``agent.num_evals`` of them)
+    are good enough in ``consecutive`` evaluations in a row: the median final distance of all
+    seeds' episodes at most ``median_distance_mm`` and the share of them within the goal tolerance
+    at least ``success_rate``. A threshold left None is not asked for; both None (the default):
+    training runs its whole budget."""
+
+    median_distance_mm: float | None = None  # [mm]
+    success_rate: float | None = None  # [0, 1]
+    consecutive: int = 1  # evaluations in a row
+
+    @property
+    def active(self) -> bool:
+        return self.median_distance_mm is not None or self.success_rate is not None
+
+    def reached(self, median_distance_mm: float, success_rate: float) -> bool:
+        """Whether one evaluation's figures (pooled over seeds) meet the thresholds set."""
+        return ((self.median_distance_mm is None
+                 or median_distance_mm <= self.median_distance_mm)
+                and (self.success_rate is None or success_rate >= self.success_rate))
+
+
 @dataclass
 class AgentConfig:
-    """PPO (``pipeline/rl/ppo.py``); ``recurrent`` selects the GRU actor-critic."""
+    """The trainer (``trainer``: PPO or APG) and its policy; ``recurrent`` selects the GRU
+    actor-critic. APG (``pipeline/rl/apg.py``) reads the same fields where they mean the same
+    (``num_envs`` episodes, ``num_steps`` control periods per gradient window, budget, ``lr``,
+    ``max_grad_norm``, network) and ignores PPO's own (epochs, minibatches, GAE, clipping)."""
 
     name: str = "ppo_ff"
+    trainer: Trainer = Trainer.ppo
     recurrent: bool = False
     num_seeds: int = 4  # seeds trained at once (vmap); seed i uses fold_in(PRNGKey(seed), i)
     num_envs: int = 64
@@ -59,6 +97,16 @@ class AgentConfig:
     init_policy: str | None = None
     init_policy_seed: int | None = None
     init_policy_log_std: float | None = None
+    # stop when the held-out evaluations are good enough (StopAt; default: the whole budget)
+    stop_at: StopAt = field(default_factory=StopAt)
+
+    def __post_init__(self) -> None:
+        if self.trainer not in {t.value for t in Trainer}:
+            raise ConfigError(f"agent.trainer={self.trainer!r}: one of "
+                              f"{[t.value for t in Trainer]} expected")
+        self.trainer = Trainer(self.trainer)
+        if isinstance(self.stop_at, Mapping) or hasattr(self.stop_at, "items"):
+            self.stop_at = StopAt(**dataclass_values(StopAt, self.stop_at, "agent.stop_at"))
 
     @classmethod
     def from_any(cls, config: Any, **overrides: Any) -> AgentConfig:
@@ -88,10 +136,28 @@ class AgentConfig:
         return self.updates_per_eval * self.num_evals
 
     def check(self) -> None:
+        stop = self.stop_at
+        if stop.median_distance_mm is not None and not stop.median_distance_mm > 0:
+            raise ConfigError(f"agent.stop_at.median_distance_mm={stop.median_distance_mm} must "
+                              f"be > 0 mm (null: not asked for)")
+        if stop.success_rate is not None and not 0 <= stop.success_rate <= 1:
+            raise ConfigError(f"agent.stop_at.success_rate={stop.success_rate} must lie in [0, 1] "
+                              f"(null: not asked for)")
+        if int(stop.consecutive) < 1:
+            raise ConfigError(f"agent.stop_at.consecutive={stop.consecutive} must be >= 1")
+        if stop.active:
+            if int(stop.consecutive) > self.num_evals:
+                raise ConfigError(f"agent.stop_at.consecutive={stop.consecutive} exceeds "
+                                  f"agent.num_evals={self.num_evals}: it could never be reached")
+            if self.eval_envs < 1:
+                raise ConfigError(f"agent.eval_envs={self.eval_envs} must be >= 1: "
+                                  f"agent.stop_at reads the held-out evaluations")
+        if self.trainer is not Trainer.ppo:  # the minibatches are PPO's
+            return
         if self.recurrent and self.num_envs % self.num_minibatches:
-            raise ValueError(f"recurrent PPO minibatches over environments: num_envs="
-                             f"{self.num_envs} must be divisible by num_minibatches="
-                             f"{self.num_minibatches}")
+            raise ConfigError(f"recurrent PPO minibatches over environments: num_envs="
+                              f"{self.num_envs} must be divisible by num_minibatches="
+                              f"{self.num_minibatches}")
         if self.steps_per_update % self.num_minibatches:
-            raise ValueError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
-                             f"by num_minibatches={self.num_minibatches}")
+            raise ConfigError(f"num_envs * num_steps = {self.steps_per_update} must be divisible "
+                              f"by num_minibatches={self.num_minibatches}")

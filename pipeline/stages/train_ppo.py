@@ -1,4 +1,5 @@
-"""Stage ``train_ppo``: PPO policies in the learned environment, many seeds at once.
+"""Stage ``train_ppo``: policies in the learned environment, many seeds at once: PPO, or
+analytic policy gradients through the model (``agent.trainer=apg``, ``agent=apg``).
 
 ``env.name`` picks the environment (``pipeline.rl.envs.factory``):
 
@@ -15,7 +16,9 @@ in one of several fitted models (this config's and those of further model seeds,
 upstream, or other fit_model artifacts) and/or with the plant randomized per episode; the
 evaluations during training stay in this config's own model, nominal.
 
-``agent.num_seeds`` seeds train in one jitted, vmapped program (``pipeline.rl.ppo.train_seeds``).
+``agent.num_seeds`` seeds train in one jitted, vmapped program (``pipeline.rl.ppo.train_seeds``,
+which runs ``agent.trainer``'s); with ``agent.stop_at`` training ends at the first evaluation chunk
+that reaches it, and the summary records where (``stopped_at``).
 
 Artifact: ``metrics.parquet`` (per seed and update: timesteps, mean episodic return, final
 distance, success rate, losses), ``evaluation.parquet`` (per seed and evaluation on held-out
@@ -48,7 +51,8 @@ STAGE = "train_ppo"
 
 
 def train_ppo(cfg: Any) -> Artifact:
-    """Train ``agent.num_seeds`` PPO policies in this config's environment (see module doc)."""
+    """Train ``agent.num_seeds`` policies with ``agent.trainer`` in this config's environment
+    (see module doc)."""
     store = ArtifactStore(cfg.paths.artifact_dir)
     spec, inputs = keys.train_ppo_spec(cfg)
     agent = AgentConfig.from_any(cfg.agent)
@@ -71,7 +75,10 @@ def train_ppo(cfg: Any) -> Artifact:
         output = train_seeds(agent, env, train_params, eval_params, seed=int(cfg.seed),
                              desc=f"{STAGE} {agent.name} on {env.name}", timings=timings,
                              init_params=init_params)
-        steps = agent.num_seeds * agent.num_updates * agent.steps_per_update
+        # per seed, the chunks run (fewer than agent.num_evals where agent.stop_at stopped it)
+        timesteps = (len(timings["chunk_seconds"]) * agent.updates_per_eval
+                     * agent.steps_per_update)
+        steps = agent.num_seeds * timesteps
         config = {"env": spec["env"], "agent": spec["agent"], "seed": spec["seed"],
                   "init_policy_sha256": spec.get("init_policy_sha256")}
 
@@ -100,7 +107,11 @@ def train_ppo(cfg: Any) -> Artifact:
         per_seed = episodes.groupby("seed")["final_distance_m"].median()
         writer.summary = {
             "env": env.name, "agent": agent.name, "num_seeds": agent.num_seeds,
-            "timesteps_per_seed": agent.num_updates * agent.steps_per_update,
+            "trainer": str(agent.trainer),
+            "timesteps_per_seed": timesteps,
+            # where agent.stop_at was reached: evaluation, timesteps per seed, seconds of
+            # training after compilation, its figures (None: not reached, or not asked for)
+            "stopped_at": timings["stopped_at"],
             "compile_seconds": round(timings["compile_s"], 1),
             "train_seconds": round(timings["run_s"], 1),
             "devices": timings["devices"],

@@ -242,7 +242,14 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
       include_error_integral: append the accumulated error (``EnvState.error_integral``).
       incremental_actions: an action changes the last command (``params.action_step_kpa`` kPa at
         1) instead of setting it.
+
+    Its step is differentiable in the action, the state and the parameters (each plant is JAX
+    arithmetic; the projection onto the safe set passes gradients where a pressure is inside the
+    box, its sum multiplier held constant): ``env.with_transition_gradients()`` (gymnax) is the
+    copy whose observations and states keep them (``pipeline.rl.apg``).
     """
+
+    _supports_transition_gradients = True
 
     def __init__(self, plant: Plant, control_hz: float = 2.0, settle_seconds: float = 5.0,
                  include_last_action: bool = False, include_error: bool = False,

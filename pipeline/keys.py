@@ -24,7 +24,15 @@ from pipeline.chain import (
 )
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
-from pipeline.schemas import ConfigError, EnvName, ModelProtocol, RobotKind, incremental_actions
+from pipeline.schemas import (
+    TRACK_SETTINGS,
+    ConfigError,
+    EnvName,
+    ModelProtocol,
+    RobotKind,
+    Task,
+    incremental_actions,
+)
 
 Spec = tuple[dict[str, Any], dict[str, str]]
 
@@ -116,9 +124,13 @@ def fit_model_spec(cfg: Any) -> Spec:
 
 def env_spec(cfg: Any) -> dict[str, Any]:
     """``cfg.env`` as keys see it: without ``env.models`` (where those lie does not matter, their
-    keys are inputs) and, for absolute actions, without the incremental step (unused)."""
+    keys are inputs), for absolute actions without the incremental step and, to reach, without
+    the tracking task's settings (unused)."""
     env = _container(cfg.env)
     env.pop("models", None)
+    if Task(env.get("task", Task.reach)) is Task.reach:
+        for setting in TRACK_SETTINGS:
+            env.pop(setting, None)
     if not incremental_actions(env):
         env.pop("action_step_kpa", None)
     return env

@@ -27,6 +27,7 @@ from pipeline.schemas.choices import (
     ReferencePose,
     RobotKind,
     Stage,
+    Task,
     WindowOrder,
 )
 from pipeline.schemas.data import (
@@ -36,6 +37,7 @@ from pipeline.schemas.data import (
     ExplorationConfig,
 )
 from pipeline.schemas.env import (
+    TRACK_SETTINGS,
     EnvConfig,
     RandomizationConfig,
     incremental_actions,
@@ -81,6 +83,7 @@ from pipeline.schemas.values import (
 
 __all__ = [
     "MISSING",
+    "TRACK_SETTINGS",
     "ActionMode",
     "Activation",
     "AgentConfig",
@@ -127,6 +130,7 @@ __all__ = [
     "SimPhysics",
     "SimRobotConfig",
     "Stage",
+    "Task",
     "TwinConfig",
     "WindowOrder",
     "WorkspaceConfig",

@@ -25,6 +25,7 @@ from pipeline.chain import (
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
 from pipeline.schemas import (
+    TRACK_EVALUATION_SETTINGS,
     TRACK_SETTINGS,
     ConfigError,
     EnvName,
@@ -196,6 +197,9 @@ def evaluate_spec(cfg: Any) -> Spec:
     inputs = {f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
               for name, variant in policy_configs(cfg).items()}
     spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do
+    if "task" not in spec["env"]:  # reaching: the tracking evaluation does not run
+        for setting in TRACK_EVALUATION_SETTINGS:
+            spec["evaluation"].pop(setting, None)
     for entry in cfg.evaluation.models:
         inputs[f"fit_model/{Path(str(entry)).name}"] = Path(str(entry)).name
     # a twin is its physics, wherever they were read from

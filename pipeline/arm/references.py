@@ -38,6 +38,9 @@ MM_PER_M = 1000.0
 SHAPES = ("circle", "ellipse", "figure_eight")
 # the axes of each plane a shape can lie in (x, y, z: 0, 1, 2 of the mocap frame)
 PLANES = {"xz": (0, 2), "xy": (0, 1), "yz": (1, 2)}
+# the plane of the random draws: the arms' workspace is a surface in x and z of the mocap frame
+# (y spans a few mm where x and z span tens, on the simulated arm and in the paper's recordings)
+DRAW_PLANE = "xz"
 # a table every reference carries, so that shapes and tables stack into one batch
 _EMPTY_TABLE = 2
 
@@ -245,6 +248,16 @@ def replay(positions_m: np.ndarray, rate_hz: float, slow_down: float = 1.0,
     return table(times, kept, "replayed reference")
 
 
+def goal_table(goals_m: jax.Array, control_hz: float) -> Reference:
+    """The reference whose goal of control period ``k`` is ``goals_m[k]`` (``[T, 3]`` m: at the
+    period's end, ``(k + 1) / control_hz`` s), inside jit: a table, no checks."""
+    count = goals_m.shape[0]
+    zero = jnp.zeros(3, jnp.float32)
+    return Reference(zero, zero, zero, jnp.float32(0.0), jnp.float32(0.0), jnp.float32(1.0),
+                     jnp.arange(1, count + 1, dtype=jnp.float32) / control_hz,
+                     jnp.asarray(goals_m, jnp.float32), jnp.asarray(True))
+
+
 def stack(references: list[Reference]) -> Reference:
     """One :class:`Reference` with a leading ``[R]`` axis (vmap over it), the tables padded to
     the longest by holding their last point one second apart."""
@@ -281,9 +294,9 @@ class DrawRanges:
 
 def draw(key: jax.Array, centre_m: jax.Array, ranges: DrawRanges) -> Reference:
     """A random shape around ``centre_m [3]`` m, inside jit: circle, ellipse (second semi-axis
-    0.5 to 1 of the first) or figure-eight with equal odds, in a plane of the three, in either
+    0.5 to 1 of the first) or figure-eight with equal odds, in the :data:`DRAW_PLANE`, in either
     direction, at a uniform phase; a static goal at ``centre_m`` with ``ranges.static_share``."""
-    keys = jax.random.split(key, 8)
+    keys = jax.random.split(key, 7)
     kind = jax.random.randint(keys[0], (), 0, len(SHAPES))
     size = jax.random.uniform(keys[1], (), minval=ranges.size_m[0], maxval=ranges.size_m[1])
     ratio = jnp.where(kind == 1, jax.random.uniform(keys[2], (), minval=0.5, maxval=1.0), 1.0)
@@ -291,9 +304,8 @@ def draw(key: jax.Array, centre_m: jax.Array, ranges: DrawRanges) -> Reference:
                               maxval=1.0 / ranges.period_s[0])
     direction = jnp.where(jax.random.bernoulli(keys[4]), 1.0, -1.0)
     phase = jax.random.uniform(keys[5], (), minval=0.0, maxval=2.0 * jnp.pi)
-    planes = jnp.asarray(list(PLANES.values()))
-    first, second = planes[jax.random.randint(keys[6], (), 0, len(PLANES))]
-    moving = ~jax.random.bernoulli(keys[7], ranges.static_share)
+    first, second = PLANES[DRAW_PLANE]
+    moving = ~jax.random.bernoulli(keys[6], ranges.static_share)
     scale = jnp.where(moving, size, 0.0)
     axis_a = jnp.zeros(3).at[first].set(scale)
     axis_b = jnp.zeros(3).at[second].set(scale * ratio)

@@ -68,11 +68,13 @@ from pipeline.schemas.robot import (
     WorkspaceConfig,
 )
 from pipeline.schemas.run import (
+    TRACK_EVALUATION_SETTINGS,
     Config,
     ControlConfig,
     EvaluationConfig,
     LoggerConfig,
     PathsConfig,
+    ReferenceConfig,
 )
 from pipeline.schemas.values import (
     MISSING,
@@ -83,6 +85,7 @@ from pipeline.schemas.values import (
 
 __all__ = [
     "MISSING",
+    "TRACK_EVALUATION_SETTINGS",
     "TRACK_SETTINGS",
     "ActionMode",
     "Activation",
@@ -119,6 +122,7 @@ __all__ = [
     "QosDurability",
     "QosReliability",
     "RandomizationConfig",
+    "ReferenceConfig",
     "ReferencePose",
     "ReplayConfig",
     "RobotConfig",

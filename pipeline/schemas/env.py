@@ -50,7 +50,7 @@ class EnvConfig:
     # each as (goal - measured) / error_scale_m
     preview: int = 0
     # track, training: each episode follows a circle, ellipse or figure-eight (equal odds, in the
-    # xz, xy or yz plane, either direction, uniform phase) around the goal a reaching episode
+    # xz plane, either direction, uniform phase) around the goal a reaching episode
     # would get, its semi-axis uniform in [reference_size_min_mm, reference_size_max_mm] and its
     # lap rate uniform in [1 / reference_period_max_s, 1 / reference_period_min_s]; or, with
     # probability static_share, stays at that goal

@@ -37,6 +37,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import chain, keys
+from pipeline.arm.references import ShapeSettings
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, SimArm, run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
@@ -48,13 +49,14 @@ from pipeline.evaluation.sections import (
     ReportFacts,
     report_sections,
 )
+from pipeline.evaluation.tracking import TrackingSettings, run_tracking
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.infra.records import ArtifactRecord, artifact_record
 from pipeline.rl.envs.factory import sim_plant_params
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.rl.results import return_curves
-from pipeline.schemas import EnvName, RobotKind
+from pipeline.schemas import EnvName, RobotKind, Task
 from pipeline.stages._environment import config_environment, env_settings
 
 log = logging.getLogger(__name__)
@@ -85,8 +87,15 @@ def evaluate(cfg: Any) -> Artifact:
                   for name, artifact in other_models.items()}
         twins = {f"twin {name}": physics
                  for name, physics in spec["evaluation"].get("twins", {}).items()}
-        results = run_evaluation(closed_loop_settings(cfg), _load_policies(policies), env,
-                                 eval_params, models, twins)
+        loaded = _load_policies(policies)
+        results = run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params, models,
+                                 twins)
+        if Task(cfg.env.task) is Task.track:
+            tracked = run_tracking(closed_loop_settings(cfg), tracking_settings(cfg), loaded, env,
+                                   eval_params, models, twins)
+            results["tables"].update(tracked["tables"])
+            results["headline"].update(tracked["headline"])
+            results["tracking"] = tracked
         if folds:
             _cross_model(folds, results)
         config = {"evaluation": spec["evaluation"], "env": spec["env"]}
@@ -116,6 +125,20 @@ def closed_loop_settings(cfg: Any) -> ClosedLoopSettings:
         evaluation=evaluation, max_steps=int(cfg.env.max_steps),
         model_hz=float(cfg.dataset.model_hz), limits=OmegaConf.to_object(cfg.robot.limits),
         env=env_settings(cfg), sim=sim)
+
+
+def tracking_settings(cfg: Any) -> TrackingSettings:
+    """The tracking evaluation's settings of ``cfg.evaluation`` (its references as shapes)."""
+    evaluation = cfg.evaluation
+    shapes = {}
+    for name, entry in evaluation.references.items():
+        values = OmegaConf.to_container(entry, resolve=True)
+        centre = values.pop("centre_mm")
+        shapes[str(name)] = ShapeSettings(
+            **values, centre_mm=None if centre is None else tuple(float(v) for v in centre))
+    return TrackingSettings(shapes, float(evaluation.tracking_seconds),
+                            float(evaluation.tracking_settle_seconds),
+                            float(evaluation.reachable_tolerance_mm))
 
 
 def _load_policies(policies: dict[str, Artifact]) -> dict[str, Policy]:

@@ -21,6 +21,7 @@ from pipeline.chain import (
     cross_model_folds,
     ensemble_configs,
     policy_configs,
+    reaching_configs,
 )
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
@@ -209,6 +210,8 @@ def evaluate_spec(cfg: Any) -> Spec:
     # the groups' policies and models decide the cross-model results, not how they were chosen
     for setting in ("cross_model", "cross_model_group_a"):
         spec["evaluation"].pop(setting, None)
+    for name, variant in reaching_configs(cfg).items():
+        inputs[f"reaching/train_ppo/{name}"] = artifact_key(*train_ppo_spec(variant))
     for direction, (train, test) in cross_model_folds(cfg).items():
         for name, variant in policy_configs(train).items():
             inputs[f"cross_model/{direction}/train_ppo/{name}"] = artifact_key(

@@ -19,7 +19,7 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -37,6 +37,7 @@ from pipeline.evaluation.closed_loop import (
 )
 from pipeline.evaluation.metrics import MM_PER_M
 from pipeline.rl.envs import task
+from pipeline.rl.envs.factory import observation_options
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 
 WITHIN_MM = 1.0  # the tolerance of the time-within share
@@ -133,48 +134,49 @@ def episode_references(settings: TrackingSettings, goal_set: np.ndarray, episode
     return out
 
 
+class Reaching(NamedTuple):
+    """The reaching baseline: policies trained to reach (``env.task=reach``) fed the moving goal,
+    with the env settings they were trained with (``env``); named ``<type> (reaching)``."""
+
+    env: Any
+    policies: Mapping[str, Policy]
+
+
+def _loaded(policies: Mapping[str, Policy]) -> dict[str, tuple[Any, Any, int]]:
+    return {name: (policy.network, policy.params, jax.tree.leaves(policy.params)[0].shape[0])
+            for name, policy in policies.items()}
+
+
 def run_tracking(settings: ClosedLoopSettings, tracking: TrackingSettings,
                  policies: Mapping[str, Policy], env: SoftArmReachEnv, eval_params: EnvParams,
                  models: Mapping[str, Any] | None = None,
-                 twins: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, Any]:
-    """Every policy (all seeds) and the preload following each reference of ``tracking`` on
-    every plant; returns ``tables`` (``tracking_episodes``: one row per plant, controller,
-    reference, seed and episode; ``tracking``: the medians per plant, controller and reference),
-    ``paths`` and ``reference_paths`` by ``(plant, controller, reference, seed)`` / reference
-    (``[E, T + 1, 3]`` m) and the ``headline``."""
+                 twins: Mapping[str, Mapping[str, Any]] | None = None,
+                 reaching: Reaching | None = None) -> dict[str, Any]:
+    """Every policy (all seeds), the preload and the ``reaching`` baseline following each
+    reference of ``tracking`` on every plant; returns ``tables`` (``tracking_episodes``: one row
+    per plant, controller, reference, seed and episode; ``tracking``: the medians per plant,
+    controller and reference), ``paths`` and ``reference_paths`` by ``(plant, controller,
+    reference, seed)`` / reference (``[E, T + 1, 3]`` m) and the ``headline``."""
     if not env.tracking:
         raise ValueError("the tracking evaluation needs a tracking environment (env.task=track)")
     episodes = int(settings.evaluation.num_episodes)
-    steps = round(float(tracking.seconds) * env.control_hz)
     shapes = episode_references(tracking, np.asarray(eval_params.goal_set), episodes)
     key = jax.random.fold_in(jax.random.key(int(settings.evaluation.seed)), 7)
-    keys = jax.random.split(key, episodes)
     only_preload = dataclasses.replace(settings, evaluation=dataclasses.replace(
         settings.evaluation, baselines=["preload"]))
-    plants = _plants(only_preload, env, eval_params, jax.random.fold_in(key, 1), models or {},
-                     twins or {})
-    loaded = {name: (policy.network, policy.params, jax.tree.leaves(policy.params)[0].shape[0])
-              for name, policy in policies.items()}
-    programs, rows, paths, targets = _Programs(), [], {}, {}
-    for name, stacked in shapes.items():
-        times = jnp.arange(steps + 1, dtype=jnp.float32) / env.control_hz
-        target = np.asarray(jax.vmap(references.positions, in_axes=(0, None))(stacked, times))
-        goals = jax.vmap(task.goal_path, in_axes=(0, None, None))(stacked, steps, env.control_hz)
-        targets[name] = target
-        for plant_name, (plant_env, plant_params) in plants.items():
-            controllers = _controllers(only_preload, plant_env, plant_params, eval_params, loaded,
-                                       episodes)
-            starts = _starts(plant_params, episodes)
-            for controller, batch in controllers.items():
-                positions, _ = programs.run(controller, plant_env, plant_params, batch, keys,
-                                            starts, goals, stacked)
-                for seed in range(positions.shape[0]):
-                    table = tracking_metrics(positions[seed], target, env.control_hz,
-                                             float(tracking.settle_seconds))
-                    rows.append(table.assign(plant=plant_name, controller=controller,
-                                             reference=name, seed=seed,
-                                             episode=np.arange(episodes)))
-                    paths[(plant_name, controller, name, seed)] = positions[seed]
+    runs = [(only_preload, env, _loaded(policies))]
+    if reaching is not None and reaching.policies:
+        reach_env = SoftArmReachEnv(env.plant, env.control_hz, **observation_options(reaching.env))
+        no_baselines = dataclasses.replace(settings, env=reaching.env, evaluation=dataclasses.replace(
+            settings.evaluation, baselines=[]))
+        runs.append((no_baselines, reach_env, _loaded(
+            {f"{name} (reaching)": policy for name, policy in reaching.policies.items()})))
+    rows, paths, targets, programs = [], {}, {}, _Programs()
+    for run_settings, run_env, loaded in runs:
+        plants = _plants(run_settings, run_env, eval_params, jax.random.fold_in(key, 1),
+                         models or {}, twins or {})
+        _follow(run_settings, tracking, plants, loaded, eval_params, shapes,
+                jax.random.split(key, episodes), programs, (rows, paths, targets))
     table = pd.concat(rows, ignore_index=True)
     summary = summarize_tracking(table)
     headline = {f"tracking/{row.plant}/{row.controller}/{row.reference}": {
@@ -183,6 +185,36 @@ def run_tracking(settings: ClosedLoopSettings, tracking: TrackingSettings,
     return {"tables": {"tracking_episodes": table, "tracking": summary}, "paths": paths,
             "reference_paths": targets, "headline": headline,
             "settle_seconds": float(tracking.settle_seconds)}
+
+
+def _follow(settings: ClosedLoopSettings, tracking: TrackingSettings, plants, loaded,
+            eval_params: EnvParams, shapes: Mapping[str, references.Reference], keys: jax.Array,
+            programs: _Programs, out: tuple[list, dict, dict]) -> None:
+    """Every controller of ``loaded`` and ``settings``' baselines following each of ``shapes``
+    on each of ``plants``: the rows, paths and reference paths into ``out``."""
+    rows, paths, targets = out
+    episodes = int(np.shape(keys)[0])
+    control_hz = next(iter(plants.values()))[0].control_hz
+    steps = round(float(tracking.seconds) * control_hz)
+    times = jnp.arange(steps + 1, dtype=jnp.float32) / control_hz
+    for name, stacked in shapes.items():
+        target = np.asarray(jax.vmap(references.positions, in_axes=(0, None))(stacked, times))
+        goals = jax.vmap(task.goal_path, in_axes=(0, None, None))(stacked, steps, control_hz)
+        targets[name] = target
+        for plant_name, (plant_env, plant_params) in plants.items():
+            controllers = _controllers(settings, plant_env, plant_params, eval_params, loaded,
+                                       episodes)
+            starts = _starts(plant_params, episodes)
+            for controller, batch in controllers.items():
+                positions, _ = programs.run(controller, plant_env, plant_params, batch, keys,
+                                            starts, goals, stacked)
+                for seed in range(positions.shape[0]):
+                    table = tracking_metrics(positions[seed], target, control_hz,
+                                             float(tracking.settle_seconds))
+                    rows.append(table.assign(plant=plant_name, controller=controller,
+                                             reference=name, seed=seed,
+                                             episode=np.arange(episodes)))
+                    paths[(plant_name, controller, name, seed)] = positions[seed]
 
 
 def summarize_tracking(table: pd.DataFrame, by: Sequence[str] = ("plant", "controller",

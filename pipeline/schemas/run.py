@@ -35,7 +35,7 @@ def _default_references() -> dict[str, ReferenceConfig]:
 
 # the settings of the tracking evaluation (left out of the artifact keys of env.task=reach)
 TRACK_EVALUATION_SETTINGS = ("references", "tracking_seconds", "tracking_settle_seconds",
-                             "reachable_tolerance_mm")
+                             "reachable_tolerance_mm", "reaching")
 
 
 @dataclass
@@ -74,6 +74,9 @@ class EvaluationConfig:
     tracking_seconds: float = 30.0
     tracking_settle_seconds: float = 10.0
     reachable_tolerance_mm: float = 1.5
+    # env.task=track: also follow the references with the reaching policies of this config
+    # (env.task=reach, no preview; trained upstream) fed the moving goal, as a baseline
+    reaching: bool = False
 
 
 @dataclass

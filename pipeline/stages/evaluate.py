@@ -49,7 +49,7 @@ from pipeline.evaluation.sections import (
     ReportFacts,
     report_sections,
 )
-from pipeline.evaluation.tracking import TrackingSettings, run_tracking
+from pipeline.evaluation.tracking import Reaching, TrackingSettings, run_tracking
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.infra.records import ArtifactRecord, artifact_record
@@ -76,6 +76,9 @@ def evaluate(cfg: Any) -> Artifact:
                     "aligned": store.find("align", keys.key("align", cfg)),
                     "model": store.find("fit_model", keys.key("fit_model", cfg))}
 
+    reaching = {name: store.require("train_ppo", inputs[f"reaching/train_ppo/{name}"],
+                                    hint=f" with agent={name} env.task=reach env.preview=0")
+                for name in chain.reaching_configs(cfg)}
     other_models = {f"model {Path(str(entry)).name}": store.resolve("fit_model", str(entry))
                     for entry in cfg.evaluation.models}
     folds = _cross_model_inputs(cfg, store, inputs)
@@ -91,8 +94,10 @@ def evaluate(cfg: Any) -> Artifact:
         results = run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params, models,
                                  twins)
         if Task(cfg.env.task) is Task.track:
+            baseline = Reaching(env_settings(next(iter(chain.reaching_configs(cfg).values())))
+                                if reaching else None, _load_policies(reaching))
             tracked = run_tracking(closed_loop_settings(cfg), tracking_settings(cfg), loaded, env,
-                                   eval_params, models, twins)
+                                   eval_params, models, twins, baseline)
             results["tables"].update(tracked["tables"])
             results["headline"].update(tracked["headline"])
             results["tracking"] = tracked

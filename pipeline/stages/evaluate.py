@@ -12,6 +12,10 @@ nothing; ``random``: random safe actions; ``mpc``: sampling-based MPC on the lea
 - on **calibrated twins** (``evaluation.twins``: the simulated arm with the physics of a simulated
   robot config or of a calibrate artifact, started from the learned env's rest poses);
 - a **consecutive-goals** task: ``num_consecutive_goals`` targets one after another, no reset;
+- for ``env.task=track``, **tracking** (:mod:`pipeline.evaluation.tracking`): every policy, the
+  preload and (``evaluation.reaching``) the reaching policies of the same settings fed the moving
+  goal follow ``evaluation.references`` on every plant (``tracking.parquet``,
+  ``tracking_episodes.parquet``, the report's "Tracking" section);
 - on recorded data, the **cross-model protocol** (``evaluation.cross_model``,
   :mod:`pipeline.evaluation.cross_model`): each group of runs' policies in their own model and in
   the model of the other, disjoint group (``cross_model.parquet``, ``cross_model_episodes.parquet``).

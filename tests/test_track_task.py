@@ -13,8 +13,13 @@ from pipeline.arm import references as R
 from pipeline.arm.safety import SafeSet
 from pipeline.evaluation.closed_loop import ClosedLoopSettings
 from pipeline.evaluation.tracking import TrackingSettings, run_tracking, tracking_metrics
-from pipeline.rl.envs import SoftArmReachEnv, default_linear_lag_params, linear_lag_plant
-from pipeline.rl.envs import make_env_params, task
+from pipeline.rl.envs import (
+    SoftArmReachEnv,
+    default_linear_lag_params,
+    linear_lag_plant,
+    make_env_params,
+    task,
+)
 from pipeline.schemas import ConfigError, EnvConfig, EvaluationConfig
 from pipeline.stages._environment import config_environment
 from pipeline.validation import validate_config
@@ -124,7 +129,7 @@ def test_tracking_metrics_by_hand():
     reference = np.stack([0.005 * np.cos(2 * np.pi * times / 10), np.zeros(21),
                           0.005 * np.sin(2 * np.pi * times / 10)], axis=-1)[None]
     offset = reference + np.array([0.0, 0.002, 0.0])  # 2 mm off, all along
-    table = tracking_metrics(np.concatenate([offset, reference + [0, 0.0005, 0]]),
+    table = tracking_metrics(np.concatenate([offset, reference + np.array([0, 0.0005, 0])]),
                              np.concatenate([reference, reference]), 2.0, settle_seconds=2.0)
     np.testing.assert_allclose(table["rmse_mm"], [2.0, 0.5], rtol=1e-9)
     np.testing.assert_allclose(table["max_mm"], [2.0, 0.5], rtol=1e-9)
@@ -150,7 +155,7 @@ def test_run_tracking_on_the_simulated_arm_scores_the_preload(make_cfg):
         model_hz=float(cfg.dataset.model_hz), limits=cfg.robot.limits,
         env=OmegaConf.to_object(cfg.env))
     shapes = {"circle": R.ShapeSettings("circle", None, 2.0, period_s=10.0)}
-    with pytest.raises(ConfigError, match="evaluation.references circle refused"):
+    with pytest.raises(ConfigError, match=r"evaluation\.references circle refused"):
         run_tracking(settings, TrackingSettings(shapes, 6.0, 2.0, 0.001), {}, env, params)
     results = run_tracking(settings, TrackingSettings(shapes, 6.0, 2.0, 50.0), {}, env, params)
     table = results["tables"]["tracking_episodes"]

@@ -16,7 +16,7 @@ PLANT_STYLES = {"learned": "-", "plant": "--"}  # others: dotted
 TRACKING_COLUMNS = {
     "plant": "plant", "controller": "controller", "reference": "reference",
     "episodes": "episodes", "median_rmse_mm": "RMSE [mm]",
-    "seed_rmse_min_mm": "seeds' RMSE min [mm]", "seed_rmse_max_mm": "max [mm]",
+    "seed_rmse_min_mm": "seeds' RMSE min [mm]", "seed_rmse_max_mm": "seeds' RMSE max [mm]",
     "median_p95_mm": "p95 [mm]", "median_max_mm": "max error [mm]",
     "within_1mm": "time within 1 mm", "median_lag_s": "lag [s]",
 }

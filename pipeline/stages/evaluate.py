@@ -31,6 +31,7 @@ Figures and ``report.md`` / ``report.html`` close the run.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -60,7 +61,7 @@ from pipeline.infra.records import ArtifactRecord, artifact_record
 from pipeline.rl.envs.factory import sim_plant_params
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.rl.results import return_curves
-from pipeline.schemas import EnvName, RobotKind, Task
+from pipeline.schemas import ConfigError, EnvName, ReferenceConfig, RobotKind, Task
 from pipeline.stages._environment import config_environment, env_settings
 
 log = logging.getLogger(__name__)
@@ -139,9 +140,14 @@ def closed_loop_settings(cfg: Any) -> ClosedLoopSettings:
 def tracking_settings(cfg: Any) -> TrackingSettings:
     """The tracking evaluation's settings of ``cfg.evaluation`` (its references as shapes)."""
     evaluation = cfg.evaluation
-    shapes = {}
+    shapes, known = {}, {f.name for f in dataclasses.fields(ReferenceConfig)}
     for name, entry in evaluation.references.items():
-        values = OmegaConf.to_container(entry, resolve=True)
+        given = OmegaConf.to_container(entry, resolve=True) if entry is not None else {}
+        unknown = sorted(set(given) - known) if isinstance(given, dict) else given
+        if unknown or not isinstance(given, dict):
+            raise ConfigError(f"evaluation.references.{name}: unknown setting(s) {unknown}; "
+                              f"expected some of {sorted(known)}")
+        values = {**dataclasses.asdict(ReferenceConfig()), **given}
         centre = values.pop("centre_mm")
         shapes[str(name)] = ShapeSettings(
             **values, centre_mm=None if centre is None else tuple(float(v) for v in centre))

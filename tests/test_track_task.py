@@ -200,3 +200,18 @@ def test_experiment_tracking_trains_and_evaluates_both_policy_types(make_cfg):
     assert "## Tracking" in markdown and "tracking.png" in markdown
     assert artifact.file("figures/tracking.png").stat().st_size > 10_000
     assert "tracking/plant/ppo_ff/circle" in artifact.manifest["summary"]
+
+
+def test_evaluation_references_over_their_defaults_and_unknown_settings(make_cfg):
+    from pipeline.stages.evaluate import tracking_settings
+
+    cfg = make_cfg("experiment=tracking",
+                   "+evaluation.references.fast={kind:figure_eight,period_s:10}")
+    shapes = tracking_settings(cfg).references
+    assert shapes["circle"] == R.ShapeSettings("circle", None, 5.0, period_s=20.0)
+    assert shapes["fast"].kind == "figure_eight" and shapes["fast"].period_s == 10
+    assert shapes["fast"].size_mm == 5.0 and shapes["fast"].plane == "xz"
+    bad = make_cfg("experiment=tracking", "+evaluation.references.odd={shape:circle}")
+    with pytest.raises(ConfigError, match=r"evaluation\.references\.odd: unknown setting\(s\) "
+                                          r"\['shape'\]"):
+        tracking_settings(bad)

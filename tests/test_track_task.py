@@ -190,12 +190,14 @@ def test_experiment_tracking_trains_and_evaluates_both_policy_types(make_cfg):
     import pandas as pd
 
     summary = pd.read_parquet(artifact.file("tracking.parquet"))
-    assert set(summary["controller"]) == {"ppo_ff", "ppo_rnn", "preload"}
+    # the reaching policies of the same settings, fed the moving goal, as a baseline
+    assert set(summary["controller"]) == {"ppo_ff", "ppo_rnn", "preload", "ppo_ff (reaching)",
+                                          "ppo_rnn (reaching)"}
     assert set(summary["reference"]) == {"circle", "figure_eight"}
     assert set(summary["plant"]) == {"learned", "plant"}
     assert np.isfinite(summary["median_rmse_mm"]).all()
     episodes = pd.read_parquet(artifact.file("tracking_episodes.parquet"))
-    assert len(episodes) == 2 * 3 * 2 * 4  # plants x controllers x references x episodes
+    assert len(episodes) == 2 * 5 * 2 * 4  # plants x controllers x references x episodes
     markdown = artifact.file("report.md").read_text()
     assert "## Tracking" in markdown and "tracking.png" in markdown
     assert artifact.file("figures/tracking.png").stat().st_size > 10_000

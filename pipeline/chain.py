@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 
 from pipeline.config import PROJECT_ROOT
 from pipeline.data.importers import list_recordings
-from pipeline.schemas import ConfigError, EnvName, ModelProtocol, RobotKind, Stage
+from pipeline.schemas import ConfigError, EnvName, ModelProtocol, RobotKind, Stage, Task
 
 
 @dataclass(frozen=True)
@@ -139,6 +139,21 @@ def policy_configs(cfg: Any) -> dict[str, Any]:
     return variants
 
 
+def reaching_configs(cfg: Any) -> dict[str, Any]:
+    """The reaching baseline of a tracking evaluation (``env.task=track`` with
+    ``evaluation.reaching``): one config per evaluated policy type, that of
+    :func:`policy_configs` with ``env.task=reach`` and no preview; empty otherwise."""
+    evaluation, env = cfg.get("evaluation"), cfg.get("env")
+    if (evaluation is None or env is None or not evaluation.get("reaching")
+            or Task(str(env.get("task", Task.reach))) is not Task.track):
+        return {}
+    variants = {}
+    for name, variant in policy_configs(cfg).items():
+        variant.env = OmegaConf.merge(variant.env, {"task": "reach", "preview": 0})
+        variants[name] = variant
+    return variants
+
+
 def control_policy_config(cfg: Any) -> Any:
     """The config that trained ``control.policy``: ``cfg`` with that agent option laid over its
     ``agent`` (as :func:`policy_configs` does for evaluate)."""
@@ -242,7 +257,9 @@ def model_jobs(cfg: Any, prefix: str = "", result: bool = True) -> list[Job]:
 def policy_jobs(cfg: Any, key_of, prefix: str = "", result: bool = True) -> list[Job]:
     """train_ppo for ``cfg``'s agent and each policy type of ``evaluation.policies`` (one job per
     distinct artifact key, ``key_of(cfg)``; they may run side by side)."""
-    variants = {str(cfg.agent.name): cfg, **policy_configs(cfg)}
+    variants = {str(cfg.agent.name): cfg, **policy_configs(cfg),
+                **{f"{name} (reaching)": variant
+                   for name, variant in reaching_configs(cfg).items()}}
     jobs, seen = [], set()
     for name, variant in variants.items():
         key = key_of(variant)

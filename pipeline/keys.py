@@ -23,15 +23,19 @@ from pipeline.chain import (
     ensemble_configs,
     model_protocol,
     policy_configs,
+    reaching_configs,
 )
 from pipeline.data.importers import list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
 from pipeline.schemas import (
+    TRACK_EVALUATION_SETTINGS,
+    TRACK_SETTINGS,
     ConfigError,
     EnvName,
     ModelProtocol,
     RobotKind,
     StopAt,
+    Task,
     incremental_actions,
 )
 
@@ -118,9 +122,13 @@ def fit_model_spec(cfg: Any) -> Spec:
 
 def env_spec(cfg: Any) -> dict[str, Any]:
     """``cfg.env`` as keys see it: without ``env.models`` (where those lie does not matter, their
-    keys are inputs) and, for absolute actions, without the incremental step (unused)."""
+    keys are inputs), for absolute actions without the incremental step and, to reach, without
+    the tracking task's settings (unused)."""
     env = _container(cfg.env)
     env.pop("models", None)
+    if Task(env.get("task", Task.reach)) is Task.reach:
+        for setting in TRACK_SETTINGS:
+            env.pop(setting, None)
     if not incremental_actions(env):
         env.pop("action_step_kpa", None)
     return env
@@ -189,6 +197,9 @@ def evaluate_spec(cfg: Any) -> Spec:
     inputs = {f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
               for name, variant in policy_configs(cfg).items()}
     spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do
+    if "task" not in spec["env"]:  # reaching: the tracking evaluation does not run
+        for setting in TRACK_EVALUATION_SETTINGS:
+            spec["evaluation"].pop(setting, None)
     for entry in cfg.evaluation.models:
         inputs[f"fit_model/{Path(str(entry)).name}"] = Path(str(entry)).name
     # a twin is its physics, wherever they were read from
@@ -198,6 +209,8 @@ def evaluate_spec(cfg: Any) -> Spec:
     # the groups' policies and models decide the cross-model results, not how they were chosen
     for setting in ("cross_model", "cross_model_group_a"):
         spec["evaluation"].pop(setting, None)
+    for name, variant in reaching_configs(cfg).items():
+        inputs[f"reaching/train_ppo/{name}"] = artifact_key(*train_ppo_spec(variant))
     for direction, (train, test) in cross_model_folds(cfg).items():
         for name, variant in policy_configs(train).items():
             inputs[f"cross_model/{direction}/train_ppo/{name}"] = artifact_key(

@@ -23,6 +23,7 @@ from pipeline.schemas import (
     PressureRating,
     RobotKind,
     SafetyBounds,
+    Task,
     Trainer,
     incremental_actions,
 )
@@ -300,6 +301,7 @@ def _check_env(cfg: Any) -> None:
     if not 0.0 <= decay < 1.0:
         raise ConfigError(f"env.error_integral_decay={decay} must lie in [0, 1) (the accumulated "
                           f"error's weight on its past per control period)")
+    _check_task(env)
     period = 1.0 / float(cfg.robot.control_hz)
     delay = float(randomization.max_delay_s)
     if delay > period + 1e-9:
@@ -322,3 +324,27 @@ def _check_agent(cfg: Any) -> None:
                           "agent=ppo_ff")
     config.check()
 
+def _check_task(env: Any) -> None:
+    """``env.task`` and its settings: a preview only to track, the draws' ranges ordered."""
+    task = Task(str(env.get("task", Task.reach)))
+    preview = env.get("preview", 0)
+    if not isinstance(preview, int) or preview < 0:
+        raise ConfigError(f"env.preview={preview} must be an integer >= 0 (future reference "
+                          f"points observed)")
+    if preview and task is not Task.track:
+        raise ConfigError(f"env.preview={preview} observes a moving reference: it needs "
+                          f"env.task=track, not env.task={task}")
+    if task is not Task.track:
+        return
+    if EnvName(env.name) is EnvName.gymnax:
+        raise ConfigError("env.task=track needs an arm (env=learned or env=sim), not env=gymnax")
+    share = float(env.static_share)
+    if not 0.0 <= share <= 1.0:
+        raise ConfigError(f"env.static_share={share} must lie in [0, 1] (the share of training "
+                          f"episodes at a static goal)")
+    for low, high in (("reference_size_min_mm", "reference_size_max_mm"),
+                      ("reference_period_min_s", "reference_period_max_s")):
+        lo, hi = float(env[low]), float(env[high])
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+            raise ConfigError(f"env.{low}={lo}, env.{high}={hi}: expected finite 0 < {low} <= "
+                              f"{high}")

@@ -126,16 +126,16 @@ class Controllers(NamedTuple):
 def rollout_program(env: SoftArmReachEnv, make: Callable[[Any, EnvParams], rollouts.Controller]
                     ) -> Callable[..., tuple[jax.Array, jax.Array]]:
     """One compiled program for a controller kind on ``env``, every seed and episode at once:
-    ``(env_params, params [S], carries [S, E], keys [E], starts [E], goals [E, T, 3])
-    -> positions [S, E, T + 1, 3], commands [S, E, T, 3]``. Seeds see the same keys, starts and
-    goals."""
+    ``(env_params, params [S], carries [S, E], keys [E], starts [E], goals [E, T, 3],
+    references [E] or None) -> positions [S, E, T + 1, 3], commands [S, E, T, 3]``. Seeds see
+    the same keys, starts, goals and references (a tracking env's; None: the goals)."""
 
-    def one(env_params, params, carry, key, start_carry, start_position, goal_path):
+    def one(env_params, params, carry, key, start_carry, start_position, goal_path, reference):
         return rollouts.rollout(env, env_params, make(params, env_params), carry, key,
-                                start_carry, start_position, goal_path)
+                                start_carry, start_position, goal_path, reference)
 
-    episodes = jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0, 0))
-    return jax.jit(jax.vmap(episodes, in_axes=(None, 0, 0, None, None, None, None)))
+    episodes = jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0, 0, 0))
+    return jax.jit(jax.vmap(episodes, in_axes=(None, 0, 0, None, None, None, None, None)))
 
 
 def _controllers(settings: ClosedLoopSettings, env, params, learned_params, policies_loaded,
@@ -191,7 +191,8 @@ class _Programs:
         self._programs: dict[tuple[SoftArmReachEnv, str], Callable[..., Any]] = {}
 
     def run(self, name: str, env: SoftArmReachEnv, env_params: EnvParams,
-            controllers: Controllers, keys, starts, goals) -> tuple[np.ndarray, np.ndarray]:
+            controllers: Controllers, keys, starts, goals, references=None
+            ) -> tuple[np.ndarray, np.ndarray]:
         program = (env, name)  # environments compare by identity
         if program not in self._programs:
             self._programs[program] = rollout_program(env, controllers.make)
@@ -201,9 +202,9 @@ class _Programs:
         if split is not None:
             env_params, params = split.put((env_params, params), axis=None)
             carries = split.put(carries, axis=1)  # [S, E, ...]
-            keys, starts, goals = split.put((keys, starts, goals))
+            keys, starts, goals, references = split.put((keys, starts, goals, references))
         positions, commands = self._programs[program](env_params, params, carries, keys,
-                                                      *starts, goals)
+                                                      *starts, goals, references)
         return np.asarray(positions), np.asarray(commands)
 
 

@@ -15,6 +15,7 @@ import pandas as pd
 
 from pipeline.evaluation.metrics import ARRIVAL_MM, HELD_MM, MM_PER_M, first_step_within
 from pipeline.evaluation.report import Figure
+from pipeline.evaluation.tracking_report import tracking_figure
 from pipeline.rl.results import RETURN_LABEL
 
 PLANT_TITLES = {"learned": "learned model", "plant": "simulated arm (plant)"}
@@ -64,6 +65,11 @@ def make_figures(folder: Path, settings: FigureSettings, curves: Mapping[str, pd
         if drawn is not None:
             figures[f"after_arrival/{name}"] = drawn
     figures["trajectories"] = trajectories
+    if "tracking" in results:
+        drawn = tracking_figure(folder / "tracking.png", results["tracking"],
+                                float(settings.control_hz))
+        if drawn is not None:
+            figures["tracking"] = drawn
     return figures
 
 

@@ -16,6 +16,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
+from pipeline.arm import references
 from pipeline.rl.envs.learned import EnvParams, EnvState, SoftArmReachEnv
 
 # A controller: (key, observation [obs_dim], state, controller_carry) -> (carry, action [3])
@@ -31,13 +32,18 @@ def rollout(
     start_carry: Any,
     start_position: chex.Array,
     goals: chex.Array,
+    reference: Any = None,
 ) -> tuple[chex.Array, chex.Array]:
     """Run ``controller`` from a settled start for ``goals.shape[0]`` control periods (the
-    episode's randomization, none with zero magnitudes, drawn as at a reset)."""
+    episode's randomization, none with zero magnitudes, drawn as at a reset). A tracking
+    environment (``env.tracking``) follows ``reference``, by default the goals themselves
+    (:func:`pipeline.arm.references.goal_table`: its preview shows the goals to come)."""
     chex.assert_shape(start_position, (3,))
     chex.assert_rank(goals, 2)
+    if env.tracking and reference is None:
+        reference = references.goal_table(goals, env.control_hz)
     state = env.start_state(jax.random.fold_in(key, 1), start_carry, start_position, goals[0],
-                            params)
+                            params, reference)
 
     def period(carry, inputs):
         state, controller_carry = carry

@@ -19,6 +19,7 @@ from pipeline.dynamics.scoring import LEARNED
 from pipeline.evaluation.metrics import seed_spread
 from pipeline.evaluation.report import Figure, Section, Table, format_number
 from pipeline.evaluation.summary import evaluation_table
+from pipeline.evaluation.tracking_report import tracking_section
 from pipeline.infra.records import ArtifactRecord
 
 PLANT_NAMES = {"learned": "learned model", "plant": "simulated arm"}
@@ -274,6 +275,9 @@ def report_sections(facts: ReportFacts, policies: Mapping[str, ArtifactRecord], 
                 _gap_section(facts, tables["plant_gap"], order)]
     if len(tables.get("cross_model", ())):
         sections.append(cross_model_section(tables["cross_model"], order))
+    if len(tables.get("tracking", ())):
+        sections.append(tracking_section(tables["tracking"], figures.get("tracking"), order,
+                                         results.get("tracking", {}).get("settle_seconds")))
     upstream = {"collect": collect, "align": aligned, "fit_model": model}
     sections.append(Section("Time to a controller", [
         "Wall seconds of each artifact's build, when it was built (a reused artifact keeps the "

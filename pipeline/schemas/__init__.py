@@ -29,6 +29,7 @@ from pipeline.schemas.choices import (
     ReferencePose,
     RobotKind,
     Stage,
+    Task,
     WindowOrder,
 )
 from pipeline.schemas.data import (
@@ -38,6 +39,7 @@ from pipeline.schemas.data import (
     ExplorationConfig,
 )
 from pipeline.schemas.env import (
+    TRACK_SETTINGS,
     EnvConfig,
     RandomizationConfig,
     incremental_actions,
@@ -68,11 +70,13 @@ from pipeline.schemas.robot import (
     WorkspaceConfig,
 )
 from pipeline.schemas.run import (
+    TRACK_EVALUATION_SETTINGS,
     Config,
     ControlConfig,
     EvaluationConfig,
     LoggerConfig,
     PathsConfig,
+    ReferenceConfig,
 )
 from pipeline.schemas.values import (
     MISSING,
@@ -83,6 +87,8 @@ from pipeline.schemas.values import (
 
 __all__ = [
     "MISSING",
+    "TRACK_EVALUATION_SETTINGS",
+    "TRACK_SETTINGS",
     "ActionMode",
     "Activation",
     "AgentConfig",
@@ -118,6 +124,7 @@ __all__ = [
     "QosDurability",
     "QosReliability",
     "RandomizationConfig",
+    "ReferenceConfig",
     "ReferencePose",
     "ReplayConfig",
     "RobotConfig",
@@ -130,6 +137,7 @@ __all__ = [
     "SimRobotConfig",
     "Stage",
     "StopAt",
+    "Task",
     "Trainer",
     "TwinConfig",
     "WindowOrder",

@@ -67,6 +67,11 @@ class ActionMode(Choice):
     incremental = "incremental"  # the action changes each valve's last command
 
 
+class Task(Choice):
+    reach = "reach"  # one goal per episode, reached and held
+    track = "track"  # a moving reference: each control period's goal is where it is then
+
+
 class GoalMode(Choice):
     data = "data"  # uniform over the positions seen in the data
     perturb = "perturb"  # the paper's: the initial pose plus N(0, 1) * goal_perturbation_m

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from pipeline.schemas.choices import ActionMode, EnvName, GoalMode, GoalSource
+from pipeline.schemas.choices import ActionMode, EnvName, GoalMode, GoalSource, Task
 
 
 @dataclass
@@ -42,6 +42,23 @@ class EnvConfig:
     """
 
     name: EnvName = EnvName.learned
+    # reach: one goal per episode, the episode ends at it; track: the goal of each control period
+    # is a moving reference at the period's end (pipeline/arm/references.py), reward -distance
+    # to it in mm, no end on arrival
+    task: Task = Task.reach
+    # track: also observe the goals of the next `preview` control periods (one period apart),
+    # each as (goal - measured) / error_scale_m
+    preview: int = 0
+    # track, training: each episode follows a circle, ellipse or figure-eight (equal odds, in the
+    # xz plane, either direction, uniform phase) around the goal a reaching episode
+    # would get, its semi-axis uniform in [reference_size_min_mm, reference_size_max_mm] and its
+    # lap rate uniform in [1 / reference_period_max_s, 1 / reference_period_min_s]; or, with
+    # probability static_share, stays at that goal
+    static_share: float = 0.25
+    reference_size_min_mm: float = 1.0
+    reference_size_max_mm: float = 6.0
+    reference_period_min_s: float = 8.0
+    reference_period_max_s: float = 40.0
     max_steps: int = 40  # control periods per episode (truncation)
     goal_tolerance_m: float = 0.001  # a control period ending within this distance is at the goal
     # terminate after this many consecutive control periods at the goal (1: the first arrival);
@@ -89,6 +106,11 @@ class EnvConfig:
     # model's own (the members agree the commands get there); null: every goal
     goal_agreement_mm: float | None = None
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+
+
+# the settings of env.task=track (left out of the artifact keys of env.task=reach)
+TRACK_SETTINGS = ("task", "preview", "static_share", "reference_size_min_mm",
+                  "reference_size_max_mm", "reference_period_min_s", "reference_period_max_s")
 
 
 def no_randomization_overrides() -> list[str]:

@@ -16,6 +16,29 @@ from pipeline.schemas.values import MISSING
 
 
 @dataclass
+class ReferenceConfig:
+    """A reference shape to follow, in mm and s (``pipeline.arm.references.ShapeSettings``)."""
+
+    kind: str = "circle"  # circle | ellipse | figure_eight
+    centre_mm: list[float] | None = None  # [x, y, z] mm; null: the held-out goals' median
+    size_mm: float = 5.0  # radius, or semi-axis along the plane's first axis
+    size_b_mm: float | None = None  # semi-axis along the second axis; null: size_mm
+    period_s: float = 20.0  # s a lap
+    phase_deg: float = 0.0  # where the first episode starts (episodes spread over a lap)
+    direction: int = 1  # 1: counter-clockwise from the plane's first axis to its second; -1
+    plane: str = "xz"  # xz | xy | yz
+
+
+def _default_references() -> dict[str, Any]:
+    return {"circle": {"kind": "circle"}, "figure_eight": {"kind": "figure_eight"}}
+
+
+# the settings of the tracking evaluation (left out of the artifact keys of env.task=reach)
+TRACK_EVALUATION_SETTINGS = ("references", "tracking_seconds", "tracking_settle_seconds",
+                             "reachable_tolerance_mm", "reaching")
+
+
+@dataclass
 class EvaluationConfig:
     """The evaluate stage: which policies, how many episodes, which baselines."""
 
@@ -48,6 +71,19 @@ class EvaluationConfig:
     mpc_samples: int = 64
     mpc_iterations: int = 3
     seed: int = 0
+    # env.task=track: every controller also follows these references, by name, num_episodes
+    # episodes each of tracking_seconds, scored after the first tracking_settle_seconds; each is
+    # refused where it passes farther than reachable_tolerance_mm from every held-out goal. Each
+    # holds the settings of ReferenceConfig that differ from its defaults (a 5 mm circle, 20 s
+    # a lap, in the xz plane around the held-out goals' median), e.g.
+    # evaluation.references={fast:{kind:figure_eight,period_s:10}}
+    references: dict[str, Any] = field(default_factory=_default_references)
+    tracking_seconds: float = 30.0
+    tracking_settle_seconds: float = 10.0
+    reachable_tolerance_mm: float = 1.5
+    # env.task=track: also follow the references with the reaching policies of this config
+    # (env.task=reach, no preview; trained upstream) fed the moving goal, as a baseline
+    reaching: bool = False
 
 
 @dataclass

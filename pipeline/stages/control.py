@@ -129,6 +129,10 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
     if env_name is EnvName.gymnax:
         raise ValueError(f"{artifact.path}: a policy of a gymnax environment "
                          f"({spec['env'].get('gymnax_name')}) cannot drive the arm")
+    if int(spec["env"].get("preview", 0)):
+        raise ConfigError(f"{artifact.path}: a policy trained to track with a preview of "
+                          f"env.preview={spec['env']['preview']} reference points; stage=control "
+                          f"sends goals, not references: drive a policy trained without a preview")
     env = OmegaConf.merge(OmegaConf.structured(EnvConfig), spec["env"])
     if env_name is EnvName.sim:
         robot = OmegaConf.merge(OmegaConf.structured(SimRobotConfig), spec["robot"])

@@ -12,6 +12,10 @@ nothing; ``random``: random safe actions; ``mpc``: sampling-based MPC on the lea
 - on **calibrated twins** (``evaluation.twins``: the simulated arm with the physics of a simulated
   robot config or of a calibrate artifact, started from the learned env's rest poses);
 - a **consecutive-goals** task: ``num_consecutive_goals`` targets one after another, no reset;
+- for ``env.task=track``, **tracking** (:mod:`pipeline.evaluation.tracking`): every policy, the
+  preload and (``evaluation.reaching``) the reaching policies of the same settings fed the moving
+  goal follow ``evaluation.references`` on every plant (``tracking.parquet``,
+  ``tracking_episodes.parquet``, the report's "Tracking" section);
 - on recorded data, the **cross-model protocol** (``evaluation.cross_model``,
   :mod:`pipeline.evaluation.cross_model`): each group of runs' policies in their own model and in
   the model of the other, disjoint group (``cross_model.parquet``, ``cross_model_episodes.parquet``).
@@ -27,6 +31,7 @@ Figures and ``report.md`` / ``report.html`` close the run.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -37,6 +42,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import chain, keys
+from pipeline.arm.references import ShapeSettings
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, SimArm, run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
@@ -48,13 +54,14 @@ from pipeline.evaluation.sections import (
     ReportFacts,
     report_sections,
 )
+from pipeline.evaluation.tracking import Reaching, TrackingSettings, run_tracking
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.infra.records import ArtifactRecord, artifact_record
 from pipeline.rl.envs.factory import sim_plant_params
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.rl.results import return_curves
-from pipeline.schemas import EnvName, RobotKind
+from pipeline.schemas import ConfigError, EnvName, ReferenceConfig, RobotKind, Task
 from pipeline.stages._environment import config_environment, env_settings
 
 log = logging.getLogger(__name__)
@@ -74,6 +81,9 @@ def evaluate(cfg: Any) -> Artifact:
                     "aligned": store.find("align", keys.key("align", cfg)),
                     "model": store.find("fit_model", keys.key("fit_model", cfg))}
 
+    reaching = {name: store.require("train_ppo", inputs[f"reaching/train_ppo/{name}"],
+                                    hint=f" with agent={name} env.task=reach env.preview=0")
+                for name in chain.reaching_configs(cfg)}
     other_models = {f"model {Path(str(entry)).name}": store.resolve("fit_model", str(entry))
                     for entry in cfg.evaluation.models}
     folds = _cross_model_inputs(cfg, store, inputs)
@@ -85,8 +95,17 @@ def evaluate(cfg: Any) -> Artifact:
                   for name, artifact in other_models.items()}
         twins = {f"twin {name}": physics
                  for name, physics in spec["evaluation"].get("twins", {}).items()}
-        results = run_evaluation(closed_loop_settings(cfg), _load_policies(policies), env,
-                                 eval_params, models, twins)
+        loaded = _load_policies(policies)
+        results = run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params, models,
+                                 twins)
+        if Task(cfg.env.task) is Task.track:
+            baseline = Reaching(env_settings(next(iter(chain.reaching_configs(cfg).values())))
+                                if reaching else None, _load_policies(reaching))
+            tracked = run_tracking(closed_loop_settings(cfg), tracking_settings(cfg), loaded, env,
+                                   eval_params, models, twins, baseline)
+            results["tables"].update(tracked["tables"])
+            results["headline"].update(tracked["headline"])
+            results["tracking"] = tracked
         if folds:
             _cross_model(folds, results)
         config = {"evaluation": spec["evaluation"], "env": spec["env"]}
@@ -116,6 +135,25 @@ def closed_loop_settings(cfg: Any) -> ClosedLoopSettings:
         evaluation=evaluation, max_steps=int(cfg.env.max_steps),
         model_hz=float(cfg.dataset.model_hz), limits=OmegaConf.to_object(cfg.robot.limits),
         env=env_settings(cfg), sim=sim)
+
+
+def tracking_settings(cfg: Any) -> TrackingSettings:
+    """The tracking evaluation's settings of ``cfg.evaluation`` (its references as shapes)."""
+    evaluation = cfg.evaluation
+    shapes, known = {}, {f.name for f in dataclasses.fields(ReferenceConfig)}
+    for name, entry in evaluation.references.items():
+        given = OmegaConf.to_container(entry, resolve=True) if entry is not None else {}
+        unknown = sorted(set(given) - known) if isinstance(given, dict) else given
+        if unknown or not isinstance(given, dict):
+            raise ConfigError(f"evaluation.references.{name}: unknown setting(s) {unknown}; "
+                              f"expected some of {sorted(known)}")
+        values = {**dataclasses.asdict(ReferenceConfig()), **given}
+        centre = values.pop("centre_mm")
+        shapes[str(name)] = ShapeSettings(
+            **values, centre_mm=None if centre is None else tuple(float(v) for v in centre))
+    return TrackingSettings(shapes, float(evaluation.tracking_seconds),
+                            float(evaluation.tracking_settle_seconds),
+                            float(evaluation.reachable_tolerance_mm))
 
 
 def _load_policies(policies: dict[str, Artifact]) -> dict[str, Policy]:

@@ -8,6 +8,7 @@ from pipeline.rl.envs.factory import (
     sim_plant_params,
     sim_reachable_positions,
     sim_rest_pose,
+    split_goals,
 )
 from pipeline.rl.envs.learned import (
     EnvParams,
@@ -17,7 +18,6 @@ from pipeline.rl.envs.learned import (
     SoftArmReachEnv,
     make_env_params,
     randomization,
-    split_goals,
 )
 from pipeline.rl.envs.plants import (
     EnsembleCarry,

@@ -48,7 +48,6 @@ from pipeline.rl.envs.learned import (
     SoftArmReachEnv,
     make_env_params,
     randomization,
-    split_goals,
 )
 from pipeline.rl.envs.plants import (
     NUM_VALVES,
@@ -137,7 +136,8 @@ def observation_options(settings: EnvConfig) -> dict[str, Any]:
             "include_last_action": bool(settings.include_last_action),
             "include_error": bool(settings.include_error),
             "include_error_integral": bool(settings.include_error_integral),
-            "incremental_actions": incremental_actions(settings)}
+            "incremental_actions": incremental_actions(settings),
+            "task": str(settings.task), "preview": int(settings.preview)}
 
 
 def _safe_set(arm: ArmSettings) -> SafeSet:
@@ -369,6 +369,15 @@ __all__ = [
     "sim_rest_pose",
     "split_goals",
 ]
+
+
+def split_goals(positions: np.ndarray, held_out_fraction: float, seed: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Random split of ``positions [N, 3]`` into (training goals, held-out goals)."""
+    positions = np.asarray(positions, np.float32)
+    order = np.random.default_rng(seed).permutation(len(positions))
+    num_held_out = max(1, round(held_out_fraction * len(positions)))
+    return positions[order[num_held_out:]], positions[order[:num_held_out]]
 
 
 def environment(settings: EnvConfig, arm: ArmSettings, inputs: LearnedInputs | None = None

@@ -39,6 +39,8 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
   With ``goal_redraw_periods = k > 0`` a new goal is drawn after every k-th control period of
   an episode, in the same way (``perturb``: around the position then); the reward of that period
   is still the old goal's, the count of periods at the goal starts again.
+- **Tracking** (``task="track"``): the goal of each control period is a reference at its end,
+  no termination, no redraws; ``preview`` adds ``3 * preview`` observations (:mod:`.task`).
 - **Randomization around the plant** (:class:`Randomization`, magnitudes in
   ``EnvParams.randomization``, all zero by default: the nominal plant), drawn once per episode at
   reset into ``EnvState.perturbation`` (:class:`Perturbation`): each valve receives
@@ -66,8 +68,9 @@ from flax import struct
 from gymnax.environments import environment, spaces
 
 from pipeline.arm.safety import SafeSet, project
-from pipeline.rl.envs import observation
+from pipeline.rl.envs import observation, task
 from pipeline.rl.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
+from pipeline.rl.envs.task import check_task
 from pipeline.schemas import ConfigError, EnvConfig
 
 GOAL_MODES = ("data", "perturb")
@@ -78,6 +81,7 @@ _PERTURBATION_STREAM = 1
 # and a step's goal redraw from fold_in(key, _REDRAW_STREAM): the step's other draws stay as
 # they were without redraws
 _REDRAW_STREAM = 2
+_REFERENCE_STREAM = 3  # and a tracking episode's reference at its reset
 
 
 @struct.dataclass
@@ -152,6 +156,7 @@ class EnvState:
       of the measured positions since the reset; zeros at a reset). None like ``perturbation``.
     periods_within: int32 scalar, consecutive control periods up to now that ended within the
       goal tolerance (0 at a reset). None like ``perturbation``.
+    reference: the episode's reference (``pipeline.arm.references.Reference``); None to reach.
     """
 
     plant_carry: Any
@@ -162,6 +167,7 @@ class EnvState:
     perturbation: Perturbation | None = None
     error_integral: jax.Array | None = None
     periods_within: jax.Array | None = None
+    reference: Any = None
 
 
 @struct.dataclass
@@ -192,6 +198,7 @@ class EnvParams:
     action_noise_std_kpa: kPa, Gaussian noise on the commanded pressures (before projection).
     command_change_cost_mm_per_kpa: mm per kPa, the reward's price on the summed change of the
       command.
+    static_share, reference_*: ``task="track"``'s draws (:func:`.task.draw_reference`).
     randomization: magnitudes of the per-episode randomization around the plant.
     max_steps: control periods before truncation (gymnax reads it as ``max_steps_in_episode``).
 
@@ -221,6 +228,11 @@ class EnvParams:
     action_noise_std_kpa: jax.Array
     command_change_cost_mm_per_kpa: jax.Array
     randomization: Randomization
+    static_share: jax.Array
+    reference_size_min_mm: jax.Array
+    reference_size_max_mm: jax.Array
+    reference_period_min_s: jax.Array
+    reference_period_max_s: jax.Array
     max_steps: int = struct.field(pytree_node=False)
 
     @property
@@ -242,6 +254,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
       include_error_integral: append the accumulated error (``EnvState.error_integral``).
       incremental_actions: an action changes the last command (``params.action_step_kpa`` kPa at
         1) instead of setting it.
+      task, preview: ``reach`` or ``track``, observing the goals of ``preview`` next periods.
 
     Its step is differentiable in the action, the state and the parameters (each plant is JAX
     arithmetic; the projection onto the safe set passes gradients where a pressure is inside the
@@ -253,8 +266,10 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
 
     def __init__(self, plant: Plant, control_hz: float = 2.0, settle_seconds: float = 5.0,
                  include_last_action: bool = False, include_error: bool = False,
-                 incremental_actions: bool = False, include_error_integral: bool = False):
+                 incremental_actions: bool = False, include_error_integral: bool = False,
+                 task: str = "reach", preview: int = 0):
         super().__init__()
+        check_task(task, preview)
         ratio = plant.model_hz / control_hz
         if ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
             raise ValueError(
@@ -268,6 +283,8 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         self.include_error = bool(include_error)
         self.include_error_integral = bool(include_error_integral)
         self.incremental_actions = bool(incremental_actions)
+        self.tracking = str(task) == "track"
+        self.preview = int(preview)
 
     # -----------------------------------------------------------------------------------------
     # gymnax API
@@ -289,7 +306,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
     def obs_dim(self) -> int:
         return (2 * POSITION_DIM + (POSITION_DIM if self.include_error else 0)
                 + (POSITION_DIM if self.include_error_integral else 0)
-                + (NUM_VALVES if self.include_last_action else 0))
+                + (NUM_VALVES if self.include_last_action else 0) + POSITION_DIM * self.preview)
 
     def action_space(self, params: EnvParams | None = None) -> spaces.Box:
         return spaces.Box(-1.0, 1.0, (NUM_VALVES,), jnp.float32)
@@ -310,19 +327,23 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
             perturb_key, (POSITION_DIM,))
         data_goal = params.goal_set[goal_index]
         goal = jnp.where(params.goal_from_data, data_goal, perturbed_goal)
+        reference = None
+        if self.tracking:
+            reference = task.draw_reference(jax.random.fold_in(key, _REFERENCE_STREAM), goal, params)
+            goal = task.period_goal(reference, jnp.zeros((), jnp.int32), self.control_hz)
         state = self.start_state(jax.random.fold_in(key, _PERTURBATION_STREAM), carry, position,
-                                 goal, params)
+                                 goal, params, reference)
         return self.observe(obs_key, state, None, params), state
 
     def start_state(self, key: jax.Array, plant_carry: Any, position: jax.Array, goal: jax.Array,
-                    params: EnvParams) -> EnvState:
+                    params: EnvParams, reference: Any = None) -> EnvState:
         """The state of an episode starting from a settled plant carry at ``position [3]`` m
-        (a reset-bank entry) with ``goal [3]`` m: this episode's randomization is drawn from
-        ``key`` and the position shifted by its rest offset."""
+        (a reset-bank entry) with ``goal [3]`` m (and, tracking, ``reference``): this episode's
+        randomization is drawn from ``key`` and the position shifted by its rest offset."""
         perturbation = self.draw_perturbation(key, params)
         return EnvState(plant_carry, position + perturbation.rest_offset, goal, params.preload,
                         jnp.zeros((), jnp.int32), perturbation, jnp.zeros(POSITION_DIM),
-                        jnp.zeros((), jnp.int32))
+                        jnp.zeros((), jnp.int32), reference if self.tracking else None)
 
     def draw_perturbation(self, key: jax.Array, params: EnvParams) -> Perturbation:
         """One episode's :class:`Perturbation` drawn with ``params.randomization`` (one key per
@@ -370,13 +391,18 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         terminated = periods_within >= params.hold_periods
         reward = (-MM_PER_M * distance - params.command_change_cost_mm_per_kpa * change
                   + params.hold_bonus_mm * within)
-        period = params.goal_redraw_periods
-        redraw = (period > 0) & ((state.time + 1) % jnp.maximum(period, 1) == 0)
-        goal = jnp.where(redraw, self.draw_goal(jax.random.fold_in(key, _REDRAW_STREAM),
-                                                position, params), state.goal)
+        if self.tracking:  # the next period's goal; no end at the goal, no redraws
+            terminated = jnp.zeros((), bool)
+            goal = task.period_goal(state.reference, state.time + 1, self.control_hz)
+        else:
+            period = params.goal_redraw_periods
+            redraw = (period > 0) & ((state.time + 1) % jnp.maximum(period, 1) == 0)
+            goal = jnp.where(redraw, self.draw_goal(jax.random.fold_in(key, _REDRAW_STREAM),
+                                                    position, params), state.goal)
+            periods_within = jnp.where(redraw, 0, periods_within)
         state = EnvState(carry, position, goal, pressure, state.time + 1,
-                         perturbation.replace(received=received), integral,
-                         jnp.where(redraw, 0, periods_within))
+                         perturbation.replace(received=received), integral, periods_within,
+                         state.reference)
         obs = self._observation(measured, state, params)
         obs, state = self._apply_transition_gradient_policy(obs, state)
         return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
@@ -406,11 +432,15 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         return observation.observe(
             measured, state.goal, state.last_pressure, params, include_error=self.include_error,
             include_last_action=self.include_last_action,
-            error_integral=state.error_integral if self.include_error_integral else None)
+            error_integral=state.error_integral if self.include_error_integral else None,
+            preview=(task.preview(state.reference, state.time, self.control_hz, self.preview)
+                     if self.preview else None))
 
     def is_terminated(self, state: EnvState, params: EnvParams) -> jax.Array:
         """Whether the goal has been held for ``params.hold_periods`` periods (without a count
-        in ``state``: whether the position is within the tolerance now)."""
+        in ``state``: whether the position is within the tolerance now); tracking: never."""
+        if self.tracking:
+            return jnp.zeros((), bool)
         if state.periods_within is None:
             return jnp.linalg.norm(state.goal - state.position) <= params.goal_tolerance_m
         return state.periods_within >= params.hold_periods
@@ -569,11 +599,3 @@ def make_env_params(
         randomization=randomization() if randomization_params is None else randomization_params,
         **setting_values(settings))
 
-
-def split_goals(positions: np.ndarray, held_out_fraction: float, seed: int
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Random split of ``positions [N, 3]`` into (training goals, held-out goals)."""
-    positions = np.asarray(positions, np.float32)
-    order = np.random.default_rng(seed).permutation(len(positions))
-    num_held_out = max(1, round(held_out_fraction * len(positions)))
-    return positions[order[num_held_out:]], positions[order[:num_held_out]]

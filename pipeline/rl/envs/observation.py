@@ -30,9 +30,10 @@ def update_error_integral(integral: jax.Array, measured: jax.Array, goal: jax.Ar
 
 def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, params: Any, *,
             include_error: bool, include_last_action: bool,
-            error_integral: jax.Array | None = None) -> jax.Array:
+            error_integral: jax.Array | None = None, preview: jax.Array | None = None
+            ) -> jax.Array:
     """``[obs_dim]`` float32: standardized measured position, standardized goal (, scaled error)
-    (, accumulated error) (, last pressure in ``[-1, 1]``).
+    (, accumulated error) (, last pressure in ``[-1, 1]``) (, preview).
 
     Args:
       measured: [3] m, the position as measured (the environment adds its observation noise).
@@ -43,6 +44,8 @@ def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, para
       include_error: append ``(goal - measured) / error_scale_m`` [3].
       include_last_action: append the last pressure mapped to ``[-1, 1]`` [3].
       error_integral: [3], appended where given (:func:`update_error_integral`).
+      preview: [P, 3] m, the goals of the next P control periods (tracking), appended where
+        given as ``(preview - measured) / error_scale_m`` [3 P] (in the error's scale).
     """
     parts = [(measured - params.obs_mean) / params.obs_scale,
              (goal - params.obs_mean) / params.obs_scale]
@@ -52,4 +55,6 @@ def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, para
         parts.append(error_integral)
     if include_last_action:
         parts.append(pressure_to_action(last_pressure, params.safe_set))
+    if preview is not None:
+        parts.append(((preview - measured) / params.error_scale_m).reshape(-1))
     return jnp.concatenate(parts).astype(jnp.float32)

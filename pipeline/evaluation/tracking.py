@@ -1,0 +1,233 @@
+"""Tracking evaluation: every controller follows the same references on every plant.
+
+For ``env.task=track``: each reference of ``evaluation.references`` (a shape in mm and s,
+:mod:`pipeline.arm.references`; centred on the held-out goals' median where it names no centre,
+checked against the held-out goals before anything runs) is followed for ``tracking_seconds`` by
+every policy (all seeds) and the preload, in ``num_episodes`` episodes from the learned env's
+start states, their phases spread evenly over a lap; on the learned model, the plant, other
+fitted models and twins (the plants of :func:`pipeline.evaluation.closed_loop.run_evaluation`).
+
+Metrics per episode (:func:`tracking_metrics`), over the times after the first
+``tracking_settle_seconds`` (the arm starts at rest, away from the reference): the RMSE, the 95th
+percentile and the largest error (mm), the fraction of times within 1 mm and the lag, the time
+shift (s) that best aligns the path with the reference (positive: the path runs behind).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from pipeline.arm import references
+from pipeline.evaluation.closed_loop import (
+    ClosedLoopSettings,
+    Policy,
+    _controllers,
+    _plants,
+    _Programs,
+    _starts,
+)
+from pipeline.evaluation.metrics import MM_PER_M
+from pipeline.rl.envs import task
+from pipeline.rl.envs.factory import observation_options
+from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
+
+WITHIN_MM = 1.0  # the tolerance of the time-within share
+MAX_LAG_S = 5.0  # the lag is searched within +- this many seconds
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    """The references and timing of the tracking evaluation.
+
+    references: the shapes followed, by name (:class:`~pipeline.arm.references.ShapeSettings`;
+      ``centre_mm`` None: the held-out goals' median).
+    seconds: s, an episode's length.
+    settle_seconds: s, the first part of an episode left out of the metrics.
+    reachable_tolerance_mm: mm, how far a reference point may lie from the nearest held-out goal.
+    """
+
+    references: Mapping[str, Any]
+    seconds: float = 30.0
+    settle_seconds: float = 10.0
+    reachable_tolerance_mm: float = 1.5
+
+
+def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: float,
+                     settle_seconds: float, max_lag_s: float = MAX_LAG_S) -> pd.DataFrame:
+    """One row per episode: ``rmse_mm``, ``p95_mm``, ``max_mm``, ``within_1mm`` (share of the
+    times) and ``lag_s`` over the times ``k / control_hz >= settle_seconds``.
+
+    Args:
+      positions: [E, T + 1, 3] m, row k the position after k control periods.
+      reference: [E, T + 1, 3] m, the reference at the same times.
+      max_lag_s: the lag is the shift ``s`` (whole periods, refined by a parabola through the
+        best and its neighbours) within ``+- max_lag_s`` minimizing the RMSE between
+        ``positions[k]`` and ``reference[k - s]`` (positive: the path behind the reference).
+    """
+    positions, reference = np.asarray(positions, np.float64), np.asarray(reference, np.float64)
+    if positions.shape != reference.shape or positions.ndim != 3:
+        raise ValueError(f"positions and reference must both be [E, T + 1, 3], got "
+                         f"{positions.shape} and {reference.shape}")
+    first = math.ceil(settle_seconds * control_hz - 1e-9)
+    if first >= positions.shape[1]:
+        raise ValueError(f"settle_seconds={settle_seconds} leaves no time of the "
+                         f"{positions.shape[1] - 1} control periods to score")
+    error = np.linalg.norm(positions - reference, axis=-1)[:, first:] * MM_PER_M  # [E, T']
+    return pd.DataFrame({
+        "rmse_mm": np.sqrt(np.mean(error ** 2, axis=1)),
+        "p95_mm": np.percentile(error, 95, axis=1),
+        "max_mm": error.max(axis=1),
+        "within_1mm": (error <= WITHIN_MM).mean(axis=1),
+        "lag_s": _lags(positions, reference, first, control_hz, max_lag_s),
+    })
+
+
+def _lags(positions: np.ndarray, reference: np.ndarray, first: int, control_hz: float,
+          max_lag_s: float) -> np.ndarray:
+    """``[E]`` s: the best-aligning shift of each episode (see :func:`tracking_metrics`)."""
+    count = positions.shape[1]
+    most = max(0, min(round(max_lag_s * control_hz), count - first - 1))
+    shifts = np.arange(-most, most + 1)
+    rmse = np.full((positions.shape[0], len(shifts)), np.inf)
+    for column, shift in enumerate(shifts):
+        rows = np.arange(max(first, shift), min(count, count + shift))  # k and k - shift valid
+        if len(rows):
+            gap = positions[:, rows] - reference[:, rows - shift]
+            rmse[:, column] = np.sqrt(np.mean(np.sum(gap ** 2, axis=-1), axis=1))
+    best = np.argmin(rmse, axis=1)
+    refined = shifts[best].astype(np.float64)
+    inner = (best > 0) & (best < len(shifts) - 1)
+    for episode in np.flatnonzero(inner):
+        left, centre, right = rmse[episode, best[episode] - 1:best[episode] + 2]
+        curvature = left - 2.0 * centre + right
+        if np.isfinite(curvature) and curvature > 0:
+            refined[episode] += 0.5 * (left - right) / curvature
+    return refined / control_hz
+
+
+def episode_references(settings: TrackingSettings, goal_set: np.ndarray, episodes: int
+                       ) -> dict[str, references.Reference]:
+    """Each named reference ``[episodes]`` (stacked), its phase spread evenly over a lap, each
+    checked against ``goal_set [G, 3]`` m (:func:`pipeline.arm.references.check_reachable`)."""
+    centre = tuple(float(v) for v in np.median(np.asarray(goal_set), axis=0) * MM_PER_M)
+    out = {}
+    for name, shape in settings.references.items():
+        if shape.centre_mm is None:
+            shape = dataclasses.replace(shape, centre_mm=centre)
+        first = references.shape(shape)
+        references.check_reachable(first, shape.period_s, 64.0 / shape.period_s, goal_set,
+                                   settings.reachable_tolerance_mm,
+                                   f"evaluation.references {name}")
+        out[name] = references.stack([
+            references.shape(dataclasses.replace(
+                shape, phase_deg=shape.phase_deg + 360.0 * number / episodes))
+            for number in range(episodes)])
+    return out
+
+
+class Reaching(NamedTuple):
+    """The reaching baseline: policies trained to reach (``env.task=reach``) fed the moving goal,
+    with the env settings they were trained with (``env``); named ``<type> (reaching)``."""
+
+    env: Any
+    policies: Mapping[str, Policy]
+
+
+def _loaded(policies: Mapping[str, Policy]) -> dict[str, tuple[Any, Any, int]]:
+    return {name: (policy.network, policy.params, jax.tree.leaves(policy.params)[0].shape[0])
+            for name, policy in policies.items()}
+
+
+def run_tracking(settings: ClosedLoopSettings, tracking: TrackingSettings,
+                 policies: Mapping[str, Policy], env: SoftArmReachEnv, eval_params: EnvParams,
+                 models: Mapping[str, Any] | None = None,
+                 twins: Mapping[str, Mapping[str, Any]] | None = None,
+                 reaching: Reaching | None = None) -> dict[str, Any]:
+    """Every policy (all seeds), the preload and the ``reaching`` baseline following each
+    reference of ``tracking`` on every plant; returns ``tables`` (``tracking_episodes``: one row
+    per plant, controller, reference, seed and episode; ``tracking``: the medians per plant,
+    controller and reference), ``paths`` and ``reference_paths`` by ``(plant, controller,
+    reference, seed)`` / reference (``[E, T + 1, 3]`` m) and the ``headline``."""
+    if not env.tracking:
+        raise ValueError("the tracking evaluation needs a tracking environment (env.task=track)")
+    episodes = int(settings.evaluation.num_episodes)
+    shapes = episode_references(tracking, np.asarray(eval_params.goal_set), episodes)
+    key = jax.random.fold_in(jax.random.key(int(settings.evaluation.seed)), 7)
+    only_preload = dataclasses.replace(settings, evaluation=dataclasses.replace(
+        settings.evaluation, baselines=["preload"]))
+    runs = [(only_preload, env, _loaded(policies))]
+    if reaching is not None and reaching.policies:
+        reach_env = SoftArmReachEnv(env.plant, env.control_hz, **observation_options(reaching.env))
+        no_baselines = dataclasses.replace(settings, env=reaching.env, evaluation=dataclasses.replace(
+            settings.evaluation, baselines=[]))
+        runs.append((no_baselines, reach_env, _loaded(
+            {f"{name} (reaching)": policy for name, policy in reaching.policies.items()})))
+    rows, paths, targets, programs = [], {}, {}, _Programs()
+    for run_settings, run_env, loaded in runs:
+        plants = _plants(run_settings, run_env, eval_params, jax.random.fold_in(key, 1),
+                         models or {}, twins or {})
+        _follow(run_settings, tracking, plants, loaded, eval_params, shapes,
+                jax.random.split(key, episodes), programs, (rows, paths, targets))
+    table = pd.concat(rows, ignore_index=True)
+    summary = summarize_tracking(table)
+    headline = {f"tracking/{row.plant}/{row.controller}/{row.reference}": {
+        "median_rmse_mm": float(row.median_rmse_mm), "median_lag_s": float(row.median_lag_s)}
+        for row in summary.itertuples()}
+    return {"tables": {"tracking_episodes": table, "tracking": summary}, "paths": paths,
+            "reference_paths": targets, "headline": headline,
+            "settle_seconds": float(tracking.settle_seconds)}
+
+
+def _follow(settings: ClosedLoopSettings, tracking: TrackingSettings, plants, loaded,
+            eval_params: EnvParams, shapes: Mapping[str, references.Reference], keys: jax.Array,
+            programs: _Programs, out: tuple[list, dict, dict]) -> None:
+    """Every controller of ``loaded`` and ``settings``' baselines following each of ``shapes``
+    on each of ``plants``: the rows, paths and reference paths into ``out``."""
+    rows, paths, targets = out
+    episodes = int(np.shape(keys)[0])
+    control_hz = next(iter(plants.values()))[0].control_hz
+    steps = round(float(tracking.seconds) * control_hz)
+    times = jnp.arange(steps + 1, dtype=jnp.float32) / control_hz
+    for name, stacked in shapes.items():
+        target = np.asarray(jax.vmap(references.positions, in_axes=(0, None))(stacked, times))
+        goals = jax.vmap(task.goal_path, in_axes=(0, None, None))(stacked, steps, control_hz)
+        targets[name] = target
+        for plant_name, (plant_env, plant_params) in plants.items():
+            controllers = _controllers(settings, plant_env, plant_params, eval_params, loaded,
+                                       episodes)
+            starts = _starts(plant_params, episodes)
+            for controller, batch in controllers.items():
+                positions, _ = programs.run(controller, plant_env, plant_params, batch, keys,
+                                            starts, goals, stacked)
+                for seed in range(positions.shape[0]):
+                    table = tracking_metrics(positions[seed], target, control_hz,
+                                             float(tracking.settle_seconds))
+                    rows.append(table.assign(plant=plant_name, controller=controller,
+                                             reference=name, seed=seed,
+                                             episode=np.arange(episodes)))
+                    paths[(plant_name, controller, name, seed)] = positions[seed]
+
+
+def summarize_tracking(table: pd.DataFrame, by: Sequence[str] = ("plant", "controller",
+                                                                   "reference")
+                       ) -> pd.DataFrame:
+    """Per group: episodes, the median RMSE, p95, max and lag over episodes and seeds, the mean
+    share within 1 mm, and the spread over seeds of each seed's median RMSE (min, max)."""
+    by = list(by)
+    grouped = table.groupby(by, sort=False)
+    out = grouped.agg(episodes=("rmse_mm", "size"), median_rmse_mm=("rmse_mm", "median"),
+                      median_p95_mm=("p95_mm", "median"), median_max_mm=("max_mm", "median"),
+                      within_1mm=("within_1mm", "mean"), median_lag_s=("lag_s", "median"))
+    per_seed = table.groupby([*by, "seed"], sort=False)["rmse_mm"].median()
+    spread = per_seed.groupby(level=list(range(len(by))), sort=False).agg(
+        seed_rmse_min_mm="min", seed_rmse_max_mm="max")
+    return out.join(spread).reset_index()

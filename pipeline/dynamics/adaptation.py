@@ -58,8 +58,9 @@ from pipeline.dynamics.scoring import (
     lagged_features,
     position_errors_mm,
 )
+from pipeline.dynamics.session_latent import DEFAULT_PRIOR, infer_latent
 
-MECHANISMS = ("none", "offset", "fine_tune")
+MECHANISMS = ("none", "offset", "fine_tune", "latent")
 OUTPUTS = ("bias", "diagonal", "full")
 _MM = 1000.0  # metres -> millimetres in the fine-tune's loss
 
@@ -79,6 +80,9 @@ class AdaptationSettings:
         per unit squared).
     readout: the fine-tune also changes the network's readout layer (its kernel [hidden, 3]
         and bias [3], in standardized units), added to what ``output`` and ``input_affine`` fit.
+    latent_prior: ``latent`` (a model trained with session latents): the weight of ``|z|²`` in
+        the inference of ``z`` (``session_latent.infer_latent``, ``steps`` Adam steps of
+        ``learning_rate``).
     """
 
     # offset: leave-one-run-out on the recorded runs the best of the mechanisms given a context,
@@ -91,6 +95,7 @@ class AdaptationSettings:
     learning_rate: float = 1.0e-2
     prior_mm2: float = 1.0
     readout: bool = False
+    latent_prior: float = DEFAULT_PRIOR
 
     def __post_init__(self):
         if self.mechanism not in MECHANISMS:
@@ -107,6 +112,8 @@ class AdaptationSettings:
             raise ValueError(f"adaptation learning_rate must be > 0, got {self.learning_rate}")
         if not self.prior_mm2 >= 0:
             raise ValueError(f"adaptation prior_mm2 must be >= 0, got {self.prior_mm2}")
+        if not self.latent_prior >= 0:
+            raise ValueError(f"adaptation latent_prior must be >= 0, got {self.latent_prior}")
 
 
 @struct.dataclass
@@ -120,6 +127,8 @@ class SessionCorrection:
     center_m: [3] m, the mean prediction over the context (what ``M`` turns about).
     readout_delta: ``None`` or the change of the network's readout layer, ``{"kernel": [hidden,
         3], "bias": [3]}`` (added to ``params.network["params"]["readout"]``).
+    latent: ``None`` or the session latent [d] the model runs with (a model trained with
+        session latents, :mod:`pipeline.dynamics.session_latent`).
     """
 
     input_gain: jax.Array
@@ -128,6 +137,7 @@ class SessionCorrection:
     output_offset_m: jax.Array
     center_m: jax.Array
     readout_delta: Any = None
+    latent: Any = None
 
     @classmethod
     def identity(cls) -> SessionCorrection:
@@ -157,7 +167,7 @@ def predict_adapted(params: DynamicsParams, correction: SessionCorrection, press
         readout = jax.tree.map(jnp.add, network["readout"], correction.readout_delta)
         params = params.replace(network={**params.network,
                                          "params": {**network, "readout": readout}})
-    raw = dynamics.predict_sequence(params, corrected, initial_pose)
+    raw = dynamics.predict_sequence(params, corrected, initial_pose, latent=correction.latent)
     turned = (raw - correction.center_m) @ (jnp.eye(POSITION_DIM) + correction.output_matrix).T
     return correction.center_m + turned + correction.output_offset_m
 
@@ -177,6 +187,13 @@ def adapt(params: DynamicsParams, pressures: np.ndarray, positions: np.ndarray,
               else max(1, min(len(pressures), context_steps(settings.offset_window_s, model_hz))))
     if settings.mechanism == "offset":
         return _offset(params, pressures, positions, window)
+    if settings.mechanism == "latent":
+        if dynamics.session_latent_dim(params) == 0:
+            raise ValueError("adaptation mechanism 'latent' needs a model trained with session "
+                             "latents (model.session_latent_dim > 0)")
+        latent = infer_latent(params, pressures, positions, settings.steps,
+                              settings.learning_rate, settings.latent_prior)
+        return SessionCorrection.identity().replace(latent=latent)
     return _fine_tune(params, pressures, positions, settings, window)
 
 

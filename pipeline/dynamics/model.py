@@ -25,6 +25,12 @@ Input features. Besides the standardized pressure the network may read causal fe
 pressure history (``pipeline/dynamics/features.py``: pressure differences, the last command step
 and the time since it, play operators), computed by a recurrence whose state rides in the carry,
 so stepping the model and rolling it out over a sequence agree.
+
+Session latent (optional, ``pipeline/dynamics/session_latent.py``). A model trained with one
+holds a second flax collection, ``session``: per training run a latent ``z_r`` [d] and the map
+``gate_map`` [d, 3, hidden] that turns a latent into a bias of the first GRU layer's gates
+(:func:`session_gate_bias`). :func:`predict_sequence` takes the latent of a session; without
+one (or with ``z = 0``) the model is the model without session, and :func:`step` runs it so.
 """
 
 from __future__ import annotations

@@ -27,6 +27,7 @@ scored (default: all that apply)::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import logging
@@ -84,6 +85,8 @@ def mechanisms(args) -> dict:
         chosen["latent"] = AdaptationSettings(mechanism="latent", steps=args.latent_steps,
                                               learning_rate=args.latent_lr,
                                               latent_prior=args.latent_prior)
+        chosen["latent_mean"] = dataclasses.replace(chosen["latent"],
+                                                    latent_center="training_mean")
     if args.mechanisms:
         names = args.mechanisms.split(",")
         unknown = [name for name in names if name not in chosen]

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from pipeline.dynamics import model as dynamics
@@ -56,34 +57,42 @@ class SessionLatentSettings:
             raise ValueError(f"session latent prior must be >= 0, got {self.prior}")
 
 
-def training_latents(params: DynamicsParams) -> jax.Array:
-    """[R, d] the latents the model learned for its training data's runs (sorted by id)."""
+def training_latents(params: DynamicsParams, trained_only: bool = False) -> jax.Array:
+    """[R, d] the latents the model learned for its training data's runs (sorted by id);
+    ``trained_only``: without the rows no window read (a held-out run's row, exactly 0)."""
     if dynamics.session_latent_dim(params) == 0:
         raise ValueError("the model has no session latent (trained without one)")
-    return params.network[dynamics.SESSION]["latents"]
+    table = params.network[dynamics.SESSION]["latents"]
+    if trained_only:
+        table = table[np.any(np.asarray(table) != 0, axis=-1)]
+    return table
 
 
 def context_loss(params: DynamicsParams, latent: jax.Array, inputs: jax.Array,
-                 targets: jax.Array, pose_normalized: jax.Array, prior: float) -> jax.Array:
+                 targets: jax.Array, pose_normalized: jax.Array, prior: float,
+                 center: jax.Array) -> jax.Array:
     """The inference objective, a scalar: the mean standardized squared error of the rollout
-    over the context given ``latent`` [d], plus ``prior * |latent|²``.
+    over the context given ``latent`` [d], plus ``prior * |latent - center|²``.
 
     inputs: [n, D] network inputs of the context; targets: [n, 3] standardized targets;
     pose_normalized: [3] the standardized first pose of the run.
     """
     outputs = dynamics.predict_normalized(params, inputs, pose_normalized, latent=latent)
     chex.assert_equal_shape((outputs, targets))
-    return jnp.mean(jnp.square(outputs - targets)) + prior * jnp.sum(jnp.square(latent))
+    return (jnp.mean(jnp.square(outputs - targets))
+            + prior * jnp.sum(jnp.square(latent - center)))
 
 
 @functools.partial(jax.jit, static_argnames=("steps",))
 def infer_latent(params: DynamicsParams, pressures: jax.Array, positions: jax.Array,
-                 steps: int, learning_rate: float, prior: float) -> jax.Array:
+                 steps: int, learning_rate: float, prior: float,
+                 center: jax.Array | None = None) -> jax.Array:
     """The session latent [d] of a context: pressures [n, 3] kPa, positions [n, 3] m (n >= 1,
     the run's first ``n`` steps; its first pose is the rollout's initial pose).
 
-    ``steps`` Adam steps from ``z = 0`` with the step size ``learning_rate`` decaying to 0 on a
-    cosine, the weights fixed; ``prior`` weighs ``|z|²`` (as in training: ``SessionLatentSettings``).
+    ``steps`` Adam steps from ``z = center`` (default 0) with the step size ``learning_rate``
+    decaying to 0 on a cosine, the weights fixed; ``prior`` weighs ``|z - center|²`` (as
+    ``|z|²`` in training: ``SessionLatentSettings``).
     """
     chex.assert_shape(pressures, (None, NUM_CHAMBERS))
     chex.assert_shape(positions, (pressures.shape[0], POSITION_DIM))
@@ -93,13 +102,16 @@ def infer_latent(params: DynamicsParams, pressures: jax.Array, positions: jax.Ar
     targets = dynamics.normalize_target(params, positions, initial_pose)
     pose_normalized = dynamics.normalize_pose(params.normalizer, initial_pose)
     optimizer = optax.adam(optax.cosine_decay_schedule(learning_rate, max(steps, 1)))
-    grad = jax.grad(lambda z: context_loss(params, z, inputs, targets, pose_normalized, prior))
+    center = jnp.zeros((dim,), jnp.float32) if center is None else center
+    chex.assert_shape(center, (dim,))
+    grad = jax.grad(lambda z: context_loss(params, z, inputs, targets, pose_normalized, prior,
+                                           center))
 
     def one_step(state, _):
         latent, opt_state = state
         updates, opt_state = optimizer.update(grad(latent), opt_state, latent)
         return (optax.apply_updates(latent, updates), opt_state), None
 
-    latent = jnp.zeros((dim,), jnp.float32)
+    latent = center
     (latent, _), _ = jax.lax.scan(one_step, (latent, optimizer.init(latent)), None, length=steps)
     return latent

@@ -133,3 +133,20 @@ def test_inferred_latent_recovers_a_sessions_gain():
 
     without, inferred = rest_error(None), rest_error(z)
     assert inferred < 0.8 * without, (inferred, without)
+
+
+def test_latent_without_context_is_the_training_mean_when_centred_there():
+    """Learned latents (1, 1), (3, 3) and an untrained row (0, 0): the trained rows' mean is
+    (2, 2), the latent without context; the zero centre leaves the model without session."""
+    _, latent = tiny_params(dim=2, num_runs=3)
+    session = {**latent.network[dynamics.SESSION],
+               "latents": jnp.asarray([[1.0, 1.0], [0.0, 0.0], [3.0, 3.0]])}
+    latent = latent.replace(network={**latent.network, dynamics.SESSION: session})
+    np.testing.assert_array_equal(training_latents(latent, trained_only=True),
+                                  [[1.0, 1.0], [3.0, 3.0]])
+    empty = np.zeros((0, 3), np.float32)
+    centred = adaptation.adapt(latent, empty, empty, adaptation.AdaptationSettings(
+        mechanism="latent", latent_center="training_mean"), 10.0)
+    np.testing.assert_allclose(centred.latent, [2.0, 2.0])
+    with pytest.raises(ValueError, match="latent_center"):
+        adaptation.AdaptationSettings(mechanism="latent", latent_center="median")

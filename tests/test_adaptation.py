@@ -107,7 +107,8 @@ def test_fine_tune_recovers_an_input_gain():
 
 
 @pytest.mark.parametrize("change, message", [
-    ({"mechanism": "latent"}, "mechanism must be one of"),
+    ({"mechanism": "encoder"}, "mechanism must be one of"),
+    ({"latent_prior": -1.0}, "latent_prior must be >= 0"),
     ({"output": "affine"}, "output must be one of"),
     ({"offset_window_s": 0.0}, "offset_window_s must be > 0"),
     ({"steps": -1}, "steps must be an integer >= 0"),

@@ -58,9 +58,11 @@ from pipeline.dynamics.scoring import (
     lagged_features,
     position_errors_mm,
 )
+from pipeline.dynamics.session_latent import DEFAULT_PRIOR, infer_latent, training_latents
 
-MECHANISMS = ("none", "offset", "fine_tune")
+MECHANISMS = ("none", "offset", "fine_tune", "latent")
 OUTPUTS = ("bias", "diagonal", "full")
+LATENT_CENTERS = ("zero", "training_mean")
 _MM = 1000.0  # metres -> millimetres in the fine-tune's loss
 
 
@@ -79,6 +81,12 @@ class AdaptationSettings:
         per unit squared).
     readout: the fine-tune also changes the network's readout layer (its kernel [hidden, 3]
         and bias [3], in standardized units), added to what ``output`` and ``input_affine`` fit.
+    latent_prior: ``latent`` (a model trained with session latents): the weight of ``|z|²`` in
+        the inference of ``z`` (``session_latent.infer_latent``, ``steps`` Adam steps of
+        ``learning_rate``).
+    latent_center: ``latent``: the prior's mean, the start of the inference and the latent
+        without context: ``zero`` or ``training_mean`` (the mean of the latents the model
+        learned for its training runs).
     """
 
     # offset: leave-one-run-out on the recorded runs the best of the mechanisms given a context,
@@ -91,6 +99,8 @@ class AdaptationSettings:
     learning_rate: float = 1.0e-2
     prior_mm2: float = 1.0
     readout: bool = False
+    latent_prior: float = DEFAULT_PRIOR
+    latent_center: str = "zero"
 
     def __post_init__(self):
         if self.mechanism not in MECHANISMS:
@@ -107,6 +117,11 @@ class AdaptationSettings:
             raise ValueError(f"adaptation learning_rate must be > 0, got {self.learning_rate}")
         if not self.prior_mm2 >= 0:
             raise ValueError(f"adaptation prior_mm2 must be >= 0, got {self.prior_mm2}")
+        if self.latent_center not in LATENT_CENTERS:
+            raise ValueError(f"adaptation latent_center must be one of {LATENT_CENTERS}, got "
+                             f"{self.latent_center!r}")
+        if not self.latent_prior >= 0:
+            raise ValueError(f"adaptation latent_prior must be >= 0, got {self.latent_prior}")
 
 
 @struct.dataclass
@@ -120,6 +135,8 @@ class SessionCorrection:
     center_m: [3] m, the mean prediction over the context (what ``M`` turns about).
     readout_delta: ``None`` or the change of the network's readout layer, ``{"kernel": [hidden,
         3], "bias": [3]}`` (added to ``params.network["params"]["readout"]``).
+    latent: ``None`` or the session latent [d] the model runs with (a model trained with
+        session latents, :mod:`pipeline.dynamics.session_latent`).
     """
 
     input_gain: jax.Array
@@ -128,6 +145,7 @@ class SessionCorrection:
     output_offset_m: jax.Array
     center_m: jax.Array
     readout_delta: Any = None
+    latent: Any = None
 
     @classmethod
     def identity(cls) -> SessionCorrection:
@@ -157,7 +175,7 @@ def predict_adapted(params: DynamicsParams, correction: SessionCorrection, press
         readout = jax.tree.map(jnp.add, network["readout"], correction.readout_delta)
         params = params.replace(network={**params.network,
                                          "params": {**network, "readout": readout}})
-    raw = dynamics.predict_sequence(params, corrected, initial_pose)
+    raw = dynamics.predict_sequence(params, corrected, initial_pose, latent=correction.latent)
     turned = (raw - correction.center_m) @ (jnp.eye(POSITION_DIM) + correction.output_matrix).T
     return correction.center_m + turned + correction.output_offset_m
 
@@ -171,13 +189,33 @@ def adapt(params: DynamicsParams, pressures: np.ndarray, positions: np.ndarray,
     chex.assert_shape(pressures, (None, NUM_CHAMBERS))
     chex.assert_equal_shape_prefix((pressures, positions), 1)
     chex.assert_shape(positions, (None, POSITION_DIM))
+    if settings.mechanism == "latent":
+        return _latent(params, pressures, positions, settings)
     if len(pressures) == 0 or settings.mechanism == "none":
         return SessionCorrection.identity()
     window = (len(pressures) if settings.offset_window_s is None
               else max(1, min(len(pressures), context_steps(settings.offset_window_s, model_hz))))
     if settings.mechanism == "offset":
         return _offset(params, pressures, positions, window)
+
     return _fine_tune(params, pressures, positions, settings, window)
+
+
+def _latent(params: DynamicsParams, pressures: jax.Array, positions: jax.Array,
+            settings: AdaptationSettings) -> SessionCorrection:
+    """The session latent inferred from the context (``latent_center``: the prior's mean and
+    the latent without context, 0 or the mean of the latents the model learned)."""
+    if dynamics.session_latent_dim(params) == 0:
+        raise ValueError("adaptation mechanism 'latent' needs a model trained with session "
+                         "latents (model.session_latent_dim > 0)")
+    center = None
+    if settings.latent_center == "training_mean":
+        center = jnp.mean(training_latents(params, trained_only=True), axis=0)
+    if len(pressures) == 0:
+        return SessionCorrection.identity().replace(latent=center)
+    latent = infer_latent(params, pressures, positions, settings.steps, settings.learning_rate,
+                          settings.latent_prior, center)
+    return SessionCorrection.identity().replace(latent=latent)
 
 
 @functools.partial(jax.jit, static_argnames="window")

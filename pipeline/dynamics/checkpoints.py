@@ -62,8 +62,12 @@ def model_from_state_dict(state: dict) -> DynamicsParams:
     )
     template_normalizer = Normalizer(*(jnp.zeros(3) for _ in range(6)))
     to_device = lambda tree: jax.tree.map(jnp.asarray, tree)  # noqa: E731
+    network = serialization.from_state_dict(
+        template_network, {k: v for k, v in state["network"].items() if k != dynamics.SESSION})
+    if dynamics.SESSION in state["network"]:  # a model trained with session latents
+        network = {**network, dynamics.SESSION: dict(state["network"][dynamics.SESSION])}
     return DynamicsParams(
-        network=to_device(serialization.from_state_dict(template_network, state["network"])),
+        network=to_device(network),
         normalizer=to_device(
             serialization.from_state_dict(template_normalizer, state["normalizer"])
         ),

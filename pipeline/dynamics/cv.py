@@ -53,6 +53,7 @@ from pipeline.dynamics.scoring import (
     position_errors_mm,
     predict_run,
 )
+from pipeline.dynamics.session_latent import SessionLatentSettings
 from pipeline.dynamics.training import (
     ModelTrainConfig,
     TrainData,
@@ -102,12 +103,13 @@ def cv_members(run_ids: Sequence[str], seeds: Sequence[int] = (0,), final: bool 
 # vmapped training
 # ---------------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=8)
-def _members_chunk(config: ModelTrainConfig, window: int, order: str, num_steps: int):
+def _members_chunk(config: ModelTrainConfig, window: int, order: str, num_steps: int,
+                   latent_prior: float = 0.0):
     """Jitted ``(states, data, normalizers, sample_keys) -> (states, losses [M, num_steps])``."""
     chunk = functools.partial(train_chunk_unjitted, config=config, window=window, order=order,
-                              num_steps=num_steps)
+                              num_steps=num_steps, latent_prior=latent_prior)
     data_axes = TrainData(inputs=0, position=None, reference_pose=None, window_starts=0,
-                          num_windows=0)
+                          num_windows=0, row_run=None)
     return jax.jit(jax.vmap(chunk, in_axes=(0, data_axes, 0, 0)))
 
 
@@ -120,9 +122,11 @@ def _unstack(tree: Any, index: int) -> Any:
 
 
 def _member_spec(config: ModelTrainConfig, members: Sequence[Member], window: int, stride: int,
-                 order: str) -> dict:
+                 order: str, latent: SessionLatentSettings | None = None) -> dict:
     spec = {"model": dataclasses.asdict(config), "window": window, "stride": stride,
             "order": order, "members": [dataclasses.asdict(m) for m in members]}
+    if latent is not None:
+        spec["session_latent"] = dataclasses.asdict(latent)
     return json.loads(json.dumps(spec))  # tuples -> lists, as they come back from the file
 
 
@@ -138,6 +142,7 @@ def fit_members(
     resume: bool = True,
     progress: bool = True,
     stop_after_steps: int | None = None,
+    latent: SessionLatentSettings | None = None,
 ) -> tuple[list[DynamicsParams], np.ndarray]:
     """Trains every member in one vmapped program; ``(params per member, losses [M, steps])``.
 
@@ -150,13 +155,16 @@ def fit_members(
         checkpoint_dir, resume: stacked checkpoints every ``checkpoint_every`` steps and at the
             end; resume from the last one (same setup, else ``ValueError``).
         stop_after_steps: stop (after checkpointing) once this many steps are done.
+        latent: train each member with a learned session latent per run
+            (:mod:`pipeline.dynamics.session_latent`): its model's session collection holds one
+            latent per run of ``runs`` sorted by id (a member's held-out run's row stays 0).
     """
     config = ModelTrainConfig.from_any(model_cfg)
     if not members:
         raise ValueError("fit_members needs at least one member")
     runs = sorted(runs, key=lambda run: run.run_id)
     member_starts = _member_windows(runs, members, window, stride)
-    templates, state, sample_keys = _initial_members(runs, members, config)
+    templates, state, sample_keys = _initial_members(runs, members, config, latent)
     capacity = max(len(starts) for starts in member_starts)
     data = TrainData(
         inputs=jnp.asarray(np.stack([np.concatenate(run_inputs(t, runs)) for t in templates])),
@@ -165,9 +173,13 @@ def fit_members(
         window_starts=jnp.asarray(np.stack(
             [np.pad(s, (0, capacity - len(s))) for s in member_starts]), jnp.int32),
         num_windows=jnp.asarray([len(s) for s in member_starts], jnp.int32),
+        row_run=None if latent is None else jnp.asarray(np.concatenate(
+            [np.full(len(run), i) for i, run in enumerate(runs)]), jnp.int32),
     )
     normalizers = _stack([t.normalizer for t in templates])
-    spec = _member_spec(config, members, window, stride, order)
+
+    spec = _member_spec(config, members, window, stride, order, latent)
+    prior = 0.0 if latent is None else float(latent.prior)
     losses: list[np.ndarray] = []
     if checkpoint_dir is not None:
         checkpoint_dir = Path(checkpoint_dir)
@@ -184,7 +196,8 @@ def fit_members(
                                           "window_starts": data.window_starts,
                                           "num_windows": data.num_windows}),
                              **split.put({"position": data.position,
-                                          "reference_pose": data.reference_pose}, axis=None))
+                                          "reference_pose": data.reference_pose,
+                                          "row_run": data.row_run}, axis=None))
 
     last_step = config.num_steps if stop_after_steps is None else min(config.num_steps,
                                                                       stop_after_steps)
@@ -194,7 +207,7 @@ def fit_members(
                desc=f"fit {len(members)} models", dynamic_ncols=True)
     while step < last_step:
         num = min(chunk - step % chunk, last_step - step)
-        state, chunk_losses = _members_chunk(config, window, order, num)(
+        state, chunk_losses = _members_chunk(config, window, order, num, prior)(
             state, data, normalizers, sample_keys)
         losses.append(np.asarray(chunk_losses))
         step = int(state.step[0])
@@ -232,10 +245,12 @@ def _member_windows(runs: Sequence[Run], members: Sequence[Member], window: int,
     return member_starts
 
 
-def _initial_members(runs: Sequence[Run], members: Sequence[Member], config: ModelTrainConfig
+def _initial_members(runs: Sequence[Run], members: Sequence[Member], config: ModelTrainConfig,
+                     latent: SessionLatentSettings | None = None
                      ) -> tuple[list[DynamicsParams], TrainState, jax.Array]:
-    """Per member its template (normalizer of its training runs, initial network of its seed),
-    the stacked initial training state and the stacked batch keys [M, 2]."""
+    """Per member its template (normalizer of its training runs, initial network of its seed,
+    with ``latent`` its session collection), the stacked initial training state and the
+    stacked batch keys [M, 2]."""
     by_id = {run.run_id: run for run in runs}
     optimizer = make_optimizer(config)
     architecture = config.architecture()
@@ -244,8 +259,12 @@ def _initial_members(runs: Sequence[Run], members: Sequence[Member], config: Mod
         train_runs = [by_id[i] for i in member.train_ids]
         normalizer = dynamics.fit_normalizer(train_runs, config.predict_displacement)
         init_key, sample_key = jax.random.split(jax.random.PRNGKey(member.seed))
+        if latent is not None:
+            init_key, session_key = jax.random.split(init_key)
         template = DynamicsParams(network=dynamics.init_network(init_key, architecture),
                                   normalizer=normalizer, config=architecture)
+        if latent is not None:
+            template = dynamics.init_session(session_key, template, len(runs), latent.dim)
         templates.append(template)
         states.append(TrainState(network=template.network,
                                  opt_state=optimizer.init(template.network),

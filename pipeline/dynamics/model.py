@@ -25,6 +25,12 @@ Input features. Besides the standardized pressure the network may read causal fe
 pressure history (``pipeline/dynamics/features.py``: pressure differences, the last command step
 and the time since it, play operators), computed by a recurrence whose state rides in the carry,
 so stepping the model and rolling it out over a sequence agree.
+
+Session latent (optional, ``pipeline/dynamics/session_latent.py``). A model trained with one
+holds a second flax collection, ``session``: per training run a latent ``z_r`` [d] and the map
+``gate_map`` [d, 3, hidden] that turns a latent into a bias of the first GRU layer's gates
+(:func:`session_gate_bias`). :func:`predict_sequence` takes the latent of a session; without
+one (or with ``z = 0``) the model is the model without session, and :func:`step` runs it so.
 """
 
 from __future__ import annotations
@@ -140,7 +146,10 @@ class DropoutGRUCell(nn.GRUCell):
     """
 
     @nn.compact
-    def __call__(self, carry, inputs, recurrent_mask=None):
+    def __call__(self, carry, inputs, recurrent_mask=None, gate_bias=None):
+        """``gate_bias`` ([3, hidden], optional): added to the input parts of the reset, update
+        and candidate pre-activations (rows in that order), as a constant extra input would be:
+        a session latent's modulation (``session_gate_bias``)."""
         h = carry
         h_in = h if recurrent_mask is None else h * recurrent_mask
         features = h.shape[-1]
@@ -151,9 +160,10 @@ class DropoutGRUCell(nn.GRUCell):
         dense_i = functools.partial(nn.Dense, features=features, use_bias=True, dtype=self.dtype,
                                     param_dtype=self.param_dtype, kernel_init=self.kernel_init,
                                     bias_init=self.bias_init)
-        r = self.gate_fn(dense_i(name="ir")(inputs) + dense_h(name="hr")(h_in))
-        z = self.gate_fn(dense_i(name="iz")(inputs) + dense_h(name="hz")(h_in))
-        n = self.activation_fn(dense_i(name="in")(inputs)
+        bias = jnp.zeros((3, features), h.dtype) if gate_bias is None else gate_bias
+        r = self.gate_fn(dense_i(name="ir")(inputs) + bias[0] + dense_h(name="hr")(h_in))
+        z = self.gate_fn(dense_i(name="iz")(inputs) + bias[1] + dense_h(name="hz")(h_in))
+        n = self.activation_fn(dense_i(name="in")(inputs) + bias[2]
                                + r * dense_h(name="hn", use_bias=True)(h_in))
         new_h = (1.0 - z) * n + z * h
         return new_h, new_h
@@ -198,21 +208,28 @@ class LSTMDynamicsNet(nn.Module):
             return tuple(jnp.tanh(encoded[i, 1]) for i in range(self.layers))
         return tuple((encoded[i, 0], jnp.tanh(encoded[i, 1])) for i in range(self.layers))
 
-    def __call__(self, carry, inputs: jax.Array, recurrent_mask: jax.Array | None = None):
+    def __call__(self, carry, inputs: jax.Array, recurrent_mask: jax.Array | None = None,
+                 gate_bias: jax.Array | None = None):
         """One step: ``(carry_t, [D] standardized inputs_t) -> (carry_{t+1}, [3] standardized
         y_t)``; the inputs are ``p_t`` and its features (:func:`network_inputs`).
 
         ``recurrent_mask`` ([layers, hidden], training only): recurrent dropout, multiplying each
         layer's ``h`` where it enters the cell's recurrent products (for the LSTM that is all of
         ``h_t``'s use; its cell state ``c`` and the outputs are never masked).
+        ``gate_bias`` ([3, hidden], GRU only): the first layer's session modulation
+        (:class:`DropoutGRUCell`).
         """
+        if gate_bias is not None and self.cell != "gru":
+            raise ValueError(f"a session latent needs cell='gru', got {self.cell!r}")
         features = inputs
         next_carry = []
         for i, (cell, layer_carry) in enumerate(zip(self.cells, carry)):
-            if recurrent_mask is None:
+            bias = gate_bias if i == 0 else None
+            if self.cell == "gru" and (recurrent_mask is not None or bias is not None):
+                mask = None if recurrent_mask is None else recurrent_mask[i]
+                layer_carry, features = cell(layer_carry, features, mask, bias)
+            elif recurrent_mask is None:
                 layer_carry, features = cell(layer_carry, features)
-            elif self.cell == "gru":
-                layer_carry, features = cell(layer_carry, features, recurrent_mask[i])
             else:
                 c, h = layer_carry
                 layer_carry, features = cell((c, h * recurrent_mask[i]), features)
@@ -366,36 +383,81 @@ def predict_normalized(
     inputs: jax.Array,
     pose_normalized: jax.Array,
     hidden_mask: jax.Array | None = None,
+    latent: jax.Array | None = None,
 ) -> jax.Array:
     """Open-loop rollout in standardized units: [T, D], [3] -> [T, 3] (the training path).
 
     ``inputs``: :func:`network_inputs` rows (``D = config.input_dim``). ``hidden_mask``
     ([layers, hidden], optional): one recurrent-dropout mask for the whole rollout (training),
-    see :meth:`LSTMDynamicsNet.__call__`.
+    see :meth:`LSTMDynamicsNet.__call__`. ``latent`` ([d], optional): the session latent the
+    rollout is conditioned on (a model with a session collection, :func:`session_gate_bias`);
+    ``None`` or zeros: the model without session.
     """
     chex.assert_shape(inputs, (None, params.config.input_dim))
     chex.assert_shape(pose_normalized, (POSITION_DIM,))
     network = make_network(params.config)
     carry = network.apply(params.network, pose_normalized, method=LSTMDynamicsNet.initial_carry)
+    gate_bias = None if latent is None else session_gate_bias(params, latent)
 
     def one_step(carry, inputs_t):
-        return network.apply(params.network, carry, inputs_t, hidden_mask)
+        return network.apply(params.network, carry, inputs_t, hidden_mask, gate_bias)
 
     _, outputs = jax.lax.scan(one_step, carry, inputs)
     return outputs
 
 
 def predict_sequence(
-    params: DynamicsParams, pressures: jax.Array, initial_pose: jax.Array
+    params: DynamicsParams, pressures: jax.Array, initial_pose: jax.Array,
+    latent: jax.Array | None = None,
 ) -> jax.Array:
     """Open-loop positions [T, 3] m from pressures [T, 3] kPa and the observed pose x_0 [3] m.
 
     Row ``t`` is the pose after the network consumed ``p_0 .. p_t`` (see the module docstring);
-    identical to stepping :func:`step` from :func:`init_carry`.
+    identical to stepping :func:`step` from :func:`init_carry`. ``latent`` ([d], optional): the
+    session latent (:func:`predict_normalized`).
     """
     chex.assert_shape(pressures, (None, NUM_CHAMBERS))
     chex.assert_shape(initial_pose, (POSITION_DIM,))
     outputs = predict_normalized(
-        params, network_inputs(params, pressures), normalize_pose(params.normalizer, initial_pose)
+        params, network_inputs(params, pressures), normalize_pose(params.normalizer, initial_pose),
+        latent=latent,
     )
     return denormalize_target(params, outputs, initial_pose)
+
+
+# ---------------------------------------------------------------------------------------------
+# session latents
+# ---------------------------------------------------------------------------------------------
+SESSION = "session"  # the flax collection of a model's session latents
+
+
+def init_session(key: jax.Array, params: DynamicsParams, num_runs: int, dim: int
+                 ) -> DynamicsParams:
+    """``params`` with a session collection: per training run a latent ``z_r`` ([num_runs,
+    dim], zeros) and the map ``gate_map`` ([dim, 3, hidden], normal with std ``1 / sqrt(dim)``)
+    that turns a latent into the first GRU layer's gate bias (:func:`session_gate_bias`).
+
+    Row ``r`` of ``latents`` belongs to the ``r``-th run of the training data
+    (``TrainData.row_run``); a row no window reads stays zero.
+    """
+    if params.config.cell != "gru":
+        raise ValueError(f"a session latent needs cell='gru', got {params.config.cell!r}")
+    if dim < 1 or num_runs < 1:
+        raise ValueError(f"a session latent needs dim >= 1 and a run, got {dim}, {num_runs}")
+    gate_map = jax.random.normal(key, (dim, 3, params.config.hidden)) / np.sqrt(dim)
+    session = {"gate_map": gate_map.astype(jnp.float32),
+               "latents": jnp.zeros((num_runs, dim), jnp.float32)}
+    return params.replace(network={**params.network, SESSION: session})
+
+
+def session_latent_dim(params: DynamicsParams) -> int:
+    """The dimension of the model's session latent; 0: a model without one."""
+    session = params.network.get(SESSION) if isinstance(params.network, dict) else None
+    return 0 if session is None else int(session["latents"].shape[-1])
+
+
+def session_gate_bias(params: DynamicsParams, latent: jax.Array) -> jax.Array:
+    """[d] session latent -> [3, hidden] gate bias of the first GRU layer (``z @ gate_map``)."""
+    gate_map = params.network[SESSION]["gate_map"]
+    chex.assert_shape(latent, (gate_map.shape[0],))
+    return jnp.einsum("d,dgh->gh", latent, gate_map)

@@ -134,6 +134,8 @@ class TrainData(NamedTuple):
     window_starts: [M] first row of each window in the concatenation; only the first
         ``num_windows`` are real (the rest pad the list to a common length across folds).
     num_windows: [] int32, the number of real windows.
+    row_run: [N] int32, the index of each row's run (the row of its session latent,
+        ``dynamics.init_session``); ``None`` for a model without session latents.
     """
 
     inputs: jax.Array
@@ -141,6 +143,7 @@ class TrainData(NamedTuple):
     reference_pose: jax.Array
     window_starts: jax.Array
     num_windows: jax.Array
+    row_run: jax.Array | None = None
 
 
 DISTANCE_EPS = 1e-3  # [target std]: keeps the distance loss's gradient finite at zero error
@@ -153,6 +156,7 @@ def window_loss(
     initial_pose: jax.Array,
     hidden_mask: jax.Array | None = None,
     loss: str = "mse",
+    latent: jax.Array | None = None,
 ) -> jax.Array:
     """Error of the open-loop rollout over a batch of windows, a scalar.
 
@@ -162,15 +166,19 @@ def window_loss(
     mean over windows, steps and axes of the squared standardized error; ``distance``, the mean
     over windows and steps of the Euclidean distance to the measured position, in units of the
     mean target standard deviation (so both losses are of order one), smoothed by
-    :data:`DISTANCE_EPS` at zero.
+    :data:`DISTANCE_EPS` at zero. ``latent``: optional [B, d] session latent of each window's
+    run (a model with session latents).
     """
     targets = jax.vmap(dynamics.normalize_target, in_axes=(None, 0, 0))(
         params, position, initial_pose
     )
     pose_normalized = dynamics.normalize_pose(params.normalizer, initial_pose)
-    outputs = jax.vmap(dynamics.predict_normalized, in_axes=(None, 0, 0, 0))(
-        params, inputs, pose_normalized, hidden_mask
-    )
+    if latent is None:
+        outputs = jax.vmap(dynamics.predict_normalized, in_axes=(None, 0, 0, 0))(
+            params, inputs, pose_normalized, hidden_mask)
+    else:
+        outputs = jax.vmap(dynamics.predict_normalized, in_axes=(None, 0, 0, 0, 0))(
+            params, inputs, pose_normalized, hidden_mask, latent)
     chex.assert_equal_shape((outputs, targets))
     if loss == "mse":
         return jnp.mean(jnp.square(outputs - targets))
@@ -190,6 +198,7 @@ def make_train_step(
     input_noise_std: float = 0.0,
     recurrent_dropout: float = 0.0,
     loss: str = "mse",
+    latent_prior: float = 0.0,
 ) -> Callable[[TrainState, TrainData, jax.Array], tuple[TrainState, jax.Array]]:
     """``train_step(state, data, sample_key) -> (state, loss)``: one Adam step on one batch.
 
@@ -198,12 +207,22 @@ def make_train_step(
     input noise and dropout masks (drawn from a key split off ``sample_key`` and folded with
     ``k``). The data is an argument (not a closure) so a jitted program does not embed the
     dataset as constants.
+
+    A network with a session collection (``dynamics.init_session``) trains its per-run
+    latents with the weights: each window reads its run's latent (``data.row_run``), and the
+    loss adds ``latent_prior`` times the batch's mean squared latent norm (a Gaussian prior
+    that keeps the latents in one shared space around 0).
     """
     config = model_template.config
 
-    def loss_fn(network, inputs, position, initial_pose, hidden_mask):
+    def loss_fn(network, inputs, position, initial_pose, hidden_mask, runs):
         params = model_template.replace(network=network)
-        return window_loss(params, inputs, position, initial_pose, hidden_mask, loss)
+        if runs is None:
+            return window_loss(params, inputs, position, initial_pose, hidden_mask, loss)
+        latent = network[dynamics.SESSION]["latents"][runs]  # [B, d]
+        prior = latent_prior * jnp.mean(jnp.sum(jnp.square(latent), axis=-1))
+        return window_loss(params, inputs, position, initial_pose, hidden_mask, loss,
+                           latent) + prior
 
     def train_step(state: TrainState, data: TrainData, sample_key: jax.Array):
         batch_key, regularizer_key = jax.random.split(sample_key)
@@ -221,8 +240,11 @@ def make_train_step(
             keep = jax.random.bernoulli(dropout_key, 1.0 - recurrent_dropout,
                                         (batch_size, config.layers, config.hidden))
             hidden_mask = keep.astype(inputs.dtype) / (1.0 - recurrent_dropout)
+        runs = None
+        if isinstance(state.network, dict) and dynamics.SESSION in state.network:
+            runs = data.row_run[starts]
         loss, grads = jax.value_and_grad(loss_fn)(state.network, inputs, position, initial_pose,
-                                                  hidden_mask)
+                                                  hidden_mask, runs)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.network)
         network = optax.apply_updates(state.network, updates)
         return TrainState(network, opt_state, state.step + 1), loss
@@ -239,8 +261,10 @@ def train_chunk_unjitted(
     window: int,
     order: str,
     num_steps: int,
+    latent_prior: float = 0.0,
 ) -> tuple[TrainState, jax.Array]:
     """``num_steps`` training steps in one ``lax.scan``: ``-> (state, losses [num_steps])``.
+    ``latent_prior``: the session latents' prior weight (:func:`make_train_step`).
 
     :func:`train_chunk` is this jitted, once per (config, window, order, num_steps) and data
     shapes, so fits that share them (resumed runs) reuse the compiled program;
@@ -251,7 +275,7 @@ def train_chunk_unjitted(
     train_step = make_train_step(
         template, make_optimizer(config), window, config.batch_size, order,
         input_noise_std=config.input_noise_std, recurrent_dropout=config.recurrent_dropout,
-        loss=str(config.loss),
+        loss=str(config.loss), latent_prior=latent_prior,
     )
     return jax.lax.scan(
         lambda s, _: train_step(s, data, sample_key), state, None, length=num_steps
@@ -259,7 +283,7 @@ def train_chunk_unjitted(
 
 
 train_chunk = jax.jit(train_chunk_unjitted,
-                      static_argnames=("config", "window", "order", "num_steps"))
+                      static_argnames=("config", "window", "order", "num_steps", "latent_prior"))
 
 
 # ---------------------------------------------------------------------------------------------

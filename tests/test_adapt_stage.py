@@ -18,15 +18,26 @@ from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.arm.limits import UnsafeCommandError
+from pipeline.chain import plan
 from pipeline.config import PROJECT_ROOT
 from pipeline.control.loop import SimArm
 from pipeline.control.walk import drive_walk
 from pipeline.dynamics.adaptation import SessionCorrection, predict_adapted
-from pipeline.dynamics.model import DynamicsConfig, DynamicsParams, Normalizer, init_network
+from pipeline.dynamics.model import (
+    DynamicsConfig,
+    DynamicsParams,
+    Normalizer,
+    init_network,
+    predict_sequence,
+)
 from pipeline.dynamics.session import fold_correction, fold_error_m
+from pipeline.infra.artifacts import ArtifactStore
 from pipeline.ros2.gate import CommandGate
-from pipeline.schemas import ConfigError
+from pipeline.schemas import ConfigError, Stage
+from pipeline.stages._deployed import training_config
+from pipeline.stages._environment import config_environment
 from pipeline.stages.adapt import adapt
+from tests.control_fixtures import goals_mm
 
 
 def small_model(predict_displacement: bool) -> DynamicsParams:
@@ -69,9 +80,8 @@ def test_a_displacement_model_folds_exactly_at_the_reference_pose_and_turns_abou
     start = POSE + np.array([0.001, 0.0, 0.0])
     calibrated = predict_adapted(params, correction, jnp.asarray(PRESSURES, jnp.float32),
                                  jnp.asarray(start, jnp.float32))
-    plain = jax.jit(lambda p: __import__("pipeline.dynamics.model", fromlist=["x"])
-                    .predict_sequence(p, jnp.asarray(PRESSURES, jnp.float32),
-                                      jnp.asarray(start, jnp.float32)))(folded)
+    plain = predict_sequence(folded, jnp.asarray(PRESSURES, jnp.float32),
+                             jnp.asarray(start, jnp.float32))
     np.testing.assert_allclose(np.asarray(calibrated - plain),
                                np.tile([1e-4, 0.0, 3e-5], (len(PRESSURES), 1)), atol=2e-7)
 
@@ -104,7 +114,7 @@ def test_a_walk_outside_the_limits_stops_at_the_preload(make_cfg):
     robot = OmegaConf.to_object(cfg.robot)
     gate = CommandGate.for_robot(robot)
     arm = SimArm(robot, 3, gate)
-    with pytest.raises(UnsafeCommandError, match="outside robot.limits"):
+    with pytest.raises(UnsafeCommandError, match=r"outside robot\.limits"):
         drive_walk(arm, gate, np.array([[1.0, 1.0, 1.0], [5.0, 1.0, 1.0]]), 2.0, "walk")
     assert len(arm.commands) == 2  # the first command, then the preload: 5 kPa never left
     np.testing.assert_allclose(arm.commands[-1], np.full(3, robot.limits.preload))
@@ -132,6 +142,14 @@ def test_an_adapted_policy_is_not_adapted_again_and_control_reads_it(make_cfg, t
     assert keys.control_spec(cfg)[1] == {"adapt": "abc123"}
     with pytest.raises(ConfigError, match="is an adapted policy"):
         keys.adapt_spec(cfg)
+
+
+def test_adapt_runs_alone_and_only_when_named(make_cfg):
+    for robot in ("sim", "ros2"):
+        jobs = plan(make_cfg("stage=adapt", f"robot={robot}"), lambda cfg: "key")
+        assert [job.stage for job in jobs] == [Stage.adapt]
+    assert not [job for job in plan(make_cfg("stage=all"), lambda cfg: "key")
+                if job.stage is Stage.adapt]
 
 
 def test_the_entry_point_refuses_a_bad_walk_in_one_line(tmp_path):
@@ -175,10 +193,10 @@ def test_adapt_then_control_on_a_session_whose_physics_differ(make_cfg):
     assert errors.loc["calibrated", "mean_mm"] < errors.loc["deployed", "mean_mm"]
     assert summary["fold_error_mm"] <= 0.1
     assert 20.0 <= summary["walk_arm_s"] <= 25.0  # the walk and its preload padding
-    goals = np.round(np.asarray(pd.read_parquet(trained.file("episodes.parquet"))
-                                [["goal_x", "goal_y", "goal_z"]])[:2] * 1000, 1).tolist() \
-        if "goal_x" in pd.read_parquet(trained.file("episodes.parquet")) else None
-    goal_overrides = [f"control.goals={json.dumps(goals)}"] if goals else []
+    store = ArtifactStore(trained.path.parent.parent)
+    train_cfg, model, aligned = training_config(trained, store, 3)
+    _, _, eval_params = config_environment(train_cfg, model, aligned)
+    goal_overrides = [f"control.goals={json.dumps(goals_mm(eval_params, 3))}"]
     distances = {}
     for name, policy_file, seed in (("deployed", policy, summary["policy_seed"]),
                                     ("adapted", str(adapted.file("policy.msgpack")), 0)):

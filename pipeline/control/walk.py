@@ -18,7 +18,7 @@ def drive_walk(arm, gate: CommandGate, commands: np.ndarray, control_hz: float, 
     """Drive ``arm`` with ``commands`` [N, valves] kPa, command ``k`` from ``k / control_hz`` arm
     seconds on, each through ``gate`` (projection onto the limits, checked); returns the
     ``commands`` rows (as sent) and the ``mocap`` rows (every frame until the end of the last
-    period) of one run ``run_id``. The arm is sent the preload at the end, also on an error."""
+    period whose stamp comes after the earlier frames') of one run ``run_id``. The arm is sent the preload at the end, also on an error."""
     commands = np.asarray(commands, np.float64)
     if commands.ndim != 2 or len(commands) == 0:
         raise ValueError(f"a walk needs commands [N, valves], got shape {commands.shape}")
@@ -38,6 +38,10 @@ def drive_walk(arm, gate: CommandGate, commands: np.ndarray, control_hz: float, 
     command_rows.insert(0, "run_id", run_id)
     stamps = np.array([frame[0] for frame in frames], np.float64)
     positions = np.array([frame[2] for frame in frames], np.float64).reshape(-1, len(XYZ))
+    # the mocap table's times increase: a frame whose jittered stamp is not after every earlier
+    # one is dropped (as a dropped frame)
+    later = stamps > np.maximum.accumulate(np.concatenate([[-np.inf], stamps[:-1]]))
+    stamps, positions = stamps[later], positions[later]
     mocap_rows = pd.DataFrame({"run_id": run_id, "t": stamps,
                                **{axis: positions[:, k] for k, axis in enumerate(XYZ)},
                                "valid": True})

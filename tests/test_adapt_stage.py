@@ -37,6 +37,7 @@ from pipeline.schemas import ConfigError, Stage
 from pipeline.stages._deployed import training_config
 from pipeline.stages._environment import config_environment
 from pipeline.stages.adapt import adapt
+from tests.conftest import compose_config
 from tests.control_fixtures import goals_mm
 
 
@@ -206,3 +207,45 @@ def test_adapt_then_control_on_a_session_whose_physics_differ(make_cfg):
         distances[name] = pd.read_parquet(session.file("goals.parquet"))["final_distance_mm"]
     print({name: np.round(d.to_numpy(), 3).tolist() for name, d in distances.items()})
     assert all(np.isfinite(d).all() and len(d) >= 1 for d in distances.values())
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+def test_adapt_over_ros2_on_the_twin_then_control_drives_the_adapted_policy(tmp_path,
+                                                                           ros_domain):
+    """The walk recorded over ROS 2 from the twin (a session whose chamber gains differ), through
+    the gate and ending at the preload; then stage=control drives the adapted policy there."""
+    pytest.importorskip("rclpy")
+    from pipeline.__main__ import run
+    from pipeline.data.schemas import CMD_COLUMNS
+    from tests.test_ros2_link import Pipeline, received, stop
+
+    trained = run(compose_config(tmp_path / "sim", *TINY, "stage=train_ppo"))["train_ppo"]
+    store = ArtifactStore(trained.path.parent.parent)
+    train_cfg, model, aligned = training_config(trained, store, 3)
+    _, _, eval_params = config_environment(train_cfg, model, aligned)
+    goals = json.dumps(goals_mm(eval_params, 2)).replace(" ", "")
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = [*TINY, "robot=ros2", "robot.rehearsal=true", "robot.time_scale=4.0",
+                      "robot.watchdog_s=1.0", "robot.stop_timeout_s=2.0",
+                      "robot.startup_timeout_s=60", "robot.twin.seed=5",
+                      "robot.twin.physics.chamber_gains=[0.85,1.15,1.0]"]
+    record = tmp_path / "twin_received.jsonl"
+    twin = pipe.start("twin", f"robot.twin.record_path={record}", "robot.twin.max_duration_s=900")
+    walk = [f"control.policy_file={trained.file('policy.msgpack')}", "adapt.walk_s=10",
+            "adapt.steps=50", "adapt.policy_timesteps=8192"]
+    try:
+        assert pipe.start("adapt", *walk).wait(timeout=400) == 0, pipe.log("adapt")
+        sent = received(record)[CMD_COLUMNS].to_numpy()
+        adapted = ArtifactStore(pipe.out / "artifacts").require(
+            "adapt", keys.key("adapt", pipe.cfg("stage=adapt", *walk)))
+        control = pipe.start("control", f"control.policy_file={adapted.file('policy.msgpack')}",
+                             f"control.goals={goals}", "control.hold_s=5")
+        assert control.wait(timeout=300) == 0, pipe.log("control")
+    finally:
+        assert stop(twin) == 0, pipe.log("twin")
+    assert len(sent) >= 20 + 1  # the walk's commands (10 s at 2 Hz and its padding), the preload
+    np.testing.assert_allclose(sent[-1], [2.0, 2.0, 2.0])
+    assert np.isfinite(sent).all() and sent.max() <= 7.0 and sent.sum(axis=1).max() <= 13.0
+    assert adapted.manifest["summary"]["walk_arm_s"] >= 10.0
+    assert "control: report at" in pipe.log("control")

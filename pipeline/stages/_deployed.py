@@ -9,7 +9,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from pipeline import keys
-from pipeline.infra.artifacts import Artifact, ArtifactStore
+from pipeline.infra.artifacts import MANIFEST, Artifact, ArtifactStore
 from pipeline.keys import SPEC_VERSIONS
 from pipeline.schemas import (
     ConfigError,
@@ -42,8 +42,8 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
     environment is that of the policy it adapted with its calibrated model (``model.msgpack``
     and ``split.json`` in its folder) in place of the fit_model artifact."""
     if artifact.stage == "adapt":
-        deployed = store.require("train_ppo", artifact.manifest["inputs"]["train_ppo"])
-        config, _, aligned = training_config(deployed, store, n_valves)
+        deployed, lineage = adapted_from(artifact, store)
+        config, _, aligned = training_config(deployed, lineage, n_valves)
         return config, artifact, aligned
     manifest = artifact.manifest
     spec = manifest["spec"]
@@ -70,3 +70,20 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
                                "dataset": {"model_hz": dataset["model_hz"],
                                            "model_grid": dataset["model_grid"]}})
     return config, model, aligned
+
+
+def adapted_from(artifact: Artifact, store: ArtifactStore) -> tuple[Artifact, ArtifactStore]:
+    """The train_ppo artifact an adapt artifact adapted, and the store of its lineage: in
+    ``store`` by key, else where adapt found it (``deployed_path`` in its summary: a policy of
+    another artifact store, named by ``control.policy_file``)."""
+    key = artifact.manifest["inputs"]["train_ppo"]
+    found = store.find("train_ppo", key)
+    if found is not None:
+        return found, store
+    recorded = artifact.manifest.get("summary", {}).get("deployed_path")
+    if recorded:
+        candidate = Artifact("train_ppo", key, Path(recorded))
+        if candidate.file(MANIFEST).is_file() and candidate.manifest.get("key") == key:
+            return candidate, ArtifactStore(Path(recorded).parent.parent)
+    return store.require("train_ppo", key, hint=f" (the policy {artifact.path} adapted)"), store
+

@@ -104,7 +104,8 @@ def adapt(cfg: Any) -> Artifact:
         summary.update(fine_tune_policy(writer, train_cfg, calibrated, aligned, agent, spec,
                                         int(cfg.seed), timings))
         timings["policy_wall_s"] = time.perf_counter() - started
-        writer.summary = {**summary, "policy_seed": seed, "walk_arm_s": float(run.times_s[-1]),
+        writer.summary = {**summary, "policy_seed": seed, "deployed_path": str(deployed.path),
+                          "walk_arm_s": float(run.times_s[-1]),
                           **{k: round(v, 2) for k, v in timings.items()}}
         log.info("adapt: %s", json.dumps(writer.summary))
 

@@ -2,8 +2,10 @@
 :mod:`pipeline.control.session`). Not part of ``stage=all``: started on its own.
 
 The train_ppo artifact is found from the composed config as evaluate finds it (or from
-``control.policy_file``); its environment is rebuilt from the artifact's lineage (its manifest and
-those of the fit_model and align artifacts it was trained on) with
+``control.policy_file``: a train_ppo artifact's policy, or an adapt artifact's, the policy
+fine-tuned to the session in the calibrated model, ``stage=adapt``); its environment is rebuilt
+from the artifact's lineage (its manifest and those of the fit_model and align artifacts it was
+trained on; for an adapted policy the calibrated model in place of the fit_model's) with
 :func:`pipeline.rl.envs.factory.environment`, exactly as training built it
 (:func:`load_deployment`). The session's rows, per-goal metrics, figures and report go into the
 ``control`` artifact.

@@ -1,6 +1,8 @@
-"""Stage ``adapt``: the deployed policy calibrated to the session of the day. Not part of
-``stage=all``: started on its own; with ``robot=ros2`` it drives the arm (only when named, through
-the command gate, as collect does; rehearse it on the twin, ``robot.rehearsal=true``).
+"""Stage ``adapt``: the deployed model and policy calibrated to the session of the day.
+
+Not part of ``stage=all``: started on its own; with ``robot=ros2`` it drives the arm (only when
+named, through the command gate, as collect does; rehearse it on the twin,
+``robot.rehearsal=true``).
 
 1. A calibration walk of the current session: the exploration walk cut to ``adapt.walk_s``
    seconds, on ``robot=sim`` the simulated session ``control.arm_seed`` (the session

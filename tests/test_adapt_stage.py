@@ -36,7 +36,7 @@ from pipeline.ros2.gate import CommandGate
 from pipeline.schemas import ConfigError, Stage
 from pipeline.stages._deployed import training_config
 from pipeline.stages._environment import config_environment
-from pipeline.stages.adapt import adapt
+from pipeline.stages.adapt import adapt, refuse_rehearsal
 from tests.conftest import compose_config
 from tests.control_fixtures import goals_mm
 
@@ -143,6 +143,18 @@ def test_an_adapted_policy_is_not_adapted_again_and_control_reads_it(make_cfg, t
     assert keys.control_spec(cfg)[1] == {"adapt": "abc123"}
     with pytest.raises(ConfigError, match="is an adapted policy"):
         keys.adapt_spec(cfg)
+
+
+def test_an_adapt_on_the_arm_never_answers_with_the_twins(tmp_path):
+    folder = tmp_path / "adapt" / "k1"
+    folder.mkdir(parents=True)
+    (folder / "artifact.json").write_text(json.dumps({"summary": {"rehearsal": True}}))
+    store = ArtifactStore(tmp_path)
+    with pytest.raises(ConfigError, match="calibrated on the digital twin"):
+        refuse_rehearsal(store, "k1", rehearsal=False, force=False)
+    refuse_rehearsal(store, "k1", rehearsal=True, force=False)  # the rehearsal may reuse it
+    refuse_rehearsal(store, "k1", rehearsal=False, force=True)  # walks the arm anew
+    refuse_rehearsal(store, "k2", rehearsal=False, force=False)  # nothing there
 
 
 def test_adapt_runs_alone_and_only_when_named(make_cfg):

@@ -44,13 +44,14 @@ from pipeline import keys
 from pipeline.arm.exploration import exploration_plan
 from pipeline.arm.limits import validate_limits
 from pipeline.data.alignment import align_tables, runs_at_model_rate
+from pipeline.data.raw import CollectionInterrupted
 from pipeline.data.schemas import ALIGNED, COMMANDS, MOCAP, write_table
 from pipeline.dynamics import adaptation
 from pipeline.dynamics.checkpoints import load_dynamics, save_dynamics
 from pipeline.dynamics.model import predict_sequence
 from pipeline.dynamics.scoring import position_errors_mm
 from pipeline.dynamics.session import fold_correction, fold_error_m
-from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, produce
+from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 from pipeline.rl.policy_io import best_seed, save_policy, warm_start_params
 from pipeline.rl.ppo import action_bounds, train_seeds
 from pipeline.rl.results import evaluation_tables, metrics_table, write_results
@@ -106,15 +107,29 @@ def adapt(cfg: Any) -> Artifact:
         summary.update(fine_tune_policy(writer, train_cfg, calibrated, aligned, agent, spec,
                                         int(cfg.seed), timings))
         timings["policy_wall_s"] = time.perf_counter() - started
+        if kind is RobotKind.ros2:
+            summary["rehearsal"] = bool(robot.rehearsal)  # walked on the twin
         writer.summary = {**summary, "policy_seed": seed, "deployed_path": str(deployed.path),
                           "walk_arm_s": float(run.times_s[-1]),
                           **{k: round(v, 2) for k, v in timings.items()}}
         log.info("adapt: %s", json.dumps(writer.summary))
 
+    if kind is RobotKind.ros2:
+        refuse_rehearsal(store, artifact_key(spec, inputs), bool(robot.rehearsal), bool(cfg.force))
     artifact = produce(store, STAGE, spec, inputs, build, force=cfg.force)
     log.info("adapt: drive with stage=control control.policy_file=%s",
              artifact.file("policy.msgpack"))
     return artifact
+
+
+def refuse_rehearsal(store: ArtifactStore, key: str, rehearsal: bool, force: bool) -> None:
+    """An adapt on the arm never answers with a rehearsal's: the rehearsal settings are not part
+    of the key (a rehearsal runs the arm's config on its twin), so refuse the twin's artifact."""
+    existing = None if rehearsal or force else store.find(STAGE, key)
+    if existing is not None and existing.manifest.get("summary", {}).get("rehearsal"):
+        raise ConfigError(f"adapt: {existing.path} was calibrated on the digital twin under this "
+                          f"config's key; name this session anew (robot.session=...), or "
+                          f"force=true to walk the arm again")
 
 
 def adaptation_settings(node: Any) -> adaptation.AdaptationSettings:
@@ -179,9 +194,10 @@ def record_walk(cfg: Any, robot: Any, exploration: Any, walk: np.ndarray,
         recorded = collect_ros2(dataclasses.replace(robot, num_runs=1), exploration, recovery,
                                 writer.spec)
         if recorded.interruption is not None:
-            raise ConfigError(f"adapt: the calibration walk was interrupted "
-                              f"({recorded.interruption.reason}); the preload was commanded. "
-                              f"Its rows are in {recovery}; nothing was adapted")
+            raise CollectionInterrupted(
+                f"adapt: the calibration walk was interrupted ({recorded.interruption.reason}); "
+                f"the preload was commanded. Its rows are in {recovery}; nothing was adapted"
+            ) from recorded.interruption.error
         commands, mocap = recorded.commands, recorded.mocap
         shutil.rmtree(recorded.recovery)
     provenance = {"stage": STAGE, "robot": robot.name}

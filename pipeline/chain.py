@@ -51,6 +51,9 @@ STAGES: dict[Stage, StageSpec] = {
                              "a control session's records and report", drives_arm=True),
     Stage.calibrate: StageSpec("pipeline.stages.calibrate:calibrate", (Stage.align,),
                                "the simulated arm's fitted physics"),
+    Stage.adapt: StageSpec("pipeline.stages.adapt:adapt", (Stage.train_ppo,),
+                           "a calibration walk, the calibrated model and the fine-tuned policy",
+                           drives_arm=True),
 }
 # what `stage=all` runs, in order (the digital twin and the guard are servers, started on their own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)

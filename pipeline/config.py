@@ -19,6 +19,7 @@ from omegaconf import OmegaConf
 
 from pipeline import PROJECT_ROOT
 from pipeline.schemas import (
+    AdaptConfig,
     AgentConfig,
     CalibrationConfig,
     Config,
@@ -72,6 +73,7 @@ def register_configs() -> None:
     cs.store(group="agent", name="base_agent", node=AgentConfig)
     cs.store(group="evaluation", name="base_evaluation", node=EvaluationConfig)
     cs.store(group="control", name="base_control", node=ControlConfig)
+    cs.store(group="adapt", name="base_adapt", node=AdaptConfig)
     cs.store(group="logger", name="base_logger", node=LoggerConfig)
     cs.store(group="paths", name="base_paths", node=PathsConfig)
     adopt_launcher_schemas()

@@ -64,7 +64,7 @@ _AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt
 # stage, and through their input keys every artifact downstream, is then made anew, once. Every
 # setting of the composed config is in its stage's spec with its value, defaults included.
 SPEC_VERSIONS = {"collect": 2, "align": 2, "calibrate": 2, "fit_model": 3, "train_ppo": 3,
-                 "evaluate": 3, "control": 2}
+                 "evaluate": 3, "control": 2, "adapt": 1}
 
 
 def _container(node: Any) -> Any:
@@ -219,20 +219,31 @@ def evaluate_spec(cfg: Any) -> Spec:
     return spec, inputs
 
 
-def control_policy_key(cfg: Any) -> str:
-    """The train_ppo key of the policy ``stage=control`` runs: that of ``control.policy_file``'s
-    artifact folder, else that of ``control.policy`` under this config."""
+# the stages whose artifacts hold a policy stage=control can drive with
+POLICY_STAGES = ("train_ppo", "adapt")
+
+
+def control_policy(cfg: Any) -> tuple[str, str]:
+    """``(stage, key)`` of the artifact of the policy ``stage=control`` runs: that of
+    ``control.policy_file``'s artifact folder (a train_ppo or an adapt artifact), else the
+    train_ppo artifact of ``control.policy`` under this config."""
     if cfg.control.policy_file:
         path = Path(str(cfg.control.policy_file))
         manifest = path.parent / MANIFEST
         if not path.is_file():
             raise FileNotFoundError(f"control.policy_file: no file at {path}")
-        if not manifest.is_file() or json.loads(manifest.read_text()).get("stage") != "train_ppo":
-            raise ValueError(f"control.policy_file={path} is not inside a train_ppo artifact "
-                             f"(no train_ppo {MANIFEST} beside it): the environment it was "
+        stage = (json.loads(manifest.read_text()).get("stage") if manifest.is_file() else None)
+        if stage not in POLICY_STAGES:
+            raise ValueError(f"control.policy_file={path} is not inside a train_ppo or adapt "
+                             f"artifact (no such {MANIFEST} beside it): the environment it was "
                              f"trained in, hence its observation, cannot be rebuilt")
-        return str(json.loads(manifest.read_text())["key"])
-    return artifact_key(*train_ppo_spec(control_policy_config(cfg)))
+        return str(stage), str(json.loads(manifest.read_text())["key"])
+    return "train_ppo", artifact_key(*train_ppo_spec(control_policy_config(cfg)))
+
+
+def control_policy_key(cfg: Any) -> str:
+    """The key of the artifact of the policy ``stage=control`` runs (:func:`control_policy`)."""
+    return control_policy(cfg)[1]
 
 
 # settings of stage=control that do not change what is commanded
@@ -240,7 +251,7 @@ _CONTROL_OPERATIONAL = ("policy", "policy_file", "goals_csv", "flush_every_s", "
 
 
 def control_spec(cfg: Any) -> Spec:
-    """A control session: the policy (its train_ppo key), the goals, the robot and its session
+    """A control session: the policy (its train_ppo or adapt key), the goals, the robot and its session
     label (``robot.session`` on ROS 2; a new label runs anew)."""
     control = _container(cfg.control)
     for setting in _CONTROL_OPERATIONAL:
@@ -248,19 +259,44 @@ def control_spec(cfg: Any) -> Spec:
     if cfg.control.goals_csv:
         control["goals_csv_sha256"] = hashlib.sha256(
             Path(str(cfg.control.goals_csv)).read_bytes()).hexdigest()
+    robot = _session_robot(cfg)
+    if RobotKind(cfg.robot.kind) is RobotKind.ros2:
+        control.pop("arm_seed", None)
+    stage, policy_key = control_policy(cfg)
+    return _versioned("control", {"control": control, "robot": robot}), {stage: policy_key}
+
+
+def _session_robot(cfg: Any) -> dict[str, Any]:
+    """The robot as a session's key sees it: on ROS 2 without how the link runs nor the twin's
+    settings (another process), with the session label (``robot.session``: a new label runs
+    anew)."""
     robot = _container(cfg.robot)
     if RobotKind(cfg.robot.kind) is RobotKind.ros2:
-        for setting in _ROS2_OPERATIONAL:
+        for setting in (*_ROS2_OPERATIONAL, "twin"):
             robot.pop(setting, None)
-        robot.pop("twin", None)  # the twin is another process: its settings are not ours
-        control.pop("arm_seed", None)
-    return (_versioned("control", {"control": control, "robot": robot}),
-            {"train_ppo": control_policy_key(cfg)})
+    return robot
+
+
+def adapt_spec(cfg: Any) -> Spec:
+    """The deployed policy calibrated to a session: the adapt settings, the walk (exploration,
+    alignment), the robot's session (robot=sim: ``control.arm_seed``) and the policy's seed; the
+    deployed policy (its train_ppo key) is the input."""
+    stage, policy_key = control_policy(cfg)
+    if stage != "train_ppo":
+        raise ConfigError(f"adapt: control.policy_file={cfg.control.policy_file} is an adapted "
+                          f"policy (an {stage} artifact); adapt the train_ppo policy it came "
+                          f"from")
+    spec = {"adapt": _container(cfg.adapt), "robot": _session_robot(cfg),
+            "exploration": _container(cfg.exploration), "align": _container(cfg.dataset.align),
+            "policy_seed": cfg.control.seed}
+    if RobotKind(cfg.robot.kind) is not RobotKind.ros2:
+        spec["arm_seed"] = int(cfg.control.arm_seed)
+    return _versioned("adapt", spec), {"train_ppo": policy_key}
 
 
 SPECS = {"collect": collect_spec, "align": align_spec, "fit_model": fit_model_spec,
          "train_ppo": train_ppo_spec, "evaluate": evaluate_spec, "control": control_spec,
-         "calibrate": calibrate_spec}
+         "calibrate": calibrate_spec, "adapt": adapt_spec}
 
 
 def key(stage: str, cfg: Any) -> str:

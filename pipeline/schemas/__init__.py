@@ -7,6 +7,7 @@ Units: pressures in kPa, positions in metres, times in seconds, rates in Hz.
 
 from __future__ import annotations
 
+from pipeline.schemas.adapt import AdaptConfig
 from pipeline.schemas.agent import (
     AgentConfig,
     StopAt,
@@ -91,6 +92,7 @@ __all__ = [
     "TRACK_SETTINGS",
     "ActionMode",
     "Activation",
+    "AdaptConfig",
     "AgentConfig",
     "AlignConfig",
     "CalibrationConfig",

@@ -27,6 +27,7 @@ class Stage(Choice):
     guard = "guard"  # the arm-side deadman and rating filter as a ROS 2 node (not part of `all`)
     control = "control"  # a trained policy drives the arm (not part of `all`)
     calibrate = "calibrate"  # fit the simulated arm to recorded runs (not part of `all`)
+    adapt = "adapt"  # calibrate model and policy to the session of the day (not part of `all`)
     all = "all"
 
 

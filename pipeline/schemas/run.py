@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from pipeline.schemas.adapt import AdaptConfig
 from pipeline.schemas.agent import AgentConfig
 from pipeline.schemas.choices import Stage
 from pipeline.schemas.data import CalibrationConfig, DatasetConfig, ExplorationConfig
@@ -151,5 +152,6 @@ class Config:
     agent: AgentConfig = MISSING
     evaluation: EvaluationConfig = MISSING
     control: ControlConfig = MISSING
+    adapt: AdaptConfig = MISSING
     logger: LoggerConfig = MISSING
     paths: PathsConfig = MISSING

@@ -2,8 +2,10 @@
 :mod:`pipeline.control.session`). Not part of ``stage=all``: started on its own.
 
 The train_ppo artifact is found from the composed config as evaluate finds it (or from
-``control.policy_file``); its environment is rebuilt from the artifact's lineage (its manifest and
-those of the fit_model and align artifacts it was trained on) with
+``control.policy_file``: a train_ppo artifact's policy, or an adapt artifact's, the policy
+fine-tuned to the session in the calibrated model, ``stage=adapt``); its environment is rebuilt
+from the artifact's lineage (its manifest and those of the fit_model and align artifacts it was
+trained on; for an adapted policy the calibrated model in place of the fit_model's) with
 :func:`pipeline.rl.envs.factory.environment`, exactly as training built it
 (:func:`load_deployment`). The session's rows, per-goal metrics, figures and report go into the
 ``control`` artifact.
@@ -34,16 +36,9 @@ from pipeline.control.session import (
     set_aside_interrupted,
 )
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
-from pipeline.keys import SPEC_VERSIONS
 from pipeline.rl.policy_io import best_seed, load_policy
-from pipeline.schemas import (
-    ConfigError,
-    EnvConfig,
-    EnvName,
-    PressureLimits,
-    RobotKind,
-    SimRobotConfig,
-)
+from pipeline.schemas import RobotKind
+from pipeline.stages._deployed import policy_artifact, training_config
 from pipeline.stages._environment import config_environment
 from pipeline.validation import validate_config
 
@@ -98,55 +93,6 @@ def control(cfg: Any) -> Artifact:
                 f"{'' if outcome.preload_acknowledged is not False else ' (not acknowledged)'}. "
                 f"The periods recorded so far are in {artifact.path}") from outcome.error
     return artifact
-
-
-def policy_artifact(cfg: Any, store: ArtifactStore) -> tuple[Artifact, ArtifactStore]:
-    """The train_ppo artifact of ``control.policy_file`` or of ``control.policy`` (by key), and
-    the store that holds it and its lineage (that of ``control.policy_file``'s folder)."""
-    key = keys.control_policy_key(cfg)
-    if cfg.control.policy_file:
-        folder = Path(str(cfg.control.policy_file)).resolve().parent
-        return Artifact("train_ppo", key, folder), ArtifactStore(folder.parent.parent)
-    hint = (f" with agent={cfg.control.policy}, on this robot's data (robot=ros2: `stage=collect` "
-            f"first); or point control.policy_file at a train_ppo policy.msgpack")
-    return store.require("train_ppo", key, hint=hint), store
-
-
-def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
-                    ) -> tuple[Any, Artifact | None, Artifact | None]:
-    """``(config, fit_model artifact, align artifact)`` that rebuild the artifact's environment
-    with :func:`~pipeline.stages._environment.config_environment`: the env, robot rate and limits,
-    and model rate it was trained with, read from its manifest and those of its inputs, laid over
-    the schemas' defaults (the spec keeps what differs from them)."""
-    manifest = artifact.manifest
-    spec = manifest["spec"]
-    version = spec.get("spec_version", 1)
-    if version != SPEC_VERSIONS["train_ppo"]:
-        raise ConfigError(f"{artifact.path}: a policy of train_ppo spec version {version}, this "
-                          f"version rebuilds environments of version "
-                          f"{SPEC_VERSIONS['train_ppo']}; train it anew (stage=train_ppo)")
-    env_name = EnvName(spec["env"]["name"])
-    if env_name is EnvName.gymnax:
-        raise ValueError(f"{artifact.path}: a policy of a gymnax environment "
-                         f"({spec['env'].get('gymnax_name')}) cannot drive the arm")
-    if int(spec["env"].get("preview", 0)):
-        raise ConfigError(f"{artifact.path}: a policy trained to track with a preview of "
-                          f"env.preview={spec['env']['preview']} reference points; stage=control "
-                          f"sends goals, not references: drive a policy trained without a preview")
-    env = OmegaConf.merge(OmegaConf.structured(EnvConfig), spec["env"])
-    if env_name is EnvName.sim:
-        robot = OmegaConf.merge(OmegaConf.structured(SimRobotConfig), spec["robot"])
-        dataset = {"model_hz": spec["model_hz"]}
-        return OmegaConf.create({"env": env, "robot": robot, "dataset": dataset}), None, None
-    model = store.require("fit_model", manifest["inputs"]["fit_model"])
-    aligned = store.require("align", model.manifest["inputs"]["align"])
-    dataset = model.manifest["spec"]["dataset"]
-    robot = {"control_hz": spec["control_hz"], "n_valves": n_valves,
-             "limits": OmegaConf.merge(OmegaConf.structured(PressureLimits), spec["limits"])}
-    config = OmegaConf.create({"env": env, "robot": robot,
-                               "dataset": {"model_hz": dataset["model_hz"],
-                                           "model_grid": dataset["model_grid"]}})
-    return config, model, aligned
 
 
 def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:

@@ -223,7 +223,7 @@ def test_control_refuses_a_policy_trained_with_a_preview_in_one_line(tmp_path):
     import json
 
     from pipeline.infra.artifacts import MANIFEST, Artifact, ArtifactStore
-    from pipeline.stages.control import training_config
+    from pipeline.stages._deployed import training_config
 
     folder = tmp_path / "train_ppo" / "abc"
     folder.mkdir(parents=True)

@@ -123,7 +123,7 @@ def test_a_walk_outside_the_limits_stops_at_the_preload(make_cfg):
 
 @pytest.mark.parametrize("override, message", [
     ("adapt.walk_s=0", "adapt.walk_s=0.0 must be finite and > 0"),
-    ("adapt.mechanism=latent", "adapt.mechanism='latent' must be one of"),
+    ("adapt.mechanism=magic", "adapt.mechanism='magic' must be one of"),
     ("adapt.output=skew", "adapt.output='skew' must be one of"),
     ("adapt.steps=-1", "adapt: adaptation steps must be an integer >= 0"),
     ("robot=sorolex_csv", "stage=adapt drives an arm for its calibration walk"),
@@ -193,6 +193,10 @@ def test_adapt_then_control_on_a_session_whose_physics_differ(make_cfg):
 
     trained = run(make_cfg("stage=train_ppo", *TINY))["train_ppo"]
     policy = str(trained.file("policy.msgpack"))
+    # a session latent needs a model trained with one: refused before the walk
+    with pytest.raises(ConfigError, match=r"adapt\.mechanism=latent .* trained without one"):
+        run(make_cfg("stage=adapt", *TINY, *SESSION, f"control.policy_file={policy}",
+                     "adapt.mechanism=latent"))
     adapted = run(make_cfg("stage=adapt", *TINY, *SESSION, f"control.policy_file={policy}",
                            "adapt.walk_s=20", "adapt.steps=100",
                            "adapt.policy_timesteps=8192"))["adapt"]

@@ -48,7 +48,7 @@ from pipeline.data.raw import CollectionInterrupted
 from pipeline.data.schemas import ALIGNED, COMMANDS, MOCAP, write_table
 from pipeline.dynamics import adaptation
 from pipeline.dynamics.checkpoints import load_dynamics, save_dynamics
-from pipeline.dynamics.model import predict_sequence
+from pipeline.dynamics.model import predict_sequence, session_latent_dim
 from pipeline.dynamics.scoring import position_errors_mm
 from pipeline.dynamics.session import fold_correction, fold_error_m
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
@@ -82,6 +82,11 @@ def adapt(cfg: Any) -> Artifact:
         raise ConfigError(f"adapt: the policy {deployed.path} was trained in env="
                           f"{train_cfg.env.name}, without a fitted model to calibrate; adapt a "
                           f"policy of the learned environment")
+    if (settings.mechanism == "latent"
+            and session_latent_dim(load_dynamics(model.file("model.msgpack"))) == 0):
+        raise ConfigError(f"adapt.mechanism=latent infers a session latent, and the model "
+                          f"{model.path} was trained without one (model.session_latent_dim=0); "
+                          f"choose another mechanism or deploy a policy of a latent model")
     if abs(float(train_cfg.robot.control_hz) - float(robot.control_hz)) > 1e-9:
         raise ConfigError(f"robot.control_hz={robot.control_hz}: the policy {deployed.path} was "
                           f"trained at {train_cfg.robot.control_hz} Hz")

@@ -116,7 +116,8 @@ def adapt(cfg: Any) -> Artifact:
             summary["rehearsal"] = bool(robot.rehearsal)  # walked on the twin
         writer.summary = {**summary, "policy_seed": seed, "deployed_path": str(deployed.path),
                           "walk_arm_s": float(run.times_s[-1]),
-                          **{k: round(v, 2) for k, v in timings.items()}}
+                          **{k: round(v, 2) for k, v in timings.items()
+                             if isinstance(v, (int, float))}}  # the seconds and counts
         log.info("adapt: %s", json.dumps(writer.summary))
 
     if kind is RobotKind.ros2:

@@ -37,8 +37,9 @@ def rest_error_mm(params, correction, run, observed, start):
     return 1000.0 * np.abs(np.asarray(predicted)[start:] - observed[start:]).max()
 
 
-@pytest.mark.parametrize("mechanism, readout", [(m, False) for m in adaptation.MECHANISMS]
-                         + [("fine_tune", True)])
+# latent needs a model trained with session latents: tests/test_session_latent.py
+@pytest.mark.parametrize("mechanism, readout", [(m, False) for m in adaptation.MECHANISMS
+                                                if m != "latent"] + [("fine_tune", True)])
 def test_zero_context_is_the_plain_prediction(mechanism, readout):
     params, run = tiny_model()
     settings = AdaptationSettings(mechanism=mechanism, steps=5, readout=readout)

@@ -23,7 +23,9 @@ The identity correction (all zero) gives the plain prediction exactly. Mechanism
   number of steps, the step size decaying to 0 on a cosine) on the mean squared error over the context of the parameters that
   ``output`` (``bias``: ``b``; ``diagonal``: ``b`` and ``diag(M)``; ``full``: ``b`` and ``M``)
   and ``input_affine`` (``g``, ``o``) free, with a quadratic prior pulling ``g``, ``o / σ_p``
-  and ``M`` to zero (``prior_mm2``: the squared error in mm² one unit of them is worth).
+  and ``M`` to zero (``prior_mm2``: the squared error in mm² one unit of them is worth);
+* ``latent`` (a model trained with session latents, :mod:`pipeline.dynamics.session_latent`):
+  the session latent inferred from the context, the weights fixed.
 
 The baseline given the same context: the linear lagged-pressure model
 (:mod:`pipeline.dynamics.scoring`) refitted on it (:func:`refit_linear_on_context`), its
@@ -197,7 +199,6 @@ def adapt(params: DynamicsParams, pressures: np.ndarray, positions: np.ndarray,
               else max(1, min(len(pressures), context_steps(settings.offset_window_s, model_hz))))
     if settings.mechanism == "offset":
         return _offset(params, pressures, positions, window)
-
     return _fine_tune(params, pressures, positions, settings, window)
 
 
@@ -207,7 +208,7 @@ def _latent(params: DynamicsParams, pressures: jax.Array, positions: jax.Array,
     the latent without context, 0 or the mean of the latents the model learned)."""
     if dynamics.session_latent_dim(params) == 0:
         raise ValueError("adaptation mechanism 'latent' needs a model trained with session "
-                         "latents (model.session_latent_dim > 0)")
+                         "latents (cv.fit_members with a SessionLatentSettings)")
     center = None
     if settings.latent_center == "training_mean":
         center = jnp.mean(training_latents(params, trained_only=True), axis=0)

@@ -116,9 +116,12 @@ def fit_model_spec(cfg: Any) -> Spec:
 
 def env_spec(cfg: Any) -> dict[str, Any]:
     """``cfg.env`` as keys see it: without ``env.models`` (where those lie does not matter, their
-    keys are inputs) and, for absolute actions, without the incremental step (unused)."""
+    keys are inputs), without ``env.train_max_steps`` where unset (the keys of before) and, for
+    absolute actions, without the incremental step (unused)."""
     env = _container(cfg.env)
     env.pop("models", None)
+    if env.get("train_max_steps") is None:  # unset: training's horizon is max_steps, as before
+        env.pop("train_max_steps", None)
     if not incremental_actions(env):
         env.pop("action_step_kpa", None)
     return env

@@ -122,10 +122,13 @@ def fit_model_spec(cfg: Any) -> Spec:
 
 def env_spec(cfg: Any) -> dict[str, Any]:
     """``cfg.env`` as keys see it: without ``env.models`` (where those lie does not matter, their
-    keys are inputs), for absolute actions without the incremental step and, to reach, without
-    the tracking task's settings (unused)."""
+    keys are inputs), without ``env.train_max_steps`` where unset (the keys of before), for
+    absolute actions without the incremental step and, to reach, without the tracking task's
+    settings (unused)."""
     env = _container(cfg.env)
     env.pop("models", None)
+    if env.get("train_max_steps") is None:  # unset: training's horizon is max_steps, as before
+        env.pop("train_max_steps", None)
     if Task(env.get("task", Task.reach)) is Task.reach:
         for setting in TRACK_SETTINGS:
             env.pop(setting, None)

@@ -290,9 +290,16 @@ def _check_env(cfg: Any) -> None:
     if isinstance(hold, bool) or not isinstance(hold, int) or hold < 1:
         raise ConfigError(f"env.hold_periods={hold} must be an integer >= 1 (consecutive control "
                           f"periods at the goal that end an episode; 1: the first arrival)")
-    if hold > int(env.max_steps):
-        raise ConfigError(f"env.hold_periods={hold} must be at most env.max_steps="
-                          f"{env.max_steps} (an episode could never end at the goal)")
+    train_steps = env.get("train_max_steps")
+    if train_steps is not None and (isinstance(train_steps, bool) or not isinstance(
+            train_steps, int) or train_steps < 1):
+        raise ConfigError(f"env.train_max_steps={train_steps} must be an integer >= 1 (control "
+                          f"periods of a training episode) or null (env.max_steps)")
+    horizon, horizon_name = ((int(env.max_steps), "env.max_steps") if train_steps is None
+                             else (train_steps, "env.train_max_steps"))
+    if hold > horizon:
+        raise ConfigError(f"env.hold_periods={hold} must be at most {horizon_name}="
+                          f"{horizon} (an episode could never end at the goal)")
     bonus = float(env.hold_bonus_mm)
     if not (math.isfinite(bonus) and bonus >= 0):
         raise ConfigError(f"env.hold_bonus_mm={bonus} must be finite and >= 0 (mm of reward per "

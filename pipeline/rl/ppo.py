@@ -176,13 +176,13 @@ def make_train_program(
         deterministic evaluations. Both may be passed to ``train`` instead, as arguments, so large
         parameters (model weights) are not baked into the compiled program as constants.
       eval_steps: steps per evaluation (one episode per environment); default
-        ``env_params.max_steps_in_episode``.
+        ``eval_env_params.max_steps_in_episode``.
     """
     config = AgentConfig.from_any(agent)
     config.check()
     eval_env_params = env_params if eval_env_params is None else eval_env_params
     if eval_steps is None:
-        eval_steps = int(env_params.max_steps_in_episode)
+        eval_steps = int(eval_env_params.max_steps_in_episode)
     low, high = action_bounds(env, env_params)  # read here: the env params are traced below
     eval_bounds = action_bounds(env, eval_env_params)
     build = _Build(config, env, make_network(config, int(np.prod(low.shape))), low, high,

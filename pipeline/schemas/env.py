@@ -59,7 +59,10 @@ class EnvConfig:
     reference_size_max_mm: float = 6.0
     reference_period_min_s: float = 8.0
     reference_period_max_s: float = 40.0
-    max_steps: int = 40  # control periods per episode (truncation)
+    max_steps: int = 40  # control periods per episode (truncation); evaluation's horizon too
+    # training episodes only: truncated after this many control periods instead (longer than the
+    # evaluation's trains the states long after arrival); null: max_steps
+    train_max_steps: int | None = None
     goal_tolerance_m: float = 0.001  # a control period ending within this distance is at the goal
     # terminate after this many consecutive control periods at the goal (1: the first arrival);
     # more trains the policy in the states after arrival, where evaluation and the arm keep it

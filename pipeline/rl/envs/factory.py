@@ -44,6 +44,7 @@ from pipeline.data.schemas import ALIGNED, read_table
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.dynamics.scoring import predict_run
 from pipeline.rl.envs.learned import (
+    EnvParams,
     Randomization,
     SoftArmReachEnv,
     make_env_params,
@@ -392,13 +393,24 @@ def environment(settings: EnvConfig, arm: ArmSettings, inputs: LearnedInputs | N
     if env_name is EnvName.gymnax:
         return make_gymnax_env(settings)
     if env_name is EnvName.sim:
-        return make_sim_env(settings, arm)
+        return training_only(settings, *make_sim_env(settings, arm))
     if inputs is None:
         raise ValueError("env=learned needs the fit_model artifact and its aligned data")
     data = learned_goals(settings, inputs)
-    return make_learned_env(settings, arm, inputs.dynamics, data["train_goals"],
-                            data["held_out_goals"], data["rest_pose"], data["rest_pose_std"],
-                            members=inputs.members)
+    return training_only(settings, *make_learned_env(
+        settings, arm, inputs.dynamics, data["train_goals"], data["held_out_goals"],
+        data["rest_pose"], data["rest_pose_std"], members=inputs.members))
+
+
+def training_only(settings: EnvConfig, env: SoftArmReachEnv, train_params: EnvParams,
+                  eval_params: EnvParams) -> tuple[SoftArmReachEnv, EnvParams, EnvParams]:
+    """The settings that shape training episodes only: ``train_max_steps`` (where set) is the
+    training parameters' horizon, and the evaluation parameters keep their goal for the whole
+    episode (``goal_redraw_periods=0``: an evaluation scores the goal it started with)."""
+    if settings.train_max_steps is not None:
+        train_params = train_params.replace(max_steps=int(settings.train_max_steps))
+    eval_params = eval_params.replace(goal_redraw_periods=jnp.zeros((), jnp.int32))
+    return env, train_params, eval_params
 
 
 def _positions(run_id: str, pos: np.ndarray) -> pd.DataFrame:

@@ -202,6 +202,27 @@ def waypoints(points_mm: np.ndarray, speed_mm_s: float, start_s: float = 0.0) ->
 _METRES_BELOW_MM = 2.0
 
 
+def read_timed_points(path: Path, what: str, error: type[Exception]) -> np.ndarray:
+    """The ``t,x,y,z`` columns (s, mm; further columns ignored) of a CSV as numbers ``[N, 4]``;
+    one ``error`` naming ``what`` (e.g. the file and the setting it came from) for a file that
+    cannot be read, a missing column, no row or an entry that is not a number. The callers check
+    what their points must be (finite, increasing times, in mm)."""
+    try:
+        frame = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
+        raise error(f"{what}: cannot read it: {err}") from err
+    missing = [c for c in ("t", "x", "y", "z") if c not in frame.columns]
+    if missing:
+        raise error(f"{what}: missing column(s) {missing}; expected t,x,y,z (s, mm), found "
+                    f"{list(frame.columns)}")
+    if frame.empty:
+        raise error(f"{what}: no rows; expected t,x,y,z (s, mm)")
+    try:
+        return frame[["t", "x", "y", "z"]].to_numpy(np.float64)
+    except (TypeError, ValueError) as err:
+        raise error(f"{what}: t,x,y,z must be numbers: {err}") from err
+
+
 def read_csv(path: Path) -> Reference:
     """The timed reference of a CSV with columns ``t,x,y,z`` (s, mm; further columns ignored).
 
@@ -210,20 +231,7 @@ def read_csv(path: Path) -> Reference:
     metres (every one within 2 mm of the origin of the mocap frame, where the arm never is).
     """
     path = Path(path)
-    try:
-        frame = pd.read_csv(path)
-    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
-        raise InvalidReference(f"reference CSV {path}: cannot read it: {err}") from err
-    missing = [c for c in ("t", "x", "y", "z") if c not in frame.columns]
-    if missing:
-        raise InvalidReference(f"reference CSV {path}: missing column(s) {missing}; expected "
-                             f"t,x,y,z (s, mm), found {list(frame.columns)}")
-    if frame.empty:
-        raise InvalidReference(f"reference CSV {path}: no rows; expected t,x,y,z (s, mm)")
-    try:
-        values = frame[["t", "x", "y", "z"]].to_numpy(np.float64)
-    except (TypeError, ValueError) as err:
-        raise InvalidReference(f"reference CSV {path}: t,x,y,z must be numbers: {err}") from err
+    values = read_timed_points(path, f"reference CSV {path}", InvalidReference)
     points_mm = values[:, 1:]
     finite = np.isfinite(points_mm)
     if finite.all() and np.abs(points_mm).max() < _METRES_BELOW_MM:

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.arm.references import read_timed_points
 from pipeline.schemas import ControlConfig
 
 MM_PER_M = 1000.0
@@ -72,17 +73,10 @@ def _as_goals(values: Any, what: str) -> np.ndarray:
 
 def read_waypoints(path: Path) -> pd.DataFrame:
     """The waypoints of a CSV with columns ``t,x,y,z`` (s, mm); errors name the file."""
-    try:
-        table = pd.read_csv(path)
-    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
-        raise GoalError(f"control.goals_csv: cannot read {path}: {err}") from err
-    missing = [c for c in ("t", "x", "y", "z") if c not in table.columns]
-    if missing:
-        raise GoalError(f"control.goals_csv {path}: missing column(s) {missing}; expected t,x,y,z "
-                        f"(s, mm), found {list(table.columns)}")
-    table = table[["t", "x", "y", "z"]]
-    if table.empty or not np.isfinite(table.to_numpy(np.float64)).all():
-        raise GoalError(f"control.goals_csv {path}: needs at least one row of finite numbers")
+    values = read_timed_points(path, f"control.goals_csv {path}", GoalError)
+    table = pd.DataFrame(values, columns=["t", "x", "y", "z"])
+    if not np.isfinite(values).all():
+        raise GoalError(f"control.goals_csv {path}: every t,x,y,z must be a finite number")
     if (table["t"].iloc[0] < 0) or (np.diff(table["t"]) <= 0).any():
         raise GoalError(f"control.goals_csv {path}: column t must start at >= 0 s and increase")
     return table

@@ -87,7 +87,7 @@ def test_an_environment_without_transition_gradients_is_refused_by_name():
         make_train_program(agent, opaque, params)
 
 
-@pytest.mark.slow  # a training run or a whole command: minutes on 2 cores
+@pytest.mark.slow  # among the longest of the suite: runs with `make test-all`
 def test_tiny_apg_run_reaches_goals_on_the_toy_arm_with_ppo_s_network():
     env, params = toy_reaching()
     agent = AgentConfig(num_seeds=2, num_envs=16, num_steps=5, total_timesteps=16 * 5 * 40,
@@ -106,7 +106,7 @@ def test_tiny_apg_run_reaches_goals_on_the_toy_arm_with_ppo_s_network():
     check_same_variables(expected, jax.tree.map(lambda x: x[0], output.params), "apg params")
 
 
-@pytest.mark.slow  # a training run or a whole command: minutes on 2 cores
+@pytest.mark.slow  # among the longest of the suite: runs with `make test-all`
 def test_a_recurrent_policy_trains_through_its_hidden_state():
     env, params = toy_reaching()
     agent = AgentConfig(num_seeds=1, num_envs=8, num_steps=5, total_timesteps=8 * 5 * 30,

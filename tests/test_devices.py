@@ -105,7 +105,7 @@ def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
     assert report["moved"] > 1e-4  # the rollouts did move the arm
 
 
-@pytest.mark.slow  # a training run or a whole command: minutes on 2 cores
+@pytest.mark.slow  # among the longest of the suite: runs with `make test-all`
 def test_model_members_split_over_two_devices_train_as_in_one_batch():
     report = run_python("""
         import json

@@ -15,7 +15,7 @@ RECORDINGS = ["Step_control_17_10_12_20.csv", "Step_control_17_10_12_29.csv",
               "Step_control_17_10_12_03.csv"]
 
 
-@pytest.mark.slow  # a training run or a whole command: minutes on 2 cores
+@pytest.mark.slow  # among the longest of the suite: runs with `make test-all`
 def test_the_figures_command_writes_figs_4_to_8(sorolex_dir, tmp_path):
     from experiments.paper_figures import main
 

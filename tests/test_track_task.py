@@ -146,7 +146,7 @@ def test_tracking_metrics_by_hand():
     assert lagged["rmse_mm"][0] == pytest.approx(chord, rel=1e-6)
 
 
-@pytest.mark.slow  # a training run or a whole command: minutes on 2 cores
+@pytest.mark.slow  # among the longest of the suite: runs with `make test-all`
 def test_run_tracking_on_the_simulated_arm_scores_the_preload(make_cfg):
     cfg = make_cfg("env=sim", "env.task=track", "env.preview=1", "env.num_goals=64",
                    "env.reset_bank_size=4")

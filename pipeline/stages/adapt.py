@@ -58,6 +58,7 @@ from pipeline.rl.results import evaluation_tables, metrics_table, write_results
 from pipeline.schemas import AgentConfig, ConfigError, RobotKind
 from pipeline.stages._deployed import policy_artifact, training_config
 from pipeline.stages._environment import config_environment
+from pipeline.stages._rehearsal import refuse_twin_artifact
 from pipeline.validation import validate_config
 
 log = logging.getLogger(__name__)
@@ -129,13 +130,11 @@ def adapt(cfg: Any) -> Artifact:
 
 
 def refuse_rehearsal(store: ArtifactStore, key: str, rehearsal: bool, force: bool) -> None:
-    """An adapt on the arm never answers with a rehearsal's: the rehearsal settings are not part
-    of the key (a rehearsal runs the arm's config on its twin), so refuse the twin's artifact."""
-    existing = None if rehearsal or force else store.find(STAGE, key)
-    if existing is not None and existing.manifest.get("summary", {}).get("rehearsal"):
-        raise ConfigError(f"adapt: {existing.path} was calibrated on the digital twin under this "
-                          f"config's key; name this session anew (robot.session=...), or "
-                          f"force=true to walk the arm again")
+    """An adapt on the arm never answers with a rehearsal's calibration."""
+    refuse_twin_artifact(
+        store, STAGE, key, rehearsal, force,
+        "adapt: {path} was calibrated on the digital twin under this config's key; name this "
+        "session anew (robot.session=...), or force=true to walk the arm again")
 
 
 def adaptation_settings(node: Any) -> adaptation.AdaptationSettings:

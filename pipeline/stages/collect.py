@@ -35,7 +35,8 @@ from pipeline.data.importers import READERS, list_recordings, recording_id
 from pipeline.data.raw import CollectionInterrupted, check_positions, plot_runs, raw_summary
 from pipeline.data.schemas import CMD_COLUMNS, COMMANDS, MOCAP, RUNS, XYZ, write_table
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
-from pipeline.schemas import ConfigError, ImportRobotConfig, RobotKind
+from pipeline.schemas import ImportRobotConfig, RobotKind
+from pipeline.stages._rehearsal import refuse_twin_artifact
 
 log = logging.getLogger(__name__)
 STAGE = "collect"
@@ -106,18 +107,14 @@ def _collect_ros2(cfg: Any, robot: Any, store: ArtifactStore, spec: dict[str, An
 
 
 def _refuse_rehearsal_data(store: ArtifactStore, key: str, rehearsal: bool, force: bool) -> None:
-    """A real-arm collect never answers with a rehearsal's data. The rehearsal settings are not
-    part of the key (a rehearsal runs the arm's config on its twin), so a rehearsal recorded with
-    the same ``robot.session`` holds this key: refuse instead of reusing the twin's runs as the
+    """A real-arm collect never answers with a rehearsal's data: a rehearsal recorded with the
+    same ``robot.session`` holds this key, so refuse instead of reusing the twin's runs as the
     arm's."""
-    if rehearsal or force:
-        return
-    existing = store.find(STAGE, key)
-    if existing is not None and existing.manifest.get("summary", {}).get("rehearsal"):
-        raise ConfigError(
-            f"collect: {existing.path} holds a rehearsal recorded on the digital twin under this "
-            f"config's key; a real-arm collect would reuse the twin's runs as the arm's. Name "
-            f"this session anew (robot.session=...), or force=true to record over it")
+    refuse_twin_artifact(
+        store, STAGE, key, rehearsal, force,
+        "collect: {path} holds a rehearsal recorded on the digital twin under this config's "
+        "key; a real-arm collect would reuse the twin's runs as the arm's. Name this session "
+        "anew (robot.session=...), or force=true to record over it")
 
 
 def _set_aside_incomplete(store: ArtifactStore, key: str, reuse: bool) -> None:

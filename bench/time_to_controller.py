@@ -1,6 +1,6 @@
 """Time to a controller: PPO and analytic policy gradients (APG) side by side on one model.
 
-    python -m bench time_to_controller [--seeds 4] [--rnn] [--output-dir DIR] [overrides ...]
+    python -m bench time_to_controller [--seeds 4] [--rnn] [--curves] [overrides ...]
 
 Trains each policy type (``ppo_ff``, ``apg``, with ``--rnn`` also ``ppo_rnn``; their
 ``conf/agent`` files laid over the composed agent, each with its own budget) for ``--seeds``

@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 
 from pipeline.config import PROJECT_ROOT
 from pipeline.data.importers import list_recordings
-from pipeline.schemas import ConfigError, EnvName, ModelProtocol, RobotKind, Stage, Task
+from pipeline.schemas import AgentConfig, ConfigError, EnvName, ModelProtocol, RobotKind, Stage, Task
 
 
 @dataclass(frozen=True)
@@ -117,18 +117,35 @@ def ensemble_configs(cfg: Any) -> list[Any]:
             for offset in range(1, int(cfg.env.get("ensemble_seeds", 1)))]
 
 
-def agent_option(name: str, base: Any) -> Any:
-    """``base`` (the composed ``agent``) with the settings of option ``name`` laid over it.
-
-    The option file (``conf/agent/<name>.yaml``) says what makes the policy type (name,
-    recurrent, ...); everything else, e.g. an experiment's seeds and budget, carries over.
-    """
+def _agent_file(name: str) -> Any:
+    """The settings of agent option ``name`` (``conf/agent/<name>.yaml``, its defaults list
+    dropped)."""
     path = PROJECT_ROOT / "conf" / "agent" / f"{name}.yaml"
     if not path.is_file():
         options = sorted(p.stem for p in path.parent.glob("*.yaml"))
         raise ValueError(f"evaluation.policies: no agent config {name!r}; options: {options}")
     node = OmegaConf.load(path)
     node.pop("defaults", None)
+    return node
+
+
+def agent_option(name: str, base: Any) -> Any:
+    """``base`` (the composed ``agent``) with the settings of option ``name`` laid over it.
+
+    The option file (``conf/agent/<name>.yaml``) says what makes the policy type (name,
+    trainer, recurrent, its budget, ...); everything else, e.g. an experiment's seeds and
+    budget, carries over. What ``base``'s own option file set (and nothing laid over it since)
+    goes back to the schema's default first, so an option laid over the composed agent is the
+    same agent as the option chosen (``agent=<name>``), whichever option the composed one is.
+    """
+    node = _agent_file(name)
+    own = _agent_file(str(base.name)) if (PROJECT_ROOT / "conf" / "agent"
+                                          / f"{base.name}.yaml").is_file() else {}
+    defaults = OmegaConf.structured(AgentConfig)
+    base = base.copy()
+    for key, value in own.items():
+        if key in defaults and key in base and base[key] == value:
+            base[key] = defaults[key]
     return OmegaConf.merge(base, node)
 
 

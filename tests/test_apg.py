@@ -189,13 +189,29 @@ def test_the_report_says_where_stop_at_stopped_a_training():
     assert _stopped_at(stopped) == "102400 steps/seed, 17.6 s: 0.557 mm, 85 %"
 
 
-@pytest.mark.parametrize("option", ["apg", "apg_rnn"])
-def test_an_apg_option_is_the_same_agent_chosen_or_laid_over_another(make_cfg, option):
+@pytest.mark.parametrize("composed", ["apg", "ppo_ff"])
+@pytest.mark.parametrize("option", ["apg", "apg_rnn", "ppo_ff", "ppo_rnn"])
+def test_an_option_is_the_same_agent_chosen_or_laid_over_another(make_cfg, option, composed):
     # evaluate lays an option's file over the composed agent (pipeline.chain.agent_option), which
     # drops the file's defaults: the option says everything that makes its policy type itself
     from pipeline.chain import agent_option
 
     chosen = make_cfg(f"agent={option}").agent
-    laid_over = agent_option(option, make_cfg().agent)
+    laid_over = agent_option(option, make_cfg(f"agent={composed}").agent)
     assert dict(laid_over) == dict(chosen)
-    assert AgentConfig.from_any(chosen).trainer is Trainer.apg
+    expected = Trainer.apg if option.startswith("apg") else Trainer.ppo
+    assert AgentConfig.from_any(laid_over).trainer is expected
+
+
+def test_an_option_keeps_what_an_experiment_set_for_every_policy_type(make_cfg):
+    # experiment=real_arm sets the seeds, learning rate and budgets of its (PPO) agent: a PPO
+    # option laid over it keeps them, an APG option keeps the seeds and brings its own budget
+    from pipeline.chain import agent_option
+
+    composed = make_cfg("experiment=real_arm").agent
+    rnn = agent_option("ppo_rnn", composed)
+    assert (rnn.trainer, rnn.num_seeds, rnn.lr, rnn.recurrent_total_timesteps) == (
+        "ppo", 20, 1.0e-3, 4_000_000)
+    apg = agent_option("apg", composed)
+    assert (apg.trainer, apg.num_seeds, apg.total_timesteps, apg.num_steps) == (
+        "apg", 20, 256_000, 10)

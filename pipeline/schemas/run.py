@@ -43,7 +43,7 @@ TRACK_EVALUATION_SETTINGS = ("references", "tracking_seconds", "tracking_settle_
 class EvaluationConfig:
     """The evaluate stage: which policies, how many episodes, which baselines."""
 
-    policies: list[str] = field(default_factory=lambda: ["ppo_ff", "ppo_rnn"])  # agent configs
+    policies: list[str] = field(default_factory=lambda: ["apg", "apg_rnn"])  # agent configs
     baselines: list[str] = field(default_factory=lambda: ["preload", "random", "mpc"])
     num_episodes: int = 64  # held-out goals, the same for every seed, controller and plant
     num_consecutive_goals: int = 5  # goals reached one after another without reset
@@ -96,7 +96,7 @@ class ControlConfig:
     live on ``goal_topic`` (``geometry_msgs/msg/PointStamped`` in metres, robot=ros2 only).
     """
 
-    policy: str = "ppo_ff"  # agent option (conf/agent/<policy>.yaml) of the train_ppo artifact
+    policy: str = "apg"  # agent option (conf/agent/<policy>.yaml) of the train_ppo artifact
     policy_file: str | None = None  # a policy.msgpack inside a train_ppo artifact, instead
     seed: int | None = None  # seed of the stacked policy; None: best held-out median in training
     goals: list[Any] = field(default_factory=list)  # [[x, y, z], ...] mm (checked by control)

@@ -19,7 +19,15 @@ from omegaconf import OmegaConf
 
 from pipeline.config import PROJECT_ROOT
 from pipeline.data.importers import list_recordings
-from pipeline.schemas import AgentConfig, ConfigError, EnvName, ModelProtocol, RobotKind, Stage, Task
+from pipeline.schemas import (
+    AgentConfig,
+    ConfigError,
+    EnvName,
+    ModelProtocol,
+    RobotKind,
+    Stage,
+    Task,
+)
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
     python -m bench time_to_controller [--seeds 4] [--rnn] [--curves] [overrides ...]
 
-Trains each policy type (``ppo_ff``, ``apg``, with ``--rnn`` also ``ppo_rnn``; their
+Trains each policy type (``ppo_ff``, ``apg``, with ``--rnn`` also ``ppo_rnn`` and ``apg_rnn``; their
 ``conf/agent`` files laid over the composed agent, each with its own budget) for ``--seeds``
 seeds in the learned environment of the composed config (default: the default chain's, its
 fit_model artifact made first where it is missing), one after another in this process, and
@@ -37,7 +37,7 @@ THRESHOLDS_MM = (1.0, 0.75, 0.5)
 TARGET = StopAt(median_distance_mm=0.6, success_rate=0.85)
 # evaluations during training per policy type: about every 60 k steps per seed for PPO's
 # 1.2 M, every 26 k for APG's 0.26 M
-EVALUATIONS = {"ppo_ff": 20, "apg": 10, "ppo_rnn": 20}
+EVALUATIONS = {"ppo_ff": 20, "apg": 10, "ppo_rnn": 20, "apg_rnn": 10}
 
 
 def learned_environment(overrides: list[str]):
@@ -107,7 +107,7 @@ def table(rows: list[dict], seeds: int) -> str:
 
 def ratios(rows: list[dict]) -> list[str]:
     """Each trainer's time and steps to the target relative to APG's."""
-    apg = next((r for r in rows if r["trainer"] == "apg"), None)
+    apg = next((r for r in rows if r["name"] == "apg"), None)
     if apg is None or apg["reached"]["target"] is None:
         return []
     steps, seconds = apg["reached"]["target"]
@@ -124,12 +124,12 @@ def ratios(rows: list[dict]) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=4, help="seeds trained at once (vmap)")
-    parser.add_argument("--rnn", action="store_true", help="also PPO's recurrent policy")
+    parser.add_argument("--rnn", action="store_true", help="also the recurrent policies (ppo_rnn, apg_rnn)")
     parser.add_argument("--curves", action="store_true", help="print every evaluation")
     parser.add_argument("overrides", nargs="*", help="config overrides (the model's config)")
     args = parser.parse_args(argv)
     cfg, env, train_params, eval_params = learned_environment(args.overrides)
-    names = ["ppo_ff", "apg", *(["ppo_rnn"] if args.rnn else [])]
+    names = ["ppo_ff", "apg", *(["ppo_rnn", "apg_rnn"] if args.rnn else [])]
     load_before = os.getloadavg()
     rows = [measure(name, cfg, env, train_params, eval_params, args.seeds) for name in names]
     load_after = os.getloadavg()

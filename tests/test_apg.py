@@ -158,7 +158,7 @@ def test_held_out_figures_pool_the_seeds_episodes():
 
 
 def test_new_agent_settings_at_their_defaults_leave_the_train_key_unchanged(make_cfg):
-    spec, _ = keys.train_ppo_spec(make_cfg())
+    spec, _ = keys.train_ppo_spec(make_cfg("agent=ppo_ff"))
     assert "trainer" not in spec["agent"] and "stop_at" not in spec["agent"]
     default = artifact_key(*keys.train_ppo_spec(make_cfg()))
     stopping = artifact_key(*keys.train_ppo_spec(make_cfg("agent.stop_at.median_distance_mm=0.6")))

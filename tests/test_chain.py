@@ -24,7 +24,7 @@ def test_the_default_evaluate_plan_trains_each_policy_type_once(make_cfg):
     jobs = plan(make_cfg("stage=evaluate"), train_key)
     assert summary(jobs) == [
         ("collect", "", True), ("align", "", True), ("fit_model", "", True),
-        ("train_ppo", "ppo_ff", True), ("train_ppo", "ppo_rnn", False), ("evaluate", "", True)]
+        ("train_ppo", "apg", True), ("train_ppo", "apg_rnn", False), ("evaluate", "", True)]
     # upstream of the requested stage nothing is forced
     forced = plan(make_cfg("stage=evaluate", "force=true"), train_key)
     assert [job.cfg.force for job in forced] == [False] * 5 + [True]
@@ -90,5 +90,5 @@ def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path):
     assert done.returncode == 0, done.stderr
     text = done.stdout + done.stderr
     assert "dry run: 6 jobs, nothing runs" in text
-    assert "train_ppo  ppo_rnn" in text
+    assert "train_ppo  apg_rnn" in text
     assert not (out / "artifacts").exists()

@@ -10,7 +10,8 @@ goals within 1 mm and the p90, and the adapt step's wall time.
 
     python experiments/adapt_session.py [--sessions 11 12] [--goals 8] [--hold-s 20]
 
-Runs on the default chain's ppo_ff policy (``python -m pipeline stage=train_ppo`` first).
+Runs on the default chain's deployed policy (``control.policy``; ``python -m pipeline
+stage=train_ppo`` first).
 """
 
 from __future__ import annotations

@@ -76,18 +76,18 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
                     "Plant gap", "Time to a controller", "Consecutive goals"):
         assert f"## {section}" in markdown, section
     # the report opens with the table the run printed at its end: one row per controller and
-    # plant, the ppo_ff row with its one seed's 4 episodes
+    # plant, the apg row with its one seed's 4 episodes
     first = markdown.split("\n## ")[1]
     assert first.startswith("Summary\n")
     assert "| controller | plant | median_final_mm | within_1mm_% | seeds | episodes |" in first
-    assert first.count("| ppo_ff |") == 2 and "| 1 | 4 |" in first
+    assert first.count("| apg |") == 2 and "| 1 | 4 |" in first
     # every artifact of the chain says how long it took to build; the policies split theirs
     for stage in ("collect", "align", "fit_model", "train_ppo"):
         built = results[stage].manifest["build_seconds"]
         assert built is not None and built > 0, stage
     assert artifact.manifest["build_seconds"] > 0
     timing = markdown.split("## Time to a controller")[1].split("\n## ")[0]
-    for stage in ("collect", "align", "fit_model", "train_ppo (ppo_ff)", "train_ppo (ppo_rnn)",
+    for stage in ("collect", "align", "fit_model", "train_ppo (apg)", "train_ppo (apg_rnn)",
                   "evaluate (until this report)"):
         assert f"| {stage} |" in timing, stage
     assert "| devices |" in timing  # the cores the seeds were split over (one in the tests)
@@ -98,7 +98,7 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
 
     summary = pd.read_parquet(artifact.file("summary.parquet"))
     assert set(summary["plant"]) == {"learned", "plant"}
-    assert set(summary["controller"]) == {"ppo_ff", "ppo_rnn", "preload", "mpc"}
+    assert set(summary["controller"]) == {"apg", "apg_rnn", "preload", "mpc"}
     assert (summary["time_above_limits"] == 0).all()
     # the hold after the first arrival, in the summary and per episode
     assert {"arrived_1mm", "held_arrivals", "within_1mm_after_arrival",
@@ -129,7 +129,7 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
     other = f"model {model.key}"
     assert set(summary["plant"]) == {"learned", "plant", other}
     in_model = summary.set_index(["plant", "controller"])["median_final_mm"]
-    for controller in ("ppo_ff", "ppo_rnn", "preload", "mpc"):
+    for controller in ("apg", "apg_rnn", "preload", "mpc"):
         assert np.isfinite(in_model[(other, controller)])
         # its own model, settled from the same rest poses: exactly the learned env's figure
         # (before, the other model settled again from the learned env's settled starts, which

@@ -23,10 +23,10 @@ class AdaptConfig:
     input_affine: bool = True  # the fine-tune also fits a gain and an offset per chamber
     steps: int = 300  # Adam steps of the fine-tune
     prior_mm2: float = 1.0  # weight of the fine-tune's prior [mm² per unit²]
-    # PPO steps of the policy's fine-tune in the calibrated model (one seed, warm started; at
-    # least num_envs x num_steps x num_evals of the deployed agent)
+    # env steps of the policy's fine-tune in the calibrated model by its own trainer (one seed,
+    # warm started; at least num_envs x num_steps x num_evals of the deployed agent)
     policy_timesteps: int = 131072
-    # log std the fine-tune starts from (None: the deployed policy's): explore less than anew
+    # PPO: log std the fine-tune starts from (None: the deployed policy's): explore less than anew
     policy_log_std: float | None = -3.0
     # the folded model may differ from the calibrated prediction (a displacement model turns
     # its output about the walk's first pose) by at most this over the walk [mm]

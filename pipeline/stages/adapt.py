@@ -52,12 +52,11 @@ from pipeline.dynamics.model import predict_sequence, session_latent_dim
 from pipeline.dynamics.scoring import position_errors_mm
 from pipeline.dynamics.session import fold_correction, fold_error_m
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
-from pipeline.rl.policy_io import best_seed, save_policy, warm_start_params
-from pipeline.rl.ppo import action_bounds, train_seeds
-from pipeline.rl.results import evaluation_tables, metrics_table, write_results
+from pipeline.rl.policy_io import best_seed
 from pipeline.schemas import AgentConfig, ConfigError, RobotKind
 from pipeline.stages._deployed import policy_artifact, training_config
 from pipeline.stages._environment import config_environment
+from pipeline.stages._policies import train_into
 from pipeline.stages._rehearsal import refuse_twin_artifact
 from pipeline.validation import validate_config
 
@@ -266,25 +265,16 @@ def fine_tune_policy(writer: ArtifactWriter, train_cfg: Any, calibrated: Artifac
                      seed: int, timings: dict[str, float]) -> dict[str, Any]:
     """The deployed policy's seed fine-tuned in the calibrated model (its environment otherwise
     the deployed one's): ``policy.msgpack`` (one seed), ``evaluation.parquet``,
-    ``metrics.parquet``; returns the held-out summary of its last evaluation in that model."""
+    ``episodes.parquet``, ``metrics.parquet``; returns the held-out summary of its last
+    evaluation in that model."""
     agent = AgentConfig.from_any(agent_spec, progress=False)
     env, train_params, eval_params = config_environment(train_cfg, calibrated, aligned)
-    low, high = action_bounds(env, train_params)
-    obs_dim = int(np.prod(env.observation_space(train_params).shape))
-    init = warm_start_params(agent, obs_dim, int(np.prod(low.shape)))
-    output = train_seeds(agent, env, train_params, eval_params, seed=seed,
-                         desc=f"{STAGE} {agent.name}", timings=timings, init_params=init)
     config = {"env": OmegaConf.to_container(train_cfg.env), "adapt": spec["adapt"]}
-    metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()},
-                            int(train_params.max_steps_in_episode), agent.num_steps)
-    summary, episodes = evaluation_tables({k: np.asarray(v) for k, v in output.evaluation.items()})
-    write_results(metrics, writer.file("metrics.parquet"), config, STAGE)
-    write_results(summary, writer.file("evaluation.parquet"), config, STAGE)
-    save_policy(writer.file("policy.msgpack"), output.params, {
-        "agent": agent_spec, "env": config["env"], "env_name": env.name, "obs_dim": obs_dim,
-        "action_dim": int(np.prod(low.shape)), "action_low": low.tolist(),
-        "action_high": high.tolist(), "num_seeds": 1})
-    final = episodes["final_distance_m"].to_numpy()
+    trained = train_into(writer, STAGE, agent, env, train_params, eval_params, seed=seed,
+                         config=config, desc=f"{STAGE} {agent.name}", warm_start=True,
+                         policy_meta={"agent": agent_spec, "env": config["env"]})
+    timings.update(trained.timings)
+    final = trained.episodes["final_distance_m"].to_numpy()
     return {"policy_timesteps": agent.num_updates * agent.steps_per_update,
             "policy_eval_median_distance_mm_in_calibrated_model": (
                 float(np.nanmedian(final) * 1000) if np.isfinite(final).any() else None)}

@@ -40,11 +40,10 @@ from omegaconf import OmegaConf
 from pipeline import keys
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.tracking import tracking
-from pipeline.rl.policy_io import save_policy, warm_start_params
-from pipeline.rl.ppo import action_bounds, train_seeds
-from pipeline.rl.results import evaluation_tables, metrics_table, plot_returns, write_results
+from pipeline.rl.results import plot_returns
 from pipeline.schemas import AgentConfig, EnvName
 from pipeline.stages._environment import config_environment
+from pipeline.stages._policies import train_into
 
 log = logging.getLogger(__name__)
 STAGE = "train_ppo"
@@ -66,36 +65,17 @@ def train_ppo(cfg: Any) -> Artifact:
 
     def build(writer):
         env, train_params, eval_params = config_environment(cfg, model, aligned, members)
-        low, high = action_bounds(env, train_params)
-        obs_dim = int(np.prod(env.observation_space(train_params).shape))
-        action_dim = int(np.prod(low.shape))
-        init_params = (warm_start_params(agent, obs_dim, action_dim)
-                       if agent.init_policy else None)
-        timings: dict[str, float] = {}
-        output = train_seeds(agent, env, train_params, eval_params, seed=int(cfg.seed),
-                             desc=f"{STAGE} {agent.name} on {env.name}", timings=timings,
-                             init_params=init_params)
-        # per seed, the chunks run (fewer than agent.num_evals where agent.stop_at stopped it)
-        timesteps = (len(timings["chunk_seconds"]) * agent.updates_per_eval
-                     * agent.steps_per_update)
-        steps = agent.num_seeds * timesteps
         config = {"env": spec["env"], "agent": spec["agent"], "seed": spec["seed"],
                   "init_policy_sha256": spec.get("init_policy_sha256")}
-
-        metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()},
-                                int(train_params.max_steps_in_episode), agent.num_steps)
-        summary, episodes = evaluation_tables(
-            {k: np.asarray(v) for k, v in output.evaluation.items()})
-        write_results(metrics, writer.file("metrics.parquet"), config, STAGE)
-        write_results(summary, writer.file("evaluation.parquet"), config, STAGE)
-        write_results(episodes, writer.file("episodes.parquet"), config, STAGE)
-
-        save_policy(writer.file("policy.msgpack"), output.params, {
-            "agent": spec["agent"], "env": spec["env"], "env_name": env.name,
-            "obs_dim": obs_dim, "init_policy_sha256": spec.get("init_policy_sha256"),
-            "action_dim": action_dim, "action_low": low.tolist(),
-            "action_high": high.tolist(), "num_seeds": agent.num_seeds,
-        })
+        trained = train_into(
+            writer, STAGE, agent, env, train_params, eval_params, seed=int(cfg.seed),
+            config=config, desc=f"{STAGE} {agent.name} on {env.name}",
+            warm_start=bool(agent.init_policy),
+            policy_meta={"agent": spec["agent"], "env": spec["env"],
+                         "init_policy_sha256": spec.get("init_policy_sha256")})
+        metrics, summary, episodes = trained.metrics, trained.summary, trained.episodes
+        timings, timesteps = trained.timings, trained.timesteps_per_seed
+        steps = agent.num_seeds * timesteps
         plot_returns(writer.file("figures/returns.png"), metrics, summary,
                      f"{agent.name} on {env.name}")
         with tracking(OmegaConf.to_object(cfg.logger), Path(cfg.paths.output_dir), STAGE,

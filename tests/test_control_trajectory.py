@@ -198,7 +198,7 @@ def test_the_simulated_arm_follows_a_circle_with_the_training_preview(tmp_path):
     assert summary["rmse_mm"] == pytest.approx(metrics["rmse_mm"][0], abs=1e-4)
     assert "a circle of 2 mm" in summary["trajectory"]
     report = artifact.file("report.md").read_text()
-    assert "## Tracking" in report and "RMSE" in report and "a preview of 3" in report
+    assert "## Tracking" in report and "RMSE" in report and "observing 3 reference points ahead" in report
     for figure in ("path_xz.png", "error.png", "pressures.png"):
         assert artifact.file(f"figures/{figure}").stat().st_size > 5_000
     assert not artifact.file("goals.parquet").exists()

@@ -1,4 +1,5 @@
-"""What a control session achieved, per goal: tables, figures and the report.
+"""What a control session achieved, per goal: tables, figures and the report (following a
+reference: :func:`tracking_figures`, the metrics in :mod:`pipeline.control.trajectory`).
 
 Goal ``i`` is in force over periods ``[s_i, e_i)``; the poses at the ticks ``s_i .. e_i`` (the
 last one taken before the next goal's first command, or at the end) are its trajectory:

@@ -139,9 +139,10 @@ def report_session(folder: Path, record: SessionRecord, metrics: pd.DataFrame,
     what = "reference" if tracking else "goals"
     served = (f"the {what} {'was' if tracking else 'were'} served with gaps." if stalls
               else f"every {'period of the reference' if tracking else 'goal'} served.")
-    header = [f"Policy `{deployment.artifact.path}` seed {deployment.seed} (a preview of "
-              f"{deployment.preview} reference points), on robot={robot.name}; {what} from "
-              f"{schedule.source}.",
+    ahead = (f" (observing {deployment.preview} reference points ahead)" if deployment.preview
+             else "")
+    header = [f"Policy `{deployment.artifact.path}` seed {deployment.seed}{ahead}, on "
+              f"robot={robot.name}; {what} from {schedule.source}.",
               f"{summary['periods']} control periods at {deployment.control_hz:g} Hz; "
               + (f"**interrupted**: {outcome.reason}." if outcome.reason else served) + stalls]
     if tracking:

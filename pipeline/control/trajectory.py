@@ -153,8 +153,8 @@ def trajectory_schedule(trajectory: Trajectory, duration_s: float, settle_s: flo
                                tolerance_mm, f"control.trajectory ({trajectory.source})")
     goals = np.asarray(task.goal_path(reference, periods, control_hz), np.float64)
     if preview:
-        previews = jax.vmap(task.preview, in_axes=(None, 0, None, None))(
-            reference, jnp.arange(periods), control_hz, preview)
+        previews = jax.vmap(lambda period: task.preview(reference, period, control_hz, preview))(
+            jnp.arange(periods))
         previews = np.asarray(previews, np.float64)
     else:
         previews = np.zeros((periods, 0, 3))

@@ -233,6 +233,7 @@ def test_a_reaching_policy_follows_the_moving_goal_and_trajectories_go_alone(tmp
         control(cfg)
 
 
+@pytest.mark.slow  # a pipeline process of its own: its start and the policy's compile
 def test_the_entry_point_refuses_a_far_reference_in_one_line_and_nothing_moves(tmp_path):
     out = tmp_path / "outputs"
     cfg, _, _ = tracking_policy(out)
@@ -242,7 +243,7 @@ def test_the_entry_point_refuses_a_far_reference_in_one_line_and_nothing_moves(t
          *TRACKING, "control.policy=ppo_rnn", far],
         capture_output=True, text=True, timeout=300)
     assert run.returncode == 1, run.stderr
-    errors = [line for line in (run.stdout + run.stderr).splitlines() if "Error" in line]
+    errors = [line for line in (run.stdout + run.stderr).splitlines() if "ERROR" in line]
     assert len(errors) == 1 and "Traceback" not in run.stderr, run.stderr
     assert "InvalidReference: control.trajectory (control.trajectory: a circle of 40 mm" in (
         errors[0])

@@ -252,3 +252,24 @@ def test_the_entry_point_refuses_a_far_reference_in_one_line_and_nothing_moves(t
     cfg.control.trajectory = {"kind": "circle", "size_mm": 40, "period_s": 20}
     assert store.find("control", key("control", cfg)) is None
     assert not (out / "recovery").exists()
+
+
+def test_the_session_key_holds_the_reference_not_its_name(tmp_path):
+    from pipeline.keys import control_spec
+
+    cfg = compose_config(tmp_path, *SMALL, *TRACKING, "stage=control", "control.goals=[[30,353,200]]")
+    spec = control_spec(cfg)[0]["control"]
+    assert "trajectory" not in spec and "settle_s" not in spec  # goals: the key as before
+    cfg = compose_config(tmp_path, *SMALL, *TRACKING, "stage=control", "control.trajectory=circle")
+    spec = control_spec(cfg)[0]["control"]["trajectory"]
+    assert spec["reference"] == {"name": "circle", "kind": "circle"}
+    assert spec["tracking_seconds"] == 30.0 and spec["tracking_settle_seconds"] == 10.0
+    wider = compose_config(tmp_path, *SMALL, *TRACKING, "stage=control",
+                           "control.trajectory=circle", "+evaluation.references.circle.size_mm=3")
+    assert key("control", wider) != key("control", cfg)
+    csv = write_csv(tmp_path / "path.csv", [[0, 30, 353, 200], [1, 31, 353, 200]])
+    by_file = compose_config(tmp_path, *SMALL, *TRACKING, "stage=control",
+                             f"control.trajectory={csv}")
+    first = key("control", by_file)
+    write_csv(tmp_path / "path.csv", [[0, 30, 353, 200], [1, 32, 353, 200]])
+    assert key("control", by_file) != first  # the file's content, not its name

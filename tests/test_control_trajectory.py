@@ -204,6 +204,40 @@ def test_the_simulated_arm_follows_a_circle_with_the_training_preview(tmp_path):
     assert not artifact.file("goals.parquet").exists()
 
 
+def test_an_interrupted_session_keeps_its_artifact_and_ends_at_the_preload(tmp_path,
+                                                                           monkeypatch):
+    from pipeline.control import session
+    from pipeline.control.loop import SimArm, Stop
+    from pipeline.control.session import ControlInterrupted
+
+    sent = []
+
+    class Interrupted(SimArm):
+        def advance(self, until):
+            if self.now() >= 1.2:
+                raise Stop("SIGINT received")
+            super().advance(until)
+
+        def publish(self, pressures):
+            sent.append(np.asarray(pressures))
+            return super().publish(pressures)
+
+    monkeypatch.setattr(session, "SimArm", Interrupted)
+    cfg, _, _ = tracking_policy(tmp_path)
+    cfg.control.trajectory = {"kind": "circle", "size_mm": 2.0, "period_s": 8.0}
+    cfg.control.duration_s, cfg.control.settle_s = 6.0, 2.0
+    cfg.control.workspace_margin_mm = 10.0
+    with pytest.raises(ControlInterrupted, match="SIGINT received"):
+        control(cfg)
+    np.testing.assert_allclose(sent[-1], [2.0, 2.0, 2.0])  # the preload, last
+    artifact = ArtifactStore(cfg.paths.artifact_dir).require("control", key("control", cfg))
+    assert artifact.manifest["summary"]["interrupted"] == "SIGINT received"
+    assert artifact.manifest["summary"]["rmse_mm"] is None  # stopped before the settle time
+    periods = pd.read_parquet(artifact.file("periods.parquet"))
+    assert list(periods["period"]) == [0, 1, 2]
+    assert np.isfinite(periods[REFERENCE_COLUMNS].to_numpy()).all()
+
+
 def test_missing_periods_are_interpolated_for_the_metrics():
     rows = pd.DataFrame({"period": [0, 1, 3, 4], "goal_index": [0, 0, 0, -1],
                          "x": [0.0, 0.001, 0.003, 0.004], "y": 0.0, "z": 0.0,
@@ -213,6 +247,9 @@ def test_missing_periods_are_interpolated_for_the_metrics():
     assert metrics["interpolated"][0] == 1 and metrics["periods"][0] == 4
     assert metrics["rmse_mm"][0] == pytest.approx(1.0)
     assert metrics["within_1mm"][0] == pytest.approx(1.0)
+    # a session interrupted before the settle time: nothing to score, the row is kept
+    short = trajectory_metrics(rows, 2.0, 3.0)
+    assert np.isnan(short["rmse_mm"][0]) and short["periods"][0] == 4
 
 
 def test_a_reaching_policy_follows_the_moving_goal_and_trajectories_go_alone(tmp_path):

@@ -41,7 +41,7 @@ from pipeline.control.results import (
     tracking_figures,
     write_control_report,
 )
-from pipeline.control.trajectory import TrajectorySchedule
+from pipeline.control.trajectory import SCORES, TrajectorySchedule
 from pipeline.data.raw import CollectionInterrupted
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.ros2.gate import CommandGate
@@ -173,5 +173,5 @@ def _goal_summary(metrics: pd.DataFrame) -> dict[str, Any]:
 def _tracking_summary(metrics: pd.DataFrame, schedule: TrajectorySchedule) -> dict[str, Any]:
     row = metrics.iloc[0]
     return {"trajectory": schedule.source, "settle_s": schedule.settle_s,
-            **{name: round(float(row[name]), 4)
-               for name in ("rmse_mm", "p95_mm", "max_mm", "lag_s", "within_1mm")}}
+            **{name: None if not np.isfinite(row[name]) else round(float(row[name]), 4)
+               for name in SCORES}}

@@ -41,6 +41,7 @@ from pipeline.schemas import ReferenceConfig
 
 MM_PER_M = 1000.0
 CHECK_HZ = 10.0  # the reference is checked against the reachable set at least this often
+SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s")  # tracking_metrics' columns
 
 
 @dataclass
@@ -169,7 +170,8 @@ def trajectory_metrics(periods: pd.DataFrame, control_hz: float, settle_s: float
     """One row: :func:`~pipeline.evaluation.tracking.tracking_metrics` of the session's records
     (the pose at each tick against ``ref_x, ref_y, ref_z``) after ``settle_s``, with the periods
     scored and ``interpolated`` (periods skipped after a stall have no row: their pose and
-    reference are interpolated between the neighbouring ticks)."""
+    reference are interpolated between the neighbouring ticks). A session that ended before the
+    settle time (interrupted) scores NaN."""
     table = periods.sort_values("period").drop_duplicates("period", keep="last")
     table = table[table["period"] >= 0].set_index("period")
     ticks = np.arange(int(table.index.max()) + 1)
@@ -178,6 +180,9 @@ def trajectory_metrics(periods: pd.DataFrame, control_hz: float, settle_s: float
     grid = grid.interpolate(limit_direction="both")
     positions = grid[XYZ].to_numpy(np.float64)[None]
     reference = grid[REFERENCE_COLUMNS].to_numpy(np.float64)[None]
-    metrics = tracking_metrics(positions, reference, control_hz, settle_s)
+    if len(ticks) <= math.ceil(settle_s * control_hz - 1e-9):  # stopped before it settled
+        metrics = pd.DataFrame({name: [np.nan] for name in SCORES})
+    else:
+        metrics = tracking_metrics(positions, reference, control_hz, settle_s)
     return metrics.assign(settle_s=float(settle_s), periods=len(ticks) - 1,
                           interpolated=interpolated)

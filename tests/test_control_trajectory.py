@@ -310,3 +310,24 @@ def test_the_session_key_holds_the_reference_not_its_name(tmp_path):
     first = key("control", by_file)
     write_csv(tmp_path / "path.csv", [[0, 30, 353, 200], [1, 32, 353, 200]])
     assert key("control", by_file) != first  # the file's content, not its name
+
+
+def test_the_accumulated_error_takes_the_goal_of_the_period_that_led_to_the_pose(tmp_path):
+    # as the environment's step: integral_k = 0.5 integral_(k-1) + 0.5 (goal_(k-1) - pose_k) / scale
+    cfg, _, error_scale = tracking_policy(
+        tmp_path, task=(*TRACKING, "env.include_error_integral=true",
+                        "env.error_integral_decay=0.5"))
+    cfg.control.trajectory = {"kind": "circle", "size_mm": 2.0, "period_s": 8.0}
+    cfg.control.duration_s, cfg.control.settle_s = 3.0, 0.0
+    cfg.control.workspace_margin_mm = 10.0
+    periods = pd.read_parquet(control(cfg).file("periods.parquet"))
+    commanded = periods[periods["goal_index"] >= 0]
+    integral = commanded.filter(like="obs_").to_numpy()[:, 9:12]
+    goals = commanded[GOAL_COLUMNS].to_numpy()
+    poses = commanded[["x", "y", "z"]].to_numpy()
+    expected = [np.zeros(3)]
+    for k in range(1, len(commanded)):
+        expected.append(0.5 * expected[-1] + 0.5 * (goals[k - 1] - poses[k]) / error_scale)
+    np.testing.assert_allclose(integral, np.array(expected), rtol=1e-4, atol=1e-4)
+    # the current goal would differ: the reference moves 0.8 mm a period
+    assert np.abs(goals[1:] - goals[:-1]).max() > 5e-4

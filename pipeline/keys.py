@@ -262,11 +262,31 @@ def control_spec(cfg: Any) -> Spec:
     if cfg.control.goals_csv:
         control["goals_csv_sha256"] = hashlib.sha256(
             Path(str(cfg.control.goals_csv)).read_bytes()).hexdigest()
+    _control_trajectory(cfg, control)
     robot = _session_robot(cfg)
     if RobotKind(cfg.robot.kind) is RobotKind.ros2:
         control.pop("arm_seed", None)
     stage, policy_key = control_policy(cfg)
     return _versioned("control", {"control": control, "robot": robot}), {stage: policy_key}
+
+
+def _control_trajectory(cfg: Any, control: dict[str, Any]) -> None:
+    """The reference of ``control.trajectory`` as the key sees it, in ``control``: none
+    (goals: the key as before), else the shape it names in ``evaluation.references`` or a CSV's
+    content, and the evaluation's timing it defaults to."""
+    trajectory = control.pop("trajectory", None)
+    if trajectory is None:
+        control.pop("settle_s", None)
+        return
+    evaluation = cfg.evaluation
+    if isinstance(trajectory, str) and trajectory in (evaluation.references or {}):
+        entry = evaluation.references[trajectory]
+        trajectory = {"name": trajectory, **(_container(entry) if entry is not None else {})}
+    elif isinstance(trajectory, str) and Path(trajectory).is_file():
+        trajectory = {"csv_sha256": hashlib.sha256(Path(trajectory).read_bytes()).hexdigest()}
+    control["trajectory"] = {"reference": trajectory,
+                             "tracking_seconds": evaluation.tracking_seconds,
+                             "tracking_settle_seconds": evaluation.tracking_settle_seconds}
 
 
 def _session_robot(cfg: Any) -> dict[str, Any]:

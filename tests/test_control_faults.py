@@ -92,11 +92,13 @@ class StepPolicy:
 
     hidden = None
     workspace_m = np.array([[0.0, 0.3, 0.1], [0.1, 0.4, 0.3]])
+    preview = 0  # reference points ahead it observes
 
     def __init__(self, nan_at: int | None = None):
         self.nan_at, self.calls = nan_at, 0
 
-    def act(self, hidden, first, position, goal, last):
+    def act(self, hidden, first, position, goal, preview, last):
+        assert preview.shape == (0, 3)
         action = np.ones(3) * (np.nan if self.nan_at is not None and self.calls >= self.nan_at
                                else 1.0)
         self.calls += 1

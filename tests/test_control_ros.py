@@ -169,3 +169,66 @@ def test_trained_policies_end_at_the_same_distances_on_the_twin_and_in_process(
         assert runner.wait(timeout=300) == 0, pipe.log("control")
     on_twin = final_distances(control_artifact(pipe, *common))
     assert np.median(np.abs(on_twin - in_process)) <= 0.3, (on_twin, in_process)
+
+
+# ---- following a reference ------------------------------------------------------------------------
+def tracking_metrics_of(artifact) -> pd.Series:
+    return pd.read_parquet(artifact.file("tracking.parquet")).iloc[0]
+
+
+def test_a_circle_followed_on_the_twin_matches_the_simulated_arm(tmp_path, ros_domain):
+    """A tracking policy (random network, preview 3) follows a 2 mm circle for 10 s."""
+    cfg = compose_config(tmp_path / "sim", *SMALL, "env.task=track", "env.preview=3",
+                         "control.policy=ppo_rnn", "stage=control")
+    artifact, train_params = write_policy(cfg)
+    centre = np.round(np.median(np.asarray(train_params.goal_set), axis=0) * 1e3, 1).tolist()
+    shape = f"{{kind:circle,centre_mm:[{centre[0]},{centre[1]},{centre[2]}],size_mm:2,period_s:8}}"
+    common = [f"control.policy_file={artifact.file('policy.msgpack')}",
+              f"control.trajectory={shape}", "control.duration_s=10", "control.settle_s=2",
+              "control.workspace_margin_mm=10"]
+    sim_cfg = compose_config(tmp_path / "sim", *SMALL, "env.task=track", "env.preview=3",
+                             "stage=control", *common)
+    in_process = tracking_metrics_of(control(sim_cfg))
+
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = ROS
+    record = tmp_path / "twin_received.jsonl"
+    with twin_of(pipe, record):
+        run = pipe.start("control", *common)
+        assert run.wait(timeout=240) == 0, pipe.log("control")
+        time.sleep(0.2)
+    on_twin = control_artifact(pipe, *common)
+    metrics = tracking_metrics_of(on_twin)
+    assert abs(metrics["rmse_mm"] - in_process["rmse_mm"]) <= 0.3, (metrics, in_process)
+    periods = pd.read_parquet(on_twin.file("periods.parquet"))
+    assert (periods["goal_index"] >= 0).sum() == 20
+    assert np.isfinite(periods[["ref_x", "ref_y", "ref_z"]].to_numpy()).all()
+    wire = received(record)[CMD_COLUMNS].to_numpy()
+    assert len(wire) == 20 + 1  # 20 periods, then the preload
+    np.testing.assert_allclose(wire[-1], PRELOAD)
+    assert_within_limits(wire)
+
+
+@pytest.mark.slow
+def test_a_trained_tracking_policy_follows_the_circle_alike_on_the_twin_and_in_process(
+        tmp_path, ros_domain):
+    """An experiment=[quick,tracking] policy trained on the simulated arm's data follows the
+    evaluation's circle (5 mm, 20 s a lap) for 30 s: the same RMSE within 0.3 mm."""
+    from pipeline.__main__ import run
+
+    out = tmp_path / "sim"
+    train_cfg = compose_config(out, "experiment=[quick,tracking]", "agent=ppo_ff",
+                               "stage=train_ppo")
+    trained = run(train_cfg)["train_ppo"]
+    common = [f"control.policy_file={trained.file('policy.msgpack')}",
+              "control.trajectory=circle", "control.workspace_margin_mm=3"]
+    sim_cfg = compose_config(out, "experiment=[quick,tracking]", "stage=control", *common)
+    in_process = tracking_metrics_of(control(sim_cfg))
+
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = ROS
+    with twin_of(pipe, tmp_path / "twin_received.jsonl"):
+        runner = pipe.start("control", *common)
+        assert runner.wait(timeout=300) == 0, pipe.log("control")
+    on_twin = tracking_metrics_of(control_artifact(pipe, *common))
+    assert abs(on_twin["rmse_mm"] - in_process["rmse_mm"]) <= 0.3, (on_twin, in_process)

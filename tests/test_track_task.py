@@ -219,18 +219,3 @@ def test_evaluation_references_over_their_defaults_and_unknown_settings(make_cfg
                                           r"\['shape'\]"):
         tracking_settings(bad)
 
-
-def test_control_refuses_a_policy_trained_with_a_preview_in_one_line(tmp_path):
-    import json
-
-    from pipeline.infra.artifacts import MANIFEST, Artifact, ArtifactStore
-    from pipeline.stages._deployed import training_config
-
-    folder = tmp_path / "train_ppo" / "abc"
-    folder.mkdir(parents=True)
-    spec = {"spec_version": keys.SPEC_VERSIONS["train_ppo"],
-            "env": {"name": "learned", "task": "track", "preview": 3}}
-    (folder / MANIFEST).write_text(json.dumps({"spec": spec}))
-    with pytest.raises(ConfigError, match=r"env\.preview=3") as err:
-        training_config(Artifact("train_ppo", "abc", folder), ArtifactStore(tmp_path), 3)
-    assert "\n" not in str(err.value)

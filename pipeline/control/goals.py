@@ -16,12 +16,12 @@ import numpy as np
 import pandas as pd
 
 from pipeline.arm.references import read_timed_points
-from pipeline.schemas import ControlConfig
+from pipeline.schemas import ConfigError, ControlConfig
 
 MM_PER_M = 1000.0
 
 
-class GoalError(ValueError):
+class GoalError(ConfigError):
     """A goal the policy cannot be sent to (outside its workspace, malformed)."""
 
 
@@ -57,6 +57,18 @@ class GoalSchedule:
         if index < 0:
             return None
         return index, self.goals_m[index]
+
+    def preview(self, period: int, count: int) -> np.ndarray:
+        """``[count, 3]`` m: the goals in force at periods ``period + 1 .. period + count`` (the
+        preview a tracking policy observes; past the last goal, the last goal; live goals: the
+        current one, the only one known)."""
+        ahead = [self.goal(period + j) for j in range(1, count + 1)]
+        return np.array([goal for _, goal in ahead], np.float64).reshape(count, 3)
+
+    def reference(self, period: int) -> np.ndarray | None:
+        """Goals follow no reference: None (a :class:`~pipeline.control.trajectory.
+        TrajectorySchedule` gives the reference at the period's tick)."""
+        return None
 
     def add(self, period: int, goal_m: np.ndarray) -> None:
         """A live goal, in force from ``period``."""

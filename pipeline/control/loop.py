@@ -6,9 +6,12 @@ Each control period ``k`` (``1 / robot.control_hz`` arm seconds; the settings: :
    ``control.max_pose_jump_mm`` between consecutive frames stops the session);
 2. take the latest pose; one older than ``robot.watchdog_s`` stops the session;
 3. the observation, exactly as the training environment builds it
-   (:func:`pipeline.rl.envs.observation.observe`), the deterministic action with the recurrent
-   carry, the pressures (the environment's action mapping): one jitted call, compiled before the
-   first command (:class:`pipeline.control.policy.Deployment`); a non-finite output stops it;
+   (:func:`pipeline.rl.envs.observation.observe`; the period's goal and, for a policy trained with
+   a preview, the goals of the next periods: :meth:`GoalSchedule.preview`; following a
+   reference, :class:`pipeline.control.trajectory.TrajectorySchedule`), the deterministic action
+   with the recurrent carry, the pressures (the environment's action mapping): one jitted call,
+   compiled before the first command (:class:`pipeline.control.policy.Deployment`); a
+   non-finite output stops it;
 4. the command gate (:class:`pipeline.ros2.gate.CommandGate`: projection onto ``robot.limits``,
    float64 check), publish, and a row to the records.
 
@@ -240,7 +243,8 @@ class ControlLoop:
                           pose_t=pose_t, pose_age_s=self.arm.now() - pose_t, position=position,
                           goal_index=index, goal=target, observation=None,
                           action=np.full(len(safe), np.nan), command=safe, latency_ms=np.nan,
-                          cpu_ms=np.nan, event=event, missed_periods=missed)
+                          cpu_ms=np.nan, event=event, missed_periods=missed,
+                          reference=self.schedule.reference(period))
 
     def _periods(self) -> int:
         deployment, schedule = self.deployment, self.schedule
@@ -279,8 +283,9 @@ class ControlLoop:
             self._fresh_after = None
             self.missed.reset()
             index, goal = current
-            hidden, obs, action, pressure = deployment.act(hidden, first, frame[2], goal,
-                                                           last_pressure)
+            hidden, obs, action, pressure = deployment.act(
+                hidden, first, frame[2], goal, schedule.preview(period, deployment.preview),
+                last_pressure)
             if not (np.all(np.isfinite(action)) and np.all(np.isfinite(pressure))):
                 raise ControlFault(f"non-finite policy output at period {period}: action "
                                    f"{action.tolist()} from observation {obs.tolist()}")
@@ -291,7 +296,8 @@ class ControlLoop:
             self.recorder.add(period=period, t=tick, publish_t=published, pose_t=frame[0],
                               pose_age_s=age, position=frame[2], goal_index=index, goal=goal,
                               observation=obs, action=action, command=safe,
-                              latency_ms=latency_ms, cpu_ms=cpu_ms)
+                              latency_ms=latency_ms, cpu_ms=cpu_ms,
+                              reference=schedule.reference(period))
             last_pressure, first = safe, False
             period += 1
         # the pose at the end of the last period: where the last goal ended
@@ -300,7 +306,8 @@ class ControlLoop:
         self.recorder.add(period=period, t=period * self.period_s, publish_t=np.nan,
                           pose_t=frame[0], pose_age_s=age, position=frame[2], goal_index=-1,
                           goal=np.full(3, np.nan), observation=None, action=np.full(3, np.nan),
-                          command=np.full(3, np.nan), latency_ms=np.nan, cpu_ms=np.nan)
+                          command=np.full(3, np.nan), latency_ms=np.nan, cpu_ms=np.nan,
+                          reference=schedule.reference(period))
         return period
 
 

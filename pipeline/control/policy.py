@@ -2,8 +2,9 @@
 
 The stage finds the train_ppo artifact and rebuilds its environment exactly as training built it
 (:mod:`pipeline.stages.control`); :func:`deploy` makes of them a :class:`Deployment`: the
-observation's standardization (``EnvParams``), the action mapping and the workspace (the box of
-the training goals), the policy's step compiled.
+observation's standardization (``EnvParams``), its preview of the reference (``env.preview``),
+the action mapping and the workspace (the box of the training goals), the policy's step
+compiled.
 """
 
 from __future__ import annotations
@@ -36,42 +37,57 @@ class Deployment:
     env_params: EnvParams  # the evaluation parameters: the training standardization
     policy_params: Any
     # the initial carry between periods: ([1, H] recurrent state, a placeholder for feed-forward
-    # policies; [3] accumulated error, zeros, used with env.include_error_integral)
+    # policies; [3] accumulated error, zeros, used with env.include_error_integral; [3] m the
+    # last period's goal, which the accumulated error is updated with)
     hidden: Any
     workspace_m: np.ndarray  # [2, 3] lower and upper corner of the training goals
+    train_goals_m: np.ndarray  # [G, 3] the training goals
     control_hz: float
-    step: Any  # jitted (policy_params, env_params, carry, first, measured, goal, last_pressure)
+    # (policy_params, env_params, carry, first, measured, goal, preview, last_pressure), jitted
+    step: Any
+
+    @property
+    def preview(self) -> int:
+        """The reference points ahead the policy observes (``env.preview`` it was trained with;
+        0: a reaching policy)."""
+        return int(self.env.preview)
 
     def act(self, hidden: Any, first: bool, measured: np.ndarray, goal: np.ndarray,
-            last_pressure: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+            preview: np.ndarray, last_pressure: np.ndarray
+            ) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
         """One period: ``(carry, observation [obs_dim], action [3] in [-1, 1], pressure [3] kPa
         before the gate)``; ``hidden``: the carry of the previous period (``Deployment.hidden``
-        at the first, ``first=True``); ``measured``, ``goal`` in m, ``last_pressure`` in kPa."""
+        at the first, ``first=True``); ``measured``, ``goal`` in m, ``preview [preview, 3]`` m
+        (the goals of the next periods; ignored without a preview), ``last_pressure`` in kPa."""
+        preview = np.asarray(preview, np.float32).reshape(self.preview, 3)
         hidden, obs, action, pressure = self.step(
             self.policy_params, self.env_params, hidden, jnp.asarray(first),
             jnp.asarray(measured, jnp.float32), jnp.asarray(goal, jnp.float32),
-            jnp.asarray(last_pressure, jnp.float32))
+            jnp.asarray(preview), jnp.asarray(last_pressure, jnp.float32))
         obs, action, pressure = jax.device_get((obs, action, pressure))
         return hidden, np.asarray(obs), np.asarray(action), np.asarray(pressure, np.float64)
 
 
 def make_step(network: Any, env: SoftArmReachEnv) -> Any:
-    """The jitted control step: observation (the environment's :func:`observe`), the
-    deterministic action (evaluate's policy controller), the pressures (the environment's
-    action mapping). Its carry is ``(recurrent state, accumulated error)``; the accumulated
-    error is zero at the first period and then updated with each measured pose, as the
-    environment does from a reset (:func:`update_error_integral`)."""
+    """The jitted control step: observation (the environment's :func:`observe`, with the preview
+    where the policy was trained with one), the deterministic action (evaluate's policy
+    controller), the pressures (the environment's action mapping). Its carry is ``(recurrent
+    state, accumulated error, last goal)``; the accumulated error is zero at the first period
+    and then updated with each measured pose and the goal of the period that led to it, as the
+    environment's step does (:func:`update_error_integral`)."""
 
-    def step(policy_params, env_params, carry, first, measured, goal, last_pressure):
-        hidden, integral = carry
+    def step(policy_params, env_params, carry, first, measured, goal, preview, last_pressure):
+        hidden, integral, previous_goal = carry
         integral = jnp.where(first, jnp.zeros_like(integral),
-                             update_error_integral(integral, measured, goal, env_params))
+                             update_error_integral(integral, measured, previous_goal, env_params))
         obs = observe(measured, goal, last_pressure, env_params, include_error=env.include_error,
                       include_last_action=env.include_last_action,
-                      error_integral=integral if env.include_error_integral else None)
+                      error_integral=integral if env.include_error_integral else None,
+                      preview=preview if env.preview else None)
         act = policy_controller(network, policy_params)
         (hidden, _), action = act(None, obs, None, (hidden, first))
-        return (hidden, integral), obs, action, env.command(action, last_pressure, env_params)
+        return ((hidden, integral, goal), obs, action,
+                env.command(action, last_pressure, env_params))
 
     return jax.jit(step)
 
@@ -87,14 +103,15 @@ def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict
     goals = np.asarray(train_params.goal_set, np.float64)
     workspace = np.stack([goals.min(axis=0), goals.max(axis=0)])
     deployment = Deployment(artifact, seed, env, eval_params, policy_params,
-                            (initial_hidden(network, 1), jnp.zeros(3, jnp.float32)),
-                            workspace, control_hz,
-                            make_step(network, env))
+                            (initial_hidden(network, 1), jnp.zeros(3, jnp.float32),
+                             jnp.zeros(3, jnp.float32)),
+                            workspace, goals, control_hz, make_step(network, env))
     # compile before the first command: the first period must not wait for XLA
     preload = np.asarray(eval_params.preload, np.float64)
-    deployment.act(deployment.hidden, True, workspace.mean(axis=0), workspace.mean(axis=0),
-                   preload)
-    log.info("control: policy %s seed %d (%s on %s), workspace %s mm", artifact.path, seed,
-             meta["agent"]["name"], meta.get("env_name"),
-             np.round(workspace * MM_PER_M, 1).tolist())
+    centre = workspace.mean(axis=0)
+    deployment.act(deployment.hidden, True, centre, centre,
+                   np.broadcast_to(centre, (deployment.preview, 3)), preload)
+    log.info("control: policy %s seed %d (%s on %s, preview %d), workspace %s mm",
+             artifact.path, seed, meta["agent"]["name"], meta.get("env_name"),
+             deployment.preview, np.round(workspace * MM_PER_M, 1).tolist())
     return deployment

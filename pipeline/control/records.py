@@ -8,7 +8,10 @@ to the last flush; :meth:`PeriodRecorder.read_all` reads them back as one table.
 Columns (one row per control period, and a last row with the pose at the end of the session):
 ``period``, ``t`` (the period's tick, arm s from the start), ``publish_t`` (arm s),
 ``pose_t`` (the pose's stamp, arm s), ``pose_age_s`` (at command time), ``x, y, z`` (m),
-``goal_index`` (-1 on the last row), ``goal_x, goal_y, goal_z`` (m), ``obs_<i>``, ``action_<j>``
+``goal_index`` (-1 on the last row), ``goal_x, goal_y, goal_z`` (m: the period's goal; following a
+reference, the reference at the period's end), ``ref_x, ref_y, ref_z`` (m: following a reference,
+the reference at the period's tick, the point the pose of that tick is scored against; NaN with
+goals), ``obs_<i>``, ``action_<j>``
 ([-1, 1]), ``p_cmd_<j>`` (kPa, the command sent after the gate), ``latency_ms`` (wall: pose
 taken to command published), ``cpu_ms`` (the CPU time this process spent on it: the compute
 itself, without the waits for cores that other processes hold), ``event`` (empty; ``late``: the
@@ -32,9 +35,11 @@ from pipeline.infra.parquet import write_parquet
 
 SCHEMA = "control_periods"
 UNITS = {"t": "s", "publish_t": "s", "pose_t": "s", "pose_age_s": "s", "x": "m", "y": "m",
-         "z": "m", "goal_x": "m", "goal_y": "m", "goal_z": "m", "latency_ms": "ms", "cpu_ms": "ms",
+         "z": "m", "goal_x": "m", "goal_y": "m", "goal_z": "m", "ref_x": "m", "ref_y": "m",
+         "ref_z": "m", "latency_ms": "ms", "cpu_ms": "ms",
          **{c: "kPa" for c in CMD_COLUMNS}}
 GOAL_COLUMNS = [f"goal_{a}" for a in XYZ]
+REFERENCE_COLUMNS = [f"ref_{a}" for a in XYZ]
 
 
 class PeriodRecorder:
@@ -52,13 +57,15 @@ class PeriodRecorder:
     def add(self, *, period: int, t: float, publish_t: float, pose_t: float, pose_age_s: float,
             position: np.ndarray, goal_index: int, goal: np.ndarray, observation: Any,
             action: np.ndarray, command: np.ndarray, latency_ms: float, cpu_ms: float,
-            event: str = "", missed_periods: int = 0) -> None:
+            event: str = "", missed_periods: int = 0, reference: Any = None) -> None:
+        reference = np.full(3, np.nan) if reference is None else reference
         obs = (np.full(self.obs_dim, np.nan) if observation is None
                else np.asarray(observation, np.float64))
         row = {"period": int(period), "t": float(t), "publish_t": float(publish_t),
                "pose_t": float(pose_t), "pose_age_s": float(pose_age_s),
                **dict(zip(XYZ, map(float, position))), "goal_index": int(goal_index),
                **dict(zip(GOAL_COLUMNS, map(float, goal))),
+               **dict(zip(REFERENCE_COLUMNS, map(float, reference))),
                **{f"obs_{i}": float(v) for i, v in enumerate(obs)},
                **{f"action_{j}": float(v) for j, v in enumerate(action)},
                **dict(zip(CMD_COLUMNS, map(float, command))), "latency_ms": float(latency_ms),

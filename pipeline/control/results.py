@@ -1,4 +1,5 @@
-"""What a control session achieved, per goal: tables, figures and the report.
+"""What a control session achieved, per goal: tables, figures and the report (following a
+reference: :func:`tracking_figures`, the metrics in :mod:`pipeline.control.trajectory`).
 
 Goal ``i`` is in force over periods ``[s_i, e_i)``; the poses at the ticks ``s_i .. e_i`` (the
 last one taken before the next goal's first command, or at the end) are its trajectory:
@@ -23,7 +24,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.control.records import GOAL_COLUMNS
+from pipeline.control.records import GOAL_COLUMNS, REFERENCE_COLUMNS
 from pipeline.data.schemas import CMD_COLUMNS, XYZ
 from pipeline.evaluation.metrics import hold_metrics
 from pipeline.evaluation.report import Figure, Section, Table, write_report
@@ -136,6 +137,14 @@ def make_figures(folder: Path, periods: pd.DataFrame, limits: Any) -> dict[str, 
     fig.savefig(paths["path"], dpi=110)
     plt.close(fig)
 
+    paths["pressures"] = _pressure_figure(folder, table, limits)
+    return paths
+
+
+def _pressure_figure(folder: Path, table: pd.DataFrame, limits: Any) -> Path:
+    """pressures.png: the commands sent (after the gate) over arm time, with ``p_max``."""
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(9, 3.6))
     commanded = table[table["goal_index"] >= 0]
     for j, column in enumerate(CMD_COLUMNS):
@@ -144,23 +153,75 @@ def make_figures(folder: Path, periods: pd.DataFrame, limits: Any) -> dict[str, 
     ax.set(xlabel="arm time [s]", ylabel="command [kPa]")
     ax.legend(fontsize=8, ncol=4)
     fig.tight_layout()
-    paths["pressures"] = folder / "pressures.png"
-    fig.savefig(paths["pressures"], dpi=110)
+    path = folder / "pressures.png"
+    fig.savefig(path, dpi=110)
     plt.close(fig)
+    return path
+
+
+def tracking_figures(folder: Path, periods: pd.DataFrame, limits: Any, settle_s: float
+                     ) -> dict[str, Path]:
+    """Following a reference: path_xz.png (the reference and the path in x-z), error.png (the
+    distance to the reference at each tick, with the settle time and the 1 mm line),
+    pressures.png."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    table = periods.sort_values("period")
+    table = table[table["period"] >= 0]
+    position = table[XYZ].to_numpy(np.float64) * MM_PER_M
+    reference = table[REFERENCE_COLUMNS].to_numpy(np.float64) * MM_PER_M
+    paths = {}
+
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    ax.plot(reference[:, 0], reference[:, 2], "k--", lw=1, label="reference")
+    ax.plot(position[:, 0], position[:, 2], color="C0", lw=1.2, label="path")
+    ax.plot(position[0, 0], position[0, 2], "o", color="C0", label="start")
+    ax.set(xlabel="x [mm]", ylabel="z [mm]", aspect="equal")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths["tracking_path"] = folder / "path_xz.png"
+    fig.savefig(paths["tracking_path"], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    ax.plot(table["t"], np.linalg.norm(position - reference, axis=1), color="C0")
+    ax.axhline(1.0, color="k", ls="--", lw=1, label="1 mm")
+    ax.axvline(settle_s, color="0.5", ls=":", lw=1, label="settled: scored from here")
+    ax.set(xlabel="arm time [s]", ylabel="distance to the reference [mm]")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths["error"] = folder / "error.png"
+    fig.savefig(paths["error"], dpi=110)
+    plt.close(fig)
+    paths["pressures"] = _pressure_figure(folder, table, limits)
     return paths
 
 
+CAPTIONS = {"distance": "distance to the goal at each control tick",
+            "path": "x-z path of the markers and the goals",
+            "tracking_path": "x-z path of the markers and the reference",
+            "error": "distance to the reference at each control tick",
+            "pressures": "pressure commands sent (after the gate)"}
+
+
 def write_control_report(folder: Path, title: str, header: list[str], metrics: pd.DataFrame,
-                         latency: dict[str, Any], figures: dict[str, Path]) -> None:
+                         latency: dict[str, Any], figures: dict[str, Path],
+                         metrics_section: tuple[str, str] = (
+                             "Per goal", "distances in mm, times in arm seconds")) -> None:
+    """report.md / report.html: the ``header`` lines, ``metrics`` (a section titled and captioned
+    by ``metrics_section``), the ``figures`` (by their :data:`CAPTIONS` name) and the timing."""
     overview = Section("Session")
     for line in header:
         overview.add(line)
-    sections = [overview,
-                Section("Per goal").add(Table(metrics, "distances in mm, times in arm seconds")),
-                Section("Figures")
-                .add(Figure(figures["distance"], "distance to the goal at each control tick"))
-                .add(Figure(figures["path"], "x-z path of the markers and the goals"))
-                .add(Figure(figures["pressures"], "pressure commands sent (after the gate)"))]
+    shown = Section("Figures")
+    for name, path in figures.items():
+        shown.add(Figure(path, CAPTIONS[name]))
+    sections = [overview, Section(metrics_section[0]).add(Table(metrics, metrics_section[1])),
+                shown]
     rows = [{"quantity": name, **(values or {})} for name, values in latency.items()]
     sections.append(Section("Timing").add(Table(pd.DataFrame(rows),
                                                 "compute: wall ms from the pose taken to the "

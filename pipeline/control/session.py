@@ -7,7 +7,9 @@
 Both run :class:`pipeline.control.loop.ControlLoop`. The ``control`` artifact (keyed by the
 policy's train_ppo key, the goals, the robot and its session label) holds ``periods.parquet``
 (every control period, :mod:`pipeline.control.records`), ``goals.parquet`` (per goal,
-:mod:`pipeline.control.results`), figures and ``report.md`` / ``report.html``
+:mod:`pipeline.control.results`) or, following a reference, ``tracking.parquet``
+(:func:`pipeline.control.trajectory.trajectory_metrics`), figures and ``report.md`` /
+``report.html``
 (:func:`report_session`); the stage (:mod:`pipeline.stages.control`) writes it. Rows are written
 to Parquet chunks in a recovery folder (``<paths.output_dir>/recovery/control-<key>-<time>/``)
 while the session runs, so a killed session keeps them; the stage removes the folder once the
@@ -33,7 +35,13 @@ from pipeline.control.goals import GoalSchedule
 from pipeline.control.loop import ControlLoop, LoopSettings, Outcome, SimArm
 from pipeline.control.policy import MM_PER_M, Deployment
 from pipeline.control.records import PeriodRecorder
-from pipeline.control.results import latency_summary, make_figures, write_control_report
+from pipeline.control.results import (
+    latency_summary,
+    make_figures,
+    tracking_figures,
+    write_control_report,
+)
+from pipeline.control.trajectory import SCORES, TrajectorySchedule
 from pipeline.data.raw import CollectionInterrupted
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.ros2.gate import CommandGate
@@ -108,16 +116,17 @@ def report_session(folder: Path, record: SessionRecord, metrics: pd.DataFrame,
                    deployment: Deployment, schedule: GoalSchedule, robot: RobotConfig
                    ) -> dict[str, Any]:
     """Figures and ``report.md`` / ``report.html`` of a session into ``folder``; returns the
-    summary for the artifact's manifest. ``metrics``: :func:`goal_metrics` of its periods."""
+    summary for the artifact's manifest. ``metrics``: :func:`goal_metrics` of its periods, or
+    following a reference (a :class:`TrajectorySchedule`) its :func:`trajectory_metrics`."""
     periods, outcome = record.periods, record.outcome
-    figures = make_figures(folder / "figures", periods, robot.limits)
+    tracking = isinstance(schedule, TrajectorySchedule)
+    figures = (tracking_figures(folder / "figures", periods, robot.limits, schedule.settle_s)
+               if tracking else make_figures(folder / "figures", periods, robot.limits))
     latency = latency_summary(periods)
     summary: dict[str, Any] = {
         "policy": str(deployment.artifact.path), "seed": deployment.seed,
         "robot": robot.name, "periods": int((periods["goal_index"] >= 0).sum()),
-        "final_distance_mm": metrics["final_distance_mm"].round(3).tolist(),
-        "time_to_1mm_s": [None if not np.isfinite(v) else float(v)
-                          for v in metrics["time_to_1mm_s"]],
+        **(_tracking_summary(metrics, schedule) if tracking else _goal_summary(metrics)),
         **latency, "preload_acknowledged": outcome.preload_acknowledged,
     }
     if outcome.reason is not None:
@@ -127,15 +136,42 @@ def report_session(folder: Path, record: SessionRecord, metrics: pd.DataFrame,
               f"command sent in them), {outcome.holds} period(s) held the last command (rows "
               f"with an `event` in periods.parquet)." if outcome.missed_periods or outcome.holds
               else "")
-    served = "the goals were served with gaps." if stalls else "every goal served."
-    header = [f"Policy `{deployment.artifact.path}` seed {deployment.seed}, on "
-              f"robot={robot.name}; goals from {schedule.source}.",
+    what = "reference" if tracking else "goals"
+    served = (f"the {what} {'was' if tracking else 'were'} served with gaps." if stalls
+              else f"every {'period of the reference' if tracking else 'goal'} served.")
+    ahead = (f" (observing {deployment.preview} reference points ahead)" if deployment.preview
+             else "")
+    header = [f"Policy `{deployment.artifact.path}` seed {deployment.seed}{ahead}, on "
+              f"robot={robot.name}; {what} from {schedule.source}.",
               f"{summary['periods']} control periods at {deployment.control_hz:g} Hz; "
-              + (f"**interrupted**: {outcome.reason}." if outcome.reason else served) + stalls,
-              f"Median final distance {np.median(metrics['final_distance_mm']):.2f} mm over "
-              f"{len(metrics)} goal(s); workspace (training goals, mm): "
-              f"{np.round(deployment.workspace_m * MM_PER_M, 1).tolist()}."]
+              + (f"**interrupted**: {outcome.reason}." if outcome.reason else served) + stalls]
+    if tracking:
+        row = metrics.iloc[0]
+        header.append(f"After the first {schedule.settle_s:g} s: RMSE {row['rmse_mm']:.2f} mm, "
+                      f"p95 {row['p95_mm']:.2f} mm, max {row['max_mm']:.2f} mm, lag "
+                      f"{row['lag_s']:.2f} s, {100 * row['within_1mm']:.0f} % of the ticks "
+                      f"within 1 mm.")
+        section = ("Tracking", "after the settle time: errors in mm, lag in s (positive: the "
+                             "path behind the reference), within_1mm a share of the ticks")
+    else:
+        header.append(f"Median final distance {np.median(metrics['final_distance_mm']):.2f} mm "
+                      f"over {len(metrics)} goal(s); workspace (training goals, mm): "
+                      f"{np.round(deployment.workspace_m * MM_PER_M, 1).tolist()}.")
+        section = ("Per goal", "distances in mm, times in arm seconds")
     write_control_report(folder, f"sorolearn control: robot={robot.name}", header, metrics,
-                         latency, figures)
+                         latency, figures, section)
     log.info("control: %s", summary)
     return summary
+
+
+def _goal_summary(metrics: pd.DataFrame) -> dict[str, Any]:
+    return {"final_distance_mm": metrics["final_distance_mm"].round(3).tolist(),
+            "time_to_1mm_s": [None if not np.isfinite(v) else float(v)
+                              for v in metrics["time_to_1mm_s"]]}
+
+
+def _tracking_summary(metrics: pd.DataFrame, schedule: TrajectorySchedule) -> dict[str, Any]:
+    row = metrics.iloc[0]
+    return {"trajectory": schedule.source, "settle_s": schedule.settle_s,
+            **{name: None if not np.isfinite(row[name]) else round(float(row[name]), 4)
+               for name in SCORES}}

@@ -11,7 +11,8 @@ gains columns keeps its summary:
 - ``train_ppo``: per policy, the seeds and training's own final evaluation (the manifest: the
   median final distance, the share of episodes that reached the goal within 1 mm);
 - ``control``: per goal, the final distance, the time to within 1 mm, the steady-state error
-  (``goals.parquet``).
+  (``goals.parquet``); following a reference, its RMSE, p95, largest error, lag and share within
+  1 mm (``tracking.parquet``).
 
 :func:`evaluation_table` is also the table that heads the evaluation's report
 (:func:`pipeline.evaluation.sections.report_sections`).
@@ -222,6 +223,12 @@ def closing_summary(stage: str, results: dict[str, Any], run: RunFacts,
     if control is not None and hasattr(control, "path") and (control.path /
                                                               "goals.parquet").is_file():
         lines += ["", f"Per goal (robot={robot}):", *text_table(goals_table(control.path))]
+    if control is not None and hasattr(control, "path") and (control.path /
+                                                              "tracking.parquet").is_file():
+        tracking = pd.read_parquet(control.path / "tracking.parquet")
+        lines += ["", f"Following the reference (robot={robot}), after the settle time [mm, s]:",
+                  *text_table(tracking[[c for c in ("rmse_mm", "p95_mm", "max_mm", "lag_s",
+                                                    "within_1mm") if c in tracking]])]
     last = next((results[s] for s in reversed(list(results)) if hasattr(results[s], "path")),
                 None)
     if last is not None:
@@ -263,7 +270,9 @@ def next_step(stage: str, results: dict[str, Any], run: RunFacts, overrides: Seq
             return ["python -m pipeline stage=twin robot=ros2    # shell 1: the digital twin",
                     command("control", ["robot=ros2", "robot.rehearsal=true"],
                             f"control.policy_file={_relative(Path(policy) / 'policy.msgpack')}",
-                            *[o for o in overrides if o.startswith("control.goals")])
+                            *[o for o in overrides if o.startswith(
+                                ("control.goals", "control.trajectory", "control.duration_s",
+                                 "control.settle_s"))])
                     + "    # shell 2: the same policy over ROS 2 (docs: real-arm workflow)"]
     follow = {"collect": "align", "align": "fit_model", "fit_model": "train_ppo",
               "calibrate": "evaluate"}

@@ -93,7 +93,12 @@ class ControlConfig:
 
     Goals in mm in the mocap frame: ``goals`` (each held ``hold_s``), or ``goals_csv`` (waypoints
     ``t,x,y,z``, t in s from the start, each in force until the next; the last for ``hold_s``), or
-    live on ``goal_topic`` (``geometry_msgs/msg/PointStamped`` in metres, robot=ros2 only).
+    live on ``goal_topic`` (``geometry_msgs/msg/PointStamped`` in metres, robot=ros2 only); or a
+    reference followed in real time, ``trajectory`` (``pipeline/control/trajectory.py``): a name
+    of ``evaluation.references``, a shape (the fields of ReferenceConfig; no centre: the held-out
+    goals' median) or a CSV file ``t,x,y,z`` (s, mm), followed for ``duration_s`` (null: a
+    shape for ``evaluation.tracking_seconds``, a CSV to its last time) and scored after
+    ``settle_s`` (null: ``evaluation.tracking_settle_seconds``).
     """
 
     policy: str = "apg"  # agent option (conf/agent/<policy>.yaml) of the train_ppo artifact
@@ -102,7 +107,10 @@ class ControlConfig:
     goals: list[Any] = field(default_factory=list)  # [[x, y, z], ...] mm (checked by control)
     goals_csv: str | None = None
     goal_topic: str | None = None
-    duration_s: float | None = None  # live goals: stop after this long (None: until Ctrl-C)
+    # live goals, a trajectory: arm s to run (None: until Ctrl-C; a trajectory: see above)
+    duration_s: float | None = None
+    trajectory: Any = None  # a reference to follow: a name, a shape {kind: ...} or a CSV path
+    settle_s: float | None = None  # trajectory: s left out of its metrics (None: evaluation's)
     hold_s: float = 20.0  # arm seconds each goal is held (the last waypoint too)
     workspace_margin_mm: float = 2.0  # goals this far outside the training goals' box are allowed
     max_pose_jump_mm: float = 20.0  # between consecutive frames: preload and stop

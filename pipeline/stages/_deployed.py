@@ -37,8 +37,9 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
                     ) -> tuple[Any, Artifact | None, Artifact | None]:
     """``(config, fit_model artifact, align artifact)`` that rebuild the artifact's environment
     with :func:`~pipeline.stages._environment.config_environment`: the env, robot rate and limits,
-    and model rate it was trained with, read from its manifest and those of its inputs, laid over
-    the schemas' defaults (the spec keeps what differs from them). An adapt artifact's
+    and model rate it was trained with (the tracking task's preview included), read from its
+    manifest and those of its inputs, laid over the schemas' defaults (the spec keeps what differs
+    from them). An adapt artifact's
     environment is that of the policy it adapted with its calibrated model (``model.msgpack``
     and ``split.json`` in its folder) in place of the fit_model artifact."""
     if artifact.stage == "adapt":
@@ -56,10 +57,6 @@ def training_config(artifact: Artifact, store: ArtifactStore, n_valves: int
     if env_name is EnvName.gymnax:
         raise ValueError(f"{artifact.path}: a policy of a gymnax environment "
                          f"({spec['env'].get('gymnax_name')}) cannot drive the arm")
-    if int(spec["env"].get("preview", 0)):
-        raise ConfigError(f"{artifact.path}: a policy trained to track with a preview of "
-                          f"env.preview={spec['env']['preview']} reference points; stage=control "
-                          f"sends goals, not references: drive a policy trained without a preview")
     env = OmegaConf.merge(OmegaConf.structured(EnvConfig), spec["env"])
     if env_name is EnvName.sim:
         robot = OmegaConf.merge(OmegaConf.structured(SimRobotConfig), spec["robot"])

@@ -1,5 +1,6 @@
-"""Stage ``control``: a trained policy drives the arm toward goals (see
-:mod:`pipeline.control.session`). Not part of ``stage=all``: started on its own.
+"""Stage ``control``: a trained policy drives the arm toward goals, or along a reference
+(``control.trajectory``, :mod:`pipeline.control.trajectory`; see :mod:`pipeline.control.session`).
+Not part of ``stage=all``: started on its own.
 
 The train_ppo artifact is found from the composed config as evaluate finds it (or from
 ``control.policy_file``: a train_ppo artifact's policy, or an adapt artifact's, the policy
@@ -19,14 +20,15 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.arm.limits import validate_limits
-from pipeline.control.goals import GoalError, goal_schedule
+from pipeline.control.goals import GoalError, GoalSchedule, goal_schedule
 from pipeline.control.loop import Outcome
-from pipeline.control.policy import Deployment, deploy
+from pipeline.control.policy import MM_PER_M, Deployment, deploy
 from pipeline.control.results import goal_metrics
 from pipeline.control.session import (
     STAGE,
@@ -35,9 +37,15 @@ from pipeline.control.session import (
     run_session,
     set_aside_interrupted,
 )
+from pipeline.control.trajectory import (
+    TrajectorySchedule,
+    trajectory_metrics,
+    trajectory_of,
+    trajectory_schedule,
+)
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 from pipeline.rl.policy_io import best_seed, load_policy
-from pipeline.schemas import RobotKind
+from pipeline.schemas import ControlConfig, RobotKind
 from pipeline.stages._deployed import policy_artifact, training_config
 from pipeline.stages._environment import config_environment
 from pipeline.validation import validate_config
@@ -65,7 +73,7 @@ def control(cfg: Any) -> Artifact:
     validate_limits(robot.limits, robot.n_valves)
     store = ArtifactStore(cfg.paths.artifact_dir)
     deployment = load_deployment(cfg, store)
-    schedule = goal_schedule(settings, deployment.control_hz, deployment.workspace_m)
+    schedule = session_schedule(cfg, settings, deployment)
     spec, inputs = keys.control_spec(cfg)
     set_aside_interrupted(store, artifact_key(spec, inputs))
     outcomes: list[Outcome] = []
@@ -75,8 +83,12 @@ def control(cfg: Any) -> Artifact:
         recovery = Path(cfg.paths.output_dir) / "recovery" / f"{STAGE}-{writer.key}-{started}"
         record = run_session(robot, settings, deployment, schedule, recovery, spec)
         record.recorder.write(writer.file("periods.parquet"), record.periods)
-        metrics = goal_metrics(record.periods, 1.0 / deployment.control_hz)
-        metrics.to_parquet(writer.file("goals.parquet"), index=False)
+        if isinstance(schedule, TrajectorySchedule):
+            metrics = trajectory_metrics(record.periods, deployment.control_hz, schedule.settle_s)
+            metrics.to_parquet(writer.file("tracking.parquet"), index=False)
+        else:
+            metrics = goal_metrics(record.periods, 1.0 / deployment.control_hz)
+            metrics.to_parquet(writer.file("goals.parquet"), index=False)
         writer.summary = report_session(writer.path, record, metrics, deployment, schedule, robot)
         shutil.rmtree(record.recovery)  # the artifact's temporary folder now holds every row
         outcomes.append(record.outcome)
@@ -93,6 +105,33 @@ def control(cfg: Any) -> Artifact:
                 f"{'' if outcome.preload_acknowledged is not False else ' (not acknowledged)'}. "
                 f"The periods recorded so far are in {artifact.path}") from outcome.error
     return artifact
+
+
+def session_schedule(cfg: Any, settings: ControlConfig, deployment: Deployment
+                     ) -> GoalSchedule:
+    """The goals of ``control.goals`` / ``goals_csv`` / ``goal_topic``, or the reference of
+    ``control.trajectory`` (a name of ``evaluation.references``, an inline shape, a CSV) with the
+    preview the policy was trained with, each checked before anything moves."""
+    if settings.trajectory is None:
+        return goal_schedule(settings, deployment.control_hz, deployment.workspace_m)
+    given = [name for name in ("goals", "goals_csv", "goal_topic") if getattr(settings, name)]
+    if given:
+        raise GoalError(f"control.trajectory={settings.trajectory} is followed on its own; "
+                        f"leave out {', '.join(f'control.{name}' for name in given)}")
+    evaluation = cfg.evaluation
+    named = OmegaConf.to_container(evaluation.references, resolve=True) or {}
+    held_out = np.asarray(deployment.env_params.goal_set, np.float64)
+    trained = deployment.train_goals_m
+    trajectory = trajectory_of(settings.trajectory, named,
+                               np.median(held_out, axis=0) * MM_PER_M)
+    duration = (settings.duration_s if settings.duration_s is not None
+                else trajectory.duration_s if trajectory.duration_s is not None
+                else evaluation.tracking_seconds)
+    settle = (evaluation.tracking_settle_seconds if settings.settle_s is None
+              else settings.settle_s)
+    return trajectory_schedule(trajectory, float(duration), float(settle), deployment.control_hz,
+                               deployment.preview, np.concatenate([trained, held_out]),
+                               float(settings.workspace_margin_mm))
 
 
 def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:

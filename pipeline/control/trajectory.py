@@ -1,0 +1,188 @@
+"""Following a reference with ``stage=control`` (``control.trajectory``).
+
+The reference (:mod:`pipeline.arm.references`, the library training and evaluation use) is a
+closed shape, by name of ``evaluation.references`` or given inline with the fields of
+:class:`~pipeline.schemas.ReferenceConfig`, or a timed CSV ``t,x,y,z`` (s, mm; its reader refuses
+times that do not increase, entries that are not finite and coordinates in metres). It is followed
+from ``t = 0``, the first control period's tick, for a duration (:func:`trajectory_schedule`),
+after it was checked against the positions the policy was trained and evaluated on.
+
+Control period ``k`` (tick ``k / control_hz``) gets what period ``k`` of a training episode that
+started at ``t = 0`` gets (:func:`pipeline.rl.envs.task.goal_path`,
+:func:`pipeline.rl.envs.task.preview`): the goal is the reference at the period's end,
+``(k + 1) / control_hz``, the preview the reference at ``(k + 1 + j) / control_hz``, ``j = 1 ..
+env.preview``. The pose at tick ``k`` is scored against the reference at ``k / control_hz`` (the
+records' ``ref_x, ref_y, ref_z``) with :func:`pipeline.evaluation.tracking.tracking_metrics`,
+after the first ``settle_s`` seconds (:func:`trajectory_metrics`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from pipeline.arm import references
+from pipeline.arm.references import InvalidReference, Reference, ShapeSettings
+from pipeline.control.goals import GoalError, GoalSchedule
+from pipeline.control.records import REFERENCE_COLUMNS
+from pipeline.data.schemas import XYZ
+from pipeline.evaluation.tracking import tracking_metrics
+from pipeline.rl.envs import task
+from pipeline.schemas import ReferenceConfig
+
+MM_PER_M = 1000.0
+CHECK_HZ = 10.0  # the reference is checked against the reachable set at least this often
+SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s")  # tracking_metrics' columns
+
+
+@dataclass
+class TrajectorySchedule(GoalSchedule):
+    """A reference followed period by period (see the module doc); ``goals_m [T, 3]``: the goal
+    of each period, one goal index (0) for all.
+
+    previews_m: [T, P, 3] m, the preview of each period (P: the policy's ``env.preview``).
+    ticks_m: [T + 1, 3] m, the reference at each tick ``k / control_hz``, ``k = 0 .. T``.
+    settle_s: s, the first part of the session left out of the tracking metrics.
+    """
+
+    previews_m: np.ndarray
+    ticks_m: np.ndarray
+    settle_s: float
+
+    def goal(self, period: int) -> tuple[int, np.ndarray] | None:
+        if period < 0:
+            return None
+        return 0, self.goals_m[min(period, len(self.goals_m) - 1)]
+
+    def preview(self, period: int, count: int) -> np.ndarray:
+        if count != self.previews_m.shape[1]:
+            raise ValueError(f"the schedule previews {self.previews_m.shape[1]} points, "
+                             f"asked for {count}")
+        return self.previews_m[min(max(period, 0), len(self.previews_m) - 1)]
+
+    def reference(self, period: int) -> np.ndarray:
+        return self.ticks_m[min(max(period, 0), len(self.ticks_m) - 1)]
+
+    def add(self, period: int, goal_m: np.ndarray) -> None:
+        raise GoalError("a session following control.trajectory takes no live goals")
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A reference to follow: ``reference``, how the report names it (``source``) and its own
+    length in s (``duration_s``: a CSV's last time; None for a closed shape, which goes on)."""
+
+    reference: Reference
+    source: str
+    duration_s: float | None
+
+
+def shape_settings(entry: Any, what: str) -> ShapeSettings:
+    """The :class:`ShapeSettings` of a mapping of :class:`ReferenceConfig` fields (those it leaves
+    out at their defaults; ``centre_mm`` may stay None); one :class:`InvalidReference` naming
+    ``what`` for anything else."""
+    known = sorted(field.name for field in dataclasses.fields(ReferenceConfig))
+    entry = {} if entry is None else entry  # every setting at its default
+    if not isinstance(entry, Mapping):
+        raise InvalidReference(f"{what}: expected a shape with some of {known}, got {entry!r}")
+    unknown = sorted(set(map(str, entry)) - set(known))
+    if unknown:
+        raise InvalidReference(f"{what}: unknown setting(s) {unknown}; expected some of {known}")
+    values = {**dataclasses.asdict(ReferenceConfig()), **entry}
+    centre = values.pop("centre_mm")
+    return ShapeSettings(**values, centre_mm=None if centre is None
+                         else tuple(float(v) for v in centre))
+
+
+def trajectory_of(given: Any, named: Mapping[str, Any], centre_mm: np.ndarray) -> Trajectory:
+    """The reference ``control.trajectory`` names: a key of ``named`` (``evaluation.references``),
+    a mapping of :class:`ReferenceConfig` fields, or the path of a CSV (``t,x,y,z``, s and mm);
+    a shape without a centre is centred on ``centre_mm [3]`` (the held-out goals' median, as in
+    the evaluation)."""
+    if isinstance(given, str) and (given.lower().endswith(".csv") or Path(given).is_file()):
+        path = Path(given)
+        if not path.is_file():
+            raise InvalidReference(f"control.trajectory={given}: no such CSV file (t,x,y,z: s, "
+                                   f"mm)")
+        reference = references.read_csv(path)
+        return Trajectory(reference, f"the CSV {path}", float(np.asarray(reference.times)[-1]))
+    if isinstance(given, Mapping):
+        shape, name = shape_settings(given, "control.trajectory"), "control.trajectory"
+    elif isinstance(given, str) and given in named:
+        shape = shape_settings(named[given], f"evaluation.references.{given}")
+        name = given
+    else:
+        raise InvalidReference(
+            f"control.trajectory={given!r}: expected a name of evaluation.references "
+            f"{sorted(named)}, a shape such as {{kind: circle, size_mm: 5, period_s: 20}}, or a "
+            f"CSV file with columns t,x,y,z (s, mm)")
+    if shape.centre_mm is None:
+        shape = dataclasses.replace(shape, centre_mm=tuple(float(v) for v in centre_mm))
+    centre = np.round(np.asarray(shape.centre_mm, np.float64), 1).tolist()
+    source = (f"{name}: a {shape.kind} of {shape.size_mm:g} mm in {shape.plane}, "
+              f"{shape.period_s:g} s a lap, around {centre} mm")
+    return Trajectory(references.shape(shape), source, None)
+
+
+def trajectory_schedule(trajectory: Trajectory, duration_s: float, settle_s: float,
+                        control_hz: float, preview: int, reachable_m: np.ndarray,
+                        tolerance_mm: float) -> TrajectorySchedule:
+    """The schedule of ``trajectory`` followed for ``duration_s`` s at ``control_hz`` with a
+    preview of ``preview`` points, scored after ``settle_s`` s. Refused (one
+    :class:`InvalidReference`, before anything moves) where a point a period is sent toward,
+    previews or is scored at lies more than ``tolerance_mm`` from every position of
+    ``reachable_m [N, 3]`` m (:func:`pipeline.arm.references.check_reachable`)."""
+    periods = round(float(duration_s) * control_hz)
+    if not (math.isfinite(duration_s) and periods >= 1):
+        raise InvalidReference(f"control.duration_s={duration_s}: a reference is followed for "
+                               f"at least one control period (1 / {control_hz:g} s)")
+    if not (math.isfinite(settle_s) and 0.0 <= settle_s < periods / control_hz):
+        raise InvalidReference(f"control.settle_s={settle_s}: expected >= 0 s and shorter than "
+                               f"the {periods / control_hz:g} s the reference is followed")
+    reference = trajectory.reference
+    horizon = (periods + preview) / control_hz  # the last point any period is sent or previews
+    references.check_reachable(reference, horizon, max(CHECK_HZ, control_hz), reachable_m,
+                               tolerance_mm, f"control.trajectory ({trajectory.source})")
+    goals = np.asarray(task.goal_path(reference, periods, control_hz), np.float64)
+    if preview:
+        previews = jax.vmap(lambda period: task.preview(reference, period, control_hz, preview))(
+            jnp.arange(periods))
+        previews = np.asarray(previews, np.float64)
+    else:
+        previews = np.zeros((periods, 0, 3))
+    ticks = np.asarray(references.positions(reference, jnp.arange(periods + 1) / control_hz),
+                       np.float64)
+    return TrajectorySchedule(goals, np.zeros(1, int), periods, trajectory.source, previews,
+                              ticks, float(settle_s))
+
+
+def trajectory_metrics(periods: pd.DataFrame, control_hz: float, settle_s: float
+                       ) -> pd.DataFrame:
+    """One row: :func:`~pipeline.evaluation.tracking.tracking_metrics` of the session's records
+    (the pose at each tick against ``ref_x, ref_y, ref_z``) after ``settle_s``, with the periods
+    scored and ``interpolated`` (periods skipped after a stall have no row: their pose and
+    reference are interpolated between the neighbouring ticks). A session that ended before the
+    settle time (interrupted) scores NaN."""
+    table = periods.sort_values("period").drop_duplicates("period", keep="last")
+    table = table[table["period"] >= 0].set_index("period")
+    ticks = np.arange(int(table.index.max()) + 1)
+    grid = table[[*XYZ, *REFERENCE_COLUMNS]].reindex(ticks)
+    interpolated = int(grid.isna().any(axis=1).sum())
+    grid = grid.interpolate(limit_direction="both")
+    positions = grid[XYZ].to_numpy(np.float64)[None]
+    reference = grid[REFERENCE_COLUMNS].to_numpy(np.float64)[None]
+    if len(ticks) <= math.ceil(settle_s * control_hz - 1e-9):  # stopped before it settled
+        metrics = pd.DataFrame({name: [np.nan] for name in SCORES})
+    else:
+        metrics = tracking_metrics(positions, reference, control_hz, settle_s)
+    return metrics.assign(settle_s=float(settle_s), periods=len(ticks) - 1,
+                          interpolated=interpolated)

@@ -176,6 +176,7 @@ def tracking_metrics_of(artifact) -> pd.Series:
     return pd.read_parquet(artifact.file("tracking.parquet")).iloc[0]
 
 
+@pytest.mark.slow  # about 50 s: the default suite keeps one twin session (the test above)
 def test_a_circle_followed_on_the_twin_matches_the_simulated_arm(tmp_path, ros_domain):
     """A tracking policy (random network, preview 3) follows a 2 mm circle for 10 s."""
     cfg = compose_config(tmp_path / "sim", *SMALL, "env.task=track", "env.preview=3",

@@ -266,6 +266,10 @@ def _check_tracking_evaluation(cfg: Any) -> None:
     if horizon is not None and int(horizon) < 1:
         raise ConfigError(f"evaluation.tracking_mpc_horizon={horizon} must be >= 1 (null: "
                           f"env.preview + 1, the reference points the policies see)")
+    spread = float(evaluation.get("tracking_mpc_std_kpa", 0.25))
+    if not (math.isfinite(spread) and spread > 0):
+        raise ConfigError(f"evaluation.tracking_mpc_std_kpa={spread} must be finite and > 0 (kPa, "
+                          f"the spread of the MPC's first samples)")
 
 
 def _check_env(cfg: Any) -> None:

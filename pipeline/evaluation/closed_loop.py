@@ -171,7 +171,8 @@ def _controllers(settings: ClosedLoopSettings, env, params, learned_params, poli
                                                   num_iterations=int(evaluation.mpc_iterations))
             model = learned_plant(float(settings.model_hz))
             model_carries, model_starts = _starts(learned_params, num_episodes)
-            carries = jax.vmap(mpc.initial_carry, in_axes=(0, 0, None))(
+            carries = jax.vmap(lambda carry, start, preload, s=cem: mpc.initial_carry(
+                carry, start, preload, s), in_axes=(0, 0, None))(
                 model_carries, model_starts, params.preload)
             out[baseline] = Controllers(
                 lambda params, env_params, m=model, s=cem: mpc.mpc_controller(

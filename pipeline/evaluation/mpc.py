@@ -52,15 +52,17 @@ def plan(
     steps_per_action: int,
     settings: CEMSettings = DEFAULT_SETTINGS,
 ) -> chex.Array:
-    """The command ``[3]`` kPa to send now, searched from ``start [3]`` kPa.
+    """The plan ``[blocks, 3]`` kPa (:func:`blocks`: one command held, or one per period of the
+    horizon with ``settings.per_period``; its first row is the command to send now), searched
+    from ``start`` (``[3]`` or ``[blocks, 3]`` kPa).
 
     ``goals``: ``[horizon, 3]`` m, the goal at the end of each period of the horizon, or ``[3]``
-    m, one goal for all of them. Cost of a candidate (``[3]`` kPa held, or ``[horizon, 3]`` kPa
-    with ``settings.per_period``): the mean distance to the periods' goals at their ends.
+    m, one goal for all of them. Cost of a candidate: the mean distance to the periods' goals at
+    their ends.
     """
     horizon = settings.horizon
     goals = jnp.broadcast_to(goals, (horizon, 3))
-    blocks = horizon if settings.per_period else 1
+    count = blocks(settings)
 
     def cost(commands):  # [blocks, 3] kPa
         def period(model_carry, command):
@@ -72,15 +74,20 @@ def plan(
 
     def iteration(search, iteration_key):
         mean, std = search
-        noise = jax.random.normal(iteration_key, (settings.num_samples, blocks, 3))
+        noise = jax.random.normal(iteration_key, (settings.num_samples, count, 3))
         samples = project(mean + std * noise, safe).at[0].set(project(mean, safe))  # keep it
         costs = jax.vmap(cost)(samples)
         elites = samples[jnp.argsort(costs)[: settings.num_elites]]
         return (elites.mean(axis=0), elites.std(axis=0) + 0.05), elites[0]
 
-    search = (jnp.broadcast_to(start, (blocks, 3)), jnp.full((blocks, 3), settings.initial_std_kpa))
+    search = (jnp.broadcast_to(start, (count, 3)), jnp.full((count, 3), settings.initial_std_kpa))
     _, best = jax.lax.scan(iteration, search, jax.random.split(key, settings.num_iterations))
-    return project(best[-1, 0], safe)
+    return project(best[-1], safe)
+
+
+def blocks(settings: CEMSettings) -> int:
+    """The commands of a plan: one per period of the horizon with ``per_period``, else one."""
+    return int(settings.horizon) if settings.per_period else 1
 
 
 def mpc_controller(
@@ -92,23 +99,27 @@ def mpc_controller(
 ):
     """The MPC as a :data:`pipeline.evaluation.rollouts.Controller` for ``env`` (any plant).
 
-    Its carry is ``(model_carry, model_position [3], last_command [3])``: the learned model run
-    open loop on the commands the controller sends; build the first one with
-    :func:`initial_carry`.
+    Its carry is ``(model_carry, model_position [3], plan [blocks, 3])``: the learned model run
+    open loop on the commands the controller sends, and where the next search starts (the last
+    command sent; planning per period, the rest of the last plan, its last command repeated);
+    build the first one with :func:`initial_carry`.
     """
     steps = env.steps_per_action
 
     def act(key, obs, state, carry):
         model_carry, model_position, previous = carry
         offset = state.position - model_position
-        command = plan(key, model, model_params, model_carry, horizon_goals(env, state, settings)
+        planned = plan(key, model, model_params, model_carry, horizon_goals(env, state, settings)
                        - offset, previous, env_params.safe_set, steps, settings)
+        command = planned[0]
         action = env.action_for(command, state.last_pressure, env_params)
         if env.incremental_actions:  # rate-limited: the model holds what will be sent
             command = project(env.command(action, state.last_pressure, env_params),
                               env_params.safe_set)
         model_carry, path = hold(model, model_params, model_carry, command, steps)
-        return (model_carry, path[-1], command), action
+        following = jnp.concatenate([planned[1:], planned[-1:]]) if len(planned) > 1 else \
+            command[None]
+        return (model_carry, path[-1], following), action
 
     return act
 
@@ -124,6 +135,9 @@ def horizon_goals(env: Any, state: Any, settings: CEMSettings) -> chex.Array:
     return jnp.concatenate([state.goal[None], ahead])
 
 
-def initial_carry(model_carry: Any, model_position: chex.Array, preload: chex.Array):
-    """The MPC's carry at the start of an episode: the model settled where it starts."""
-    return model_carry, jnp.asarray(model_position, jnp.float32), jnp.asarray(preload, jnp.float32)
+def initial_carry(model_carry: Any, model_position: chex.Array, preload: chex.Array,
+                  settings: CEMSettings = DEFAULT_SETTINGS):
+    """The MPC's carry at the start of an episode: the model settled where it starts, the plan
+    holding the preload."""
+    return (model_carry, jnp.asarray(model_position, jnp.float32),
+            jnp.broadcast_to(jnp.asarray(preload, jnp.float32), (blocks(settings), 3)))

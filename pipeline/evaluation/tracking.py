@@ -5,8 +5,8 @@ For ``env.task=track``: each reference of ``evaluation.references`` (a shape in 
 checked against the held-out goals before anything runs) is followed for ``tracking_seconds`` by
 every policy (all seeds) and the baselines (``evaluation.tracking_baselines``: the preload; the
 sampling MPC on the learned model, :mod:`pipeline.evaluation.mpc`, scoring its candidates
-against the reference over its horizon, by default the points the policies' preview shows; the
-reaching policies fed the moving goal, :class:`Reaching`), in ``num_episodes`` episodes from the
+against the reference over its horizon, :class:`TrackingSettings`; the reaching policies fed the
+moving goal, :class:`Reaching`), in ``num_episodes`` episodes from the
 learned env's start states, their phases spread evenly over a lap; on the learned model, the
 plant, other fitted models and twins (the plants of
 :func:`pipeline.evaluation.closed_loop.run_evaluation`), and in the cross-model protocol
@@ -63,8 +63,13 @@ class TrackingSettings:
     reachable_tolerance_mm: mm, how far a reference point may lie from the nearest held-out goal.
     baselines: some of :data:`BASELINES`.
     mpc_horizon: control periods the MPC scores a candidate over; None: the environment's
-      ``preview + 1`` (the current goal and the points the policies see ahead).
+      ``preview + 1`` (the current goal and the points the policies see ahead). 1: the goal
+      of the period only, the most precise on the default chain's model and arm at 2 Hz (the
+      arm settles within a period; a longer horizon adds the bias of a held command, or search
+      dimensions per period that the samples do not fill).
     mpc_per_period: the MPC plans one command per period of its horizon (False: one held).
+    mpc_std_kpa: kPa, the spread of the MPC's first samples around where its search starts (the
+      last command: a slow reference moves the command by tenths of a kPa a period).
     """
 
     references: Mapping[str, Any]
@@ -72,8 +77,9 @@ class TrackingSettings:
     settle_seconds: float = 10.0
     reachable_tolerance_mm: float = 1.5
     baselines: Sequence[str] = ("preload",)
-    mpc_horizon: int | None = None
+    mpc_horizon: int | None = 1
     mpc_per_period: bool = True
+    mpc_std_kpa: float = 0.25
 
     def mpc_settings(self, evaluation: Any, env: SoftArmReachEnv) -> mpc.CEMSettings:
         """The tracking MPC's settings: ``evaluation``'s samples and iterations, this horizon
@@ -81,6 +87,7 @@ class TrackingSettings:
         horizon = env.preview + 1 if self.mpc_horizon is None else int(self.mpc_horizon)
         return mpc.CEMSettings(horizon=horizon, num_samples=int(evaluation.mpc_samples),
                                num_iterations=int(evaluation.mpc_iterations),
+                               initial_std_kpa=float(self.mpc_std_kpa),
                                per_period=bool(self.mpc_per_period))
 
 

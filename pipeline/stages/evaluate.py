@@ -165,7 +165,8 @@ def tracking_settings(cfg: Any) -> TrackingSettings:
                             float(evaluation.reachable_tolerance_mm),
                             tuple(str(name) for name in evaluation.tracking_baselines),
                             None if horizon is None else int(horizon),
-                            bool(evaluation.tracking_mpc_per_period))
+                            bool(evaluation.tracking_mpc_per_period),
+                            float(evaluation.tracking_mpc_std_kpa))
 
 
 def _reaching(cfg: Any, policies: dict[str, Artifact]) -> Reaching:

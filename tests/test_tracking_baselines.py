@@ -315,3 +315,25 @@ def test_the_chain_tracks_with_the_mpc_and_the_figures_command_draws_it(make_cfg
     main(["--out", str(tmp_path / "none"), "--output-dir", output_dir, "--only", "tracking",
           "--tracking-set", *TINY, "evaluation.policies=[ppo_ff]", "evaluation.seed=1"])
     assert not (tmp_path / "none" / "tracking_paths_and_error.png").exists()
+
+
+def test_the_cross_model_protocol_reads_each_groups_reaching_policies(make_cfg, tmp_path):
+    from pipeline import keys
+    from pipeline.chain import reaching_configs
+
+    data = tmp_path / "runs"
+    data.mkdir()
+    for number in range(4):
+        (data / f"Step_control_{number:02d}.csv").write_text(f"t\n{number}\n")
+    robot = ["robot=sorolex_csv", f"robot.data_dir={data}"]
+    _, inputs = keys.evaluate_spec(make_cfg("experiment=tracking", *robot))
+    group_b = make_cfg("experiment=tracking", *robot,
+                       "robot.files=[Step_control_01.csv,Step_control_03.csv]")
+    assert set(reaching_configs(group_b)) == {"ppo_ff", "ppo_rnn"}
+    for name, variant in reaching_configs(group_b).items():
+        assert inputs[f"cross_model/B->A/reaching/train_ppo/{name}"] == keys.key("train_ppo",
+                                                                                 variant)
+    # reaching has no reaching baseline, in the protocol or outside it
+    _, plain = keys.evaluate_spec(make_cfg(*robot))
+    assert any(name.startswith("cross_model/") for name in plain)
+    assert not any("reaching/" in name for name in plain)

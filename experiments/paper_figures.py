@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shlex
 import textwrap
 import time
 from pathlib import Path
@@ -355,7 +356,7 @@ def tracking_figure(out: Path, base: tuple[str, ...], captions: dict[str, str],
 
     cfg = compose(base, *settings)
     artifact = ArtifactStore(cfg.paths.artifact_dir).find("evaluate", keys.key("evaluate", cfg))
-    command = " ".join(["python -m pipeline", *settings])
+    command = " ".join(["python -m pipeline", *(shlex.quote(s) for s in settings)])
     if artifact is None or not artifact.file("tracking_paths.parquet").is_file():
         log.info("tracking figure skipped: no tracking evaluation of this config (%s makes it)",
                  command)
@@ -363,7 +364,11 @@ def tracking_figure(out: Path, base: tuple[str, ...], captions: dict[str, str],
     paths = pd.read_parquet(artifact.file("tracking_paths.parquet"))
     summary = pd.read_parquet(artifact.file("tracking.parquet"))
     plant = "plant" if "plant" in set(paths["plant"]) else "learned"
-    fig = draw_tracking(paths, plants=[plant], spread=True)
+    settle = float(cfg.evaluation.tracking_settle_seconds)
+    fig = draw_tracking(paths, plants=[plant], spread=True, since_s=settle)
+    horizon = cfg.evaluation.tracking_mpc_horizon
+    horizon = (f"{int(horizon)} control period{'s' if int(horizon) > 1 else ''}"
+               if horizon is not None else "the policies' preview")
     shown = summary[(summary["plant"] == plant) & (summary["controller"] != "preload")]
     rmse = "; ".join(
         f"{name}: " + ", ".join(f"{row.controller} {row.median_rmse_mm:.2f}"
@@ -373,12 +378,13 @@ def tracking_figure(out: Path, base: tuple[str, ...], captions: dict[str, str],
     return _save(fig, out / "tracking_paths_and_error.png", (
         f"Tracking on the {PLANT_LABELS.get(plant, plant)}: each reference (grey; "
         f"{float(cfg.evaluation.tracking_seconds):g} s from the arm at rest) against the path of "
-        "each tracking policy (seed 0, episode 0) and of the baselines (sampling MPC on the "
-        "learned model with the reference over its horizon; the reaching policies fed the "
-        "moving goal), left in x-z, right the distance to the reference over time, the median "
-        f"and quartiles over the first {episodes} episodes (phases spread over a lap) and "
-        f"{seeds} seeds. Run: {command} (its evaluate artifact {artifact.path.name}). Median RMSE "
-        f"[mm] after the first {float(cfg.evaluation.tracking_settle_seconds):g} s over "
+        "each tracking policy (seed 0, episode 0) and of the baselines (mpc: sampling MPC on the "
+        f"learned model scored against the reference over {horizon}; '(reaching)': the "
+        "reaching policies fed the moving goal), left in x-z from the first "
+        f"{settle:g} s on, right the distance to the reference over time from the start, the "
+        f"median and quartiles over the first {episodes} episodes (phases spread over a lap) "
+        f"and the seeds ({seeds} of each policy). Run: {command} (its evaluate artifact "
+        f"{artifact.path.name}). Median RMSE [mm] after the first {settle:g} s over "
         f"{int(cfg.evaluation.num_episodes)} episodes and every seed: {rmse}."), captions)
 
 

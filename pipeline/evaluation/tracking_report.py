@@ -30,12 +30,13 @@ TRACKING_COLUMNS = {
 
 
 def draw_tracking(paths: pd.DataFrame, plants: Sequence[str] | None = None, episode: int = 0,
-                  seed: int = 0, spread: bool = False):
+                  seed: int = 0, spread: bool = False, since_s: float = 0.0):
     """A figure, one row per reference of ``paths`` (the paths table): the reference against
-    the path of each controller but the preload in x–z (``episode`` of ``seed``; a baseline's
-    only seed where it has no ``seed``) and the distance to the reference over time, the median
-    over the table's episodes and seeds (with ``spread``, the band between the quartiles); on
-    ``plants`` (None: every plant of the table, each its line style)."""
+    the path of each controller but the preload in x–z from ``since_s`` s on (``episode`` of
+    ``seed``; a baseline's only seed where it has no ``seed``) and the distance to the reference
+    over time, the median over the table's episodes and seeds (with ``spread``, the band between
+    the quartiles); on ``plants`` (None: every plant of the table, each its line style; one:
+    solid lines)."""
     import matplotlib.pyplot as plt
 
     if plants is not None:
@@ -51,11 +52,11 @@ def draw_tracking(paths: pd.DataFrame, plants: Sequence[str] | None = None, epis
         reference = first[first["seed"] == first["seed"].min()].drop_duplicates("period")
         plane.plot(reference["reference_x_mm"], reference["reference_z_mm"], color="black",
                    lw=2.5, alpha=0.35, label="reference")
+        single = plants is not None and len(plants) == 1
         for (plant, controller), group in shown.groupby(["plant", "controller"], sort=False):
-            style, colour = PLANT_STYLES.get(plant, ":"), colours[controller]
-            label = controller if plants is not None and len(plants) == 1 else \
-                f"{controller} · {PLANT_LABELS.get(plant, plant)}"
-            own = group[group["episode"] == episode]
+            style, colour = "-" if single else PLANT_STYLES.get(plant, ":"), colours[controller]
+            label = controller if single else f"{controller} · {PLANT_LABELS.get(plant, plant)}"
+            own = group[(group["episode"] == episode) & (group["time_s"] >= since_s - 1e-9)]
             own = own[own["seed"] == (seed if seed in set(own["seed"]) else own["seed"].min())]
             plane.plot(own["x_mm"], own["z_mm"], style, color=colour, lw=1.2, label=label)
             over_time = group.groupby("time_s")["error_mm"]
@@ -64,7 +65,8 @@ def draw_tracking(paths: pd.DataFrame, plants: Sequence[str] | None = None, epis
             if spread:
                 error.fill_between(median.index, over_time.quantile(0.25).to_numpy(),
                                    over_time.quantile(0.75).to_numpy(), color=colour, alpha=0.15)
-        plane.set(title=f"{name}: x–z", xlabel="x [mm]", ylabel="z [mm]", aspect="equal")
+        after = f" from {since_s:g} s" if since_s else ""
+        plane.set(title=f"{name}: x–z{after}", xlabel="x [mm]", ylabel="z [mm]", aspect="equal")
         error.set(title=f"{name}: distance to the reference", xlabel="time [s]",
                   ylabel="distance [mm]")
         error.set_ylim(bottom=0)
@@ -83,13 +85,15 @@ def tracking_figure(path: Path, results: dict[str, Any], control_hz: float,
     paths = results.get("tables", {}).get("tracking_paths")
     if paths is None or not len(paths):
         return None
-    fig = draw_tracking(paths, episode=episode, seed=seed)
+    since = float(results.get("settle_seconds", 0.0))
+    fig = draw_tracking(paths, episode=episode, seed=seed, since_s=since)
     fig.savefig(path, dpi=100)
     plt.close(fig)
     episodes = int(paths["episode"].nunique())
     return Figure(path, (
         f"tracking: the reference (grey) and the paths of each controller's seed {seed}, episode "
-        f"{episode}, on each plant (line style: solid the learned model, dashed the simulated "
+        f"{episode}, from {since:g} s on (scored from there), on each plant (line style: solid "
+        f"the learned model, dashed the simulated "
         f"arm, dotted the others), and the median over its first {episodes} episodes and its "
         f"seeds of the distance to the reference over time (1 mm dotted); at "
         f"{control_hz:g} Hz, the preload left out."))

@@ -235,7 +235,7 @@ def test_the_tracking_section_shows_every_plant_baseline_and_the_cross_model_row
     tables = [block.frame for block in section.blocks if hasattr(block, "frame")]
     assert len(tables) == 2
     main, across = tables
-    assert list(main["controller"]) == ["ppo_ff", "preload", "mpc"] * 2
+    assert list(main["controller"]) == ["ppo_ff", "mpc", "preload"] * 2
     assert set(main["plant"]) == {"learned model", "simulated arm"}
     assert "RMSE [mm]" in main.columns and "lag [s]" in main.columns
     assert len(across) == 12 and set(across["plant"]) == {"own model", "other model"}

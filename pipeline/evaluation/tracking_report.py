@@ -113,6 +113,9 @@ def tracking_section(summary: pd.DataFrame, figure: Figure | None, order: Sequen
     (:func:`pipeline.evaluation.tracking.summarize_tracking`), the cross-model protocol's
     (``cross_model``, per direction too, where it ran) and the figure."""
     after = "" if settle_seconds is None else f" after the first {settle_seconds:g} s"
+    # the policies (in ``order``), the reaching baseline, the MPC, the preload
+    reaching = [c for c in dict.fromkeys(summary["controller"]) if str(c).endswith("(reaching)")]
+    order = [c for c in order if c not in ("mpc", "preload")] + reaching + ["mpc", "preload"]
     frame = _ordered(summary, order, ["reference", "plant"])
     frame = frame.assign(plant=frame["plant"].map(lambda p: PLANT_LABELS.get(p, p)))
     section = Section("Tracking", [

@@ -20,6 +20,10 @@ says so.
 - Fig. 7: open-loop reconstruction of a training run and an unseen run (real runs).
 - Fig. 8: episodic return of feed-forward and recurrent PPO in the model of the real runs,
   mean ± one std over seeds.
+- Tracking (beyond the paper): the references against the paths of the tracking policies and the
+  baselines in x-z, and their distance to the reference over time, from the evaluate artifact of
+  the config of ``--tracking-set`` (default ``experiment=tracking``) where it is there: it is
+  read, never run here (``python -m pipeline experiment=tracking`` makes it); skipped otherwise.
 
 Figs. 6 and 7 show one split of the runs into training and validation runs (``dataset.protocol=
 split``): the loss curves need a validation set, which the leave-one-run-out protocol (the default
@@ -32,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shlex
 import textwrap
 import time
 from pathlib import Path
@@ -335,6 +340,54 @@ def return_figure(out: Path, base: tuple[str, ...], captions: dict[str, str], se
         f"ppo_rnn {rnn:.1f} ± {rnn_std:.1f} (mean ± std over seeds): {comparison}."), captions)
 
 
+# ---------------------------------------------------------------------------------------------
+# Tracking: the policies that follow moving references, from an existing evaluation
+# ---------------------------------------------------------------------------------------------
+TRACKING = ("experiment=tracking",)
+
+
+def tracking_figure(out: Path, base: tuple[str, ...], captions: dict[str, str],
+                    settings: tuple[str, ...] = TRACKING) -> Path | None:
+    """The tracking figure from the evaluate artifact of the config of ``settings``
+    (overrides), or None (logged) where that evaluation has not run."""
+    from pipeline import keys
+    from pipeline.evaluation.tracking_report import PLANT_LABELS, draw_tracking
+    from pipeline.infra.artifacts import ArtifactStore
+
+    cfg = compose(base, *settings)
+    artifact = ArtifactStore(cfg.paths.artifact_dir).find("evaluate", keys.key("evaluate", cfg))
+    command = " ".join(["python -m pipeline", *(shlex.quote(s) for s in settings)])
+    if artifact is None or not artifact.file("tracking_paths.parquet").is_file():
+        log.info("tracking figure skipped: no tracking evaluation of this config (%s makes it)",
+                 command)
+        return None
+    paths = pd.read_parquet(artifact.file("tracking_paths.parquet"))
+    summary = pd.read_parquet(artifact.file("tracking.parquet"))
+    plant = "plant" if "plant" in set(paths["plant"]) else "learned"
+    settle = float(cfg.evaluation.tracking_settle_seconds)
+    fig = draw_tracking(paths, plants=[plant], spread=True, since_s=settle)
+    horizon = cfg.evaluation.tracking_mpc_horizon
+    horizon = (f"{int(horizon)} control period{'s' if int(horizon) > 1 else ''}"
+               if horizon is not None else "the policies' preview")
+    shown = summary[(summary["plant"] == plant) & (summary["controller"] != "preload")]
+    rmse = "; ".join(
+        f"{name}: " + ", ".join(f"{row.controller} {row.median_rmse_mm:.2f}"
+                                for row in part.itertuples())
+        for name, part in shown.groupby("reference", sort=False))
+    episodes, seeds = int(paths["episode"].nunique()), int(paths["seed"].nunique())
+    return _save(fig, out / "tracking_paths_and_error.png", (
+        f"Tracking on the {PLANT_LABELS.get(plant, plant)}: each reference (grey; "
+        f"{float(cfg.evaluation.tracking_seconds):g} s from the arm at rest) against the path of "
+        "each tracking policy (seed 0, episode 0) and of the baselines (mpc: sampling MPC on the "
+        f"learned model scored against the reference over {horizon}; '(reaching)': the "
+        "reaching policies fed the moving goal), left in x-z from the first "
+        f"{settle:g} s on, right the distance to the reference over time from the start, the "
+        f"median and quartiles over the first {episodes} episodes (phases spread over a lap) "
+        f"and the seeds ({seeds} of each policy). Run: {command} (its evaluate artifact "
+        f"{artifact.path.name}). Median RMSE [mm] after the first {settle:g} s over "
+        f"{int(cfg.evaluation.num_episodes)} episodes and every seed: {rmse}."), captions)
+
+
 def main(argv: list[str] | None = None) -> None:
     from pipeline.config import PROJECT_ROOT
 
@@ -346,10 +399,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, default=20, help="PPO seeds per policy type")
     parser.add_argument("--ppo-steps", type=int, default=102_400,
                         help="PPO environment steps per seed")
-    parser.add_argument("--only", nargs="*", default=["4", "5", "6", "7", "8"],
+    parser.add_argument("--only", nargs="*", default=["4", "5", "6", "7", "8", "tracking"],
                         help="figures to make (4 and 5 go together, 6 and 7 too)")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", dest="settings",
                         help="Hydra overrides for every stage run (e.g. model.num_steps=50)")
+    parser.add_argument("--tracking-set", nargs="*", default=list(TRACKING),
+                        metavar="KEY=VALUE",
+                        help="the overrides of the tracking evaluation the tracking figure is "
+                             "drawn from (default: experiment=tracking)")
     args = parser.parse_args(argv)
     base = base_overrides(args.output_dir, tuple(args.settings))
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
@@ -361,6 +418,8 @@ def main(argv: list[str] | None = None) -> None:
         model_figures(args.out, base, captions)
     if "8" in args.only:
         return_figure(args.out, base, captions, args.seeds, args.ppo_steps)
+    if "tracking" in args.only:
+        tracking_figure(args.out, base, captions, tuple(args.tracking_set))
     text = ["# The paper's figures, from this project's artifacts", ""]
     text += [f"![{name}]({name})\n\n{caption}\n" for name, caption in sorted(captions.items())]
     (args.out / "captions.md").write_text("\n".join(text))

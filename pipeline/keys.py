@@ -219,6 +219,9 @@ def evaluate_spec(cfg: Any) -> Spec:
             inputs[f"cross_model/{direction}/train_ppo/{name}"] = artifact_key(
                 *train_ppo_spec(variant))
         inputs[f"cross_model/{direction}/fit_model"] = artifact_key(*fit_model_spec(test))
+        for name, variant in reaching_configs(train).items():
+            inputs[f"cross_model/{direction}/reaching/train_ppo/{name}"] = artifact_key(
+                *train_ppo_spec(variant))
     return spec, inputs
 
 

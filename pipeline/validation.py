@@ -219,6 +219,7 @@ def validate_config(cfg: Any, robot_choice: str | None = None,
         raise ConfigError(f"robot.workspace: low_m={low} must lie below high_m={high} (x, y, z)")
     _check_env(cfg)
     _check_cross_model_budget(cfg)
+    _check_tracking_evaluation(cfg)
     _check_agent(cfg)
     exploration = cfg.get("exploration")
     if exploration is not None:
@@ -249,6 +250,26 @@ def _check_cross_model_budget(cfg: Any) -> None:
     if not (math.isfinite(budget) and budget > 0):
         raise ConfigError(f"evaluation.cross_model_budget={budget} must be finite and > 0 (the "
                           f"share of the agent's env steps the cross-model policies train for)")
+
+
+def _check_tracking_evaluation(cfg: Any) -> None:
+    """The tracking evaluation's baselines (preload, mpc) and the MPC's horizon."""
+    evaluation = cfg.get("evaluation")
+    if evaluation is None:
+        return
+    baselines = list(evaluation.get("tracking_baselines") or [])
+    unknown = [name for name in baselines if name not in ("preload", "mpc")]
+    if unknown:
+        raise ConfigError(f"evaluation.tracking_baselines: unknown {unknown}; known: preload, mpc "
+                          f"(the reaching policies: evaluation.reaching=true)")
+    horizon = evaluation.get("tracking_mpc_horizon")
+    if horizon is not None and int(horizon) < 1:
+        raise ConfigError(f"evaluation.tracking_mpc_horizon={horizon} must be >= 1 (null: "
+                          f"env.preview + 1, the reference points the policies see)")
+    spread = float(evaluation.get("tracking_mpc_std_kpa", 0.25))
+    if not (math.isfinite(spread) and spread > 0):
+        raise ConfigError(f"evaluation.tracking_mpc_std_kpa={spread} must be finite and > 0 (kPa, "
+                          f"the spread of the MPC's first samples)")
 
 
 def _check_env(cfg: Any) -> None:

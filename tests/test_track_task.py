@@ -178,7 +178,8 @@ TINY_TRACKING = ["experiment=[quick,tracking]", "robot.num_runs=2", "exploration
                  "model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10",
                  "dataset.window=32", "dataset.train_fraction=0.5", "env.max_steps=8",
                  "evaluation.tracking_seconds=8", "evaluation.tracking_settle_seconds=2",
-                 "evaluation.reachable_tolerance_mm=50"]
+                 "evaluation.reachable_tolerance_mm=50", "evaluation.mpc_samples=8",
+                 "evaluation.mpc_iterations=1"]
 
 
 @pytest.mark.slow
@@ -192,13 +193,13 @@ def test_experiment_tracking_trains_and_evaluates_both_policy_types(make_cfg):
 
     summary = pd.read_parquet(artifact.file("tracking.parquet"))
     # the reaching policies of the same settings, fed the moving goal, as a baseline
-    assert set(summary["controller"]) == {"ppo_ff", "ppo_rnn", "preload", "ppo_ff (reaching)",
-                                          "ppo_rnn (reaching)"}
+    assert set(summary["controller"]) == {"ppo_ff", "ppo_rnn", "preload", "mpc",
+                                          "ppo_ff (reaching)", "ppo_rnn (reaching)"}
     assert set(summary["reference"]) == {"circle", "figure_eight"}
     assert set(summary["plant"]) == {"learned", "plant"}
     assert np.isfinite(summary["median_rmse_mm"]).all()
     episodes = pd.read_parquet(artifact.file("tracking_episodes.parquet"))
-    assert len(episodes) == 2 * 5 * 2 * 4  # plants x controllers x references x episodes
+    assert len(episodes) == 2 * 6 * 2 * 4  # plants x controllers x references x episodes
     markdown = artifact.file("report.md").read_text()
     assert "## Tracking" in markdown and "tracking.png" in markdown
     assert artifact.file("figures/tracking.png").stat().st_size > 10_000

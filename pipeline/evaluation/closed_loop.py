@@ -49,7 +49,8 @@ class ClosedLoopSettings:
     limits (kPa) the commands are checked against; ``env``: the training env's settings (every
     plant is observed and rewarded as the learned env);
     ``sim``: the ground-truth plant, None where the robot has none or ``evaluation.plant`` is
-    off.
+    off; ``mpc``: the MPC baseline's settings, None: ``evaluation``'s ``mpc_*`` (one command
+    held over the horizon).
     """
 
     evaluation: EvaluationConfig
@@ -58,6 +59,7 @@ class ClosedLoopSettings:
     limits: Any
     env: EnvConfig
     sim: SimArm | None = None
+    mpc: mpc.CEMSettings | None = None
 
     def only_in_models(self) -> ClosedLoopSettings:
         """These settings with the preload as the only baseline and no plant, twin or
@@ -164,12 +166,13 @@ def _controllers(settings: ClosedLoopSettings, env, params, learned_params, poli
             out[baseline] = Controllers(lambda params, env_params: rollouts.random_controller(),
                                         none, dummy)
         elif baseline == "mpc":
-            cem = mpc.CEMSettings(horizon=int(evaluation.mpc_horizon),
-                                  num_samples=int(evaluation.mpc_samples),
-                                  num_iterations=int(evaluation.mpc_iterations))
+            cem = settings.mpc or mpc.CEMSettings(horizon=int(evaluation.mpc_horizon),
+                                                  num_samples=int(evaluation.mpc_samples),
+                                                  num_iterations=int(evaluation.mpc_iterations))
             model = learned_plant(float(settings.model_hz))
             model_carries, model_starts = _starts(learned_params, num_episodes)
-            carries = jax.vmap(mpc.initial_carry, in_axes=(0, 0, None))(
+            carries = jax.vmap(lambda carry, start, preload, s=cem: mpc.initial_carry(
+                carry, start, preload, s), in_axes=(0, 0, None))(
                 model_carries, model_starts, params.preload)
             out[baseline] = Controllers(
                 lambda params, env_params, m=model, s=cem: mpc.mpc_controller(

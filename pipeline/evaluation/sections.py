@@ -277,7 +277,8 @@ def report_sections(facts: ReportFacts, policies: Mapping[str, ArtifactRecord], 
         sections.append(cross_model_section(tables["cross_model"], order))
     if len(tables.get("tracking", ())):
         sections.append(tracking_section(tables["tracking"], figures.get("tracking"), order,
-                                         results.get("tracking", {}).get("settle_seconds")))
+                                         results.get("tracking", {}).get("settle_seconds"),
+                                         tables.get("cross_model_tracking")))
     upstream = {"collect": collect, "align": aligned, "fit_model": model}
     sections.append(Section("Time to a controller", [
         "Wall seconds of each artifact's build, when it was built (a reused artifact keeps the "

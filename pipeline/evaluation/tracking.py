@@ -3,9 +3,14 @@
 For ``env.task=track``: each reference of ``evaluation.references`` (a shape in mm and s,
 :mod:`pipeline.arm.references`; centred on the held-out goals' median where it names no centre,
 checked against the held-out goals before anything runs) is followed for ``tracking_seconds`` by
-every policy (all seeds) and the preload, in ``num_episodes`` episodes from the learned env's
-start states, their phases spread evenly over a lap; on the learned model, the plant, other
-fitted models and twins (the plants of :func:`pipeline.evaluation.closed_loop.run_evaluation`).
+every policy (all seeds) and the baselines (``evaluation.tracking_baselines``: the preload; the
+sampling MPC on the learned model, :mod:`pipeline.evaluation.mpc`, scoring its candidates
+against the reference over its horizon, :class:`TrackingSettings`; the reaching policies fed the
+moving goal, :class:`Reaching`), in ``num_episodes`` episodes from the
+learned env's start states, their phases spread evenly over a lap; on the learned model, the
+plant, other fitted models and twins (the plants of
+:func:`pipeline.evaluation.closed_loop.run_evaluation`), and in the cross-model protocol
+(:func:`cross_model_tracking`).
 
 Metrics per episode (:func:`tracking_metrics`), over the times after the first
 ``tracking_settle_seconds`` (the arm starts at rest, away from the reference): the RMSE, the 95th
@@ -27,6 +32,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.arm import references
+from pipeline.evaluation import mpc
 from pipeline.evaluation.closed_loop import (
     ClosedLoopSettings,
     Policy,
@@ -35,13 +41,15 @@ from pipeline.evaluation.closed_loop import (
     _Programs,
     _starts,
 )
-from pipeline.evaluation.metrics import MM_PER_M
+from pipeline.evaluation.metrics import CROSS, MM_PER_M, OWN
 from pipeline.rl.envs import task
 from pipeline.rl.envs.factory import observation_options
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 
 WITHIN_MM = 1.0  # the tolerance of the time-within share
 MAX_LAG_S = 5.0  # the lag is searched within +- this many seconds
+BASELINES = ("preload", "mpc")  # the tracking evaluation's baselines besides the reaching one
+PATH_EPISODES = 8  # the episodes of each controller whose paths the paths table keeps
 
 
 @dataclass(frozen=True)
@@ -53,12 +61,34 @@ class TrackingSettings:
     seconds: s, an episode's length.
     settle_seconds: s, the first part of an episode left out of the metrics.
     reachable_tolerance_mm: mm, how far a reference point may lie from the nearest held-out goal.
+    baselines: some of :data:`BASELINES`.
+    mpc_horizon: control periods the MPC scores a candidate over; None: the environment's
+      ``preview + 1`` (the current goal and the points the policies see ahead). 1: the goal
+      of the period only, the most precise on the default chain's model and arm at 2 Hz (the
+      arm settles within a period; a longer horizon adds the bias of a held command, or search
+      dimensions per period that the samples do not fill).
+    mpc_per_period: the MPC plans one command per period of its horizon (False: one held).
+    mpc_std_kpa: kPa, the spread of the MPC's first samples around where its search starts (the
+      last command: a slow reference moves the command by tenths of a kPa a period).
     """
 
     references: Mapping[str, Any]
     seconds: float = 30.0
     settle_seconds: float = 10.0
     reachable_tolerance_mm: float = 1.5
+    baselines: Sequence[str] = ("preload",)
+    mpc_horizon: int | None = 1
+    mpc_per_period: bool = True
+    mpc_std_kpa: float = 0.25
+
+    def mpc_settings(self, evaluation: Any, env: SoftArmReachEnv) -> mpc.CEMSettings:
+        """The tracking MPC's settings: ``evaluation``'s samples and iterations, this horizon
+        (None: ``env.preview + 1``) and planning."""
+        horizon = env.preview + 1 if self.mpc_horizon is None else int(self.mpc_horizon)
+        return mpc.CEMSettings(horizon=horizon, num_samples=int(evaluation.mpc_samples),
+                               num_iterations=int(evaluation.mpc_iterations),
+                               initial_std_kpa=float(self.mpc_std_kpa),
+                               per_period=bool(self.mpc_per_period))
 
 
 def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: float,
@@ -152,19 +182,23 @@ def run_tracking(settings: ClosedLoopSettings, tracking: TrackingSettings,
                  models: Mapping[str, Any] | None = None,
                  twins: Mapping[str, Mapping[str, Any]] | None = None,
                  reaching: Reaching | None = None) -> dict[str, Any]:
-    """Every policy (all seeds), the preload and the ``reaching`` baseline following each
-    reference of ``tracking`` on every plant; returns ``tables`` (``tracking_episodes``: one row
-    per plant, controller, reference, seed and episode; ``tracking``: the medians per plant,
-    controller and reference), ``paths`` and ``reference_paths`` by ``(plant, controller,
-    reference, seed)`` / reference (``[E, T + 1, 3]`` m) and the ``headline``."""
+    """Every policy (all seeds), ``tracking``'s baselines and the ``reaching`` baseline
+    following each reference of ``tracking`` on every plant (``settings``' plant, ``models``,
+    ``twins``: as :func:`~pipeline.evaluation.closed_loop.run_evaluation`); returns ``tables``
+    (``tracking_episodes``: one row per plant, controller, reference, seed and episode;
+    ``tracking``: the medians per plant, controller and reference; ``tracking_paths``: the paths
+    of the first :data:`PATH_EPISODES` episodes, :func:`path_table`), ``paths`` and
+    ``reference_paths`` by ``(plant, controller, reference, seed)`` / reference (``[E, T + 1,
+    3]`` m) and the ``headline``."""
     if not env.tracking:
         raise ValueError("the tracking evaluation needs a tracking environment (env.task=track)")
     episodes = int(settings.evaluation.num_episodes)
     shapes = episode_references(tracking, np.asarray(eval_params.goal_set), episodes)
     key = jax.random.fold_in(jax.random.key(int(settings.evaluation.seed)), 7)
-    only_preload = dataclasses.replace(settings, evaluation=dataclasses.replace(
-        settings.evaluation, baselines=["preload"]))
-    runs = [(only_preload, env, _loaded(policies))]
+    with_baselines = dataclasses.replace(
+        settings, mpc=tracking.mpc_settings(settings.evaluation, env),
+        evaluation=dataclasses.replace(settings.evaluation, baselines=list(tracking.baselines)))
+    runs = [(with_baselines, env, _loaded(policies))]
     if reaching is not None and reaching.policies:
         reach_env = SoftArmReachEnv(env.plant, env.control_hz, **observation_options(reaching.env))
         no_baselines = dataclasses.replace(settings, env=reaching.env, evaluation=dataclasses.replace(
@@ -182,9 +216,53 @@ def run_tracking(settings: ClosedLoopSettings, tracking: TrackingSettings,
     headline = {f"tracking/{row.plant}/{row.controller}/{row.reference}": {
         "median_rmse_mm": float(row.median_rmse_mm), "median_lag_s": float(row.median_lag_s)}
         for row in summary.itertuples()}
-    return {"tables": {"tracking_episodes": table, "tracking": summary}, "paths": paths,
-            "reference_paths": targets, "headline": headline,
+    return {"tables": {"tracking_episodes": table, "tracking": summary,
+                       "tracking_paths": path_table(paths, targets, env.control_hz)},
+            "paths": paths, "reference_paths": targets, "headline": headline,
             "settle_seconds": float(tracking.settle_seconds)}
+
+
+def cross_model_tracking(settings: ClosedLoopSettings, tracking: TrackingSettings,
+                         policies: Mapping[str, Policy], env: SoftArmReachEnv,
+                         eval_params: EnvParams, other: Any, reaching: Reaching | None = None
+                         ) -> pd.DataFrame:
+    """The tracking evaluation in the cross-model protocol: one row per (plant, controller,
+    reference, seed, episode) as ``tracking_episodes``, every policy type of ``policies``
+    (trained in ``env``'s model, all seeds), ``tracking``'s baselines (the MPC on the policies'
+    own model) and the ``reaching`` policies of the same group, under ``settings`` (the training
+    group's), in their own model (plant ``own``) and in ``other`` (``cross``: another fitted
+    model's ``DynamicsParams``)."""
+    results = run_tracking(settings.only_in_models(), tracking, policies, env, eval_params,
+                           {CROSS: other}, reaching=reaching)
+    episodes = results["tables"]["tracking_episodes"]
+    return episodes.assign(plant=episodes["plant"].replace({"learned": OWN}))
+
+
+def path_table(paths: Mapping[tuple[str, str, str, int], np.ndarray],
+               targets: Mapping[str, np.ndarray], control_hz: float,
+               episodes: int = PATH_EPISODES) -> pd.DataFrame:
+    """One row per (plant, controller, reference, seed, episode, period) of the first
+    ``episodes`` episodes of ``paths`` (``[E, T + 1, 3]`` m by ``(plant, controller, reference,
+    seed)``): ``time_s`` (s after the start), the position ``x_mm, y_mm, z_mm`` and the
+    reference ``reference_{x,y,z}_mm`` (``targets``, ``[E, T + 1, 3]`` m by reference) and the
+    distance between them ``error_mm`` (mm)."""
+    frames = []
+    for (plant, controller, name, seed), positions in paths.items():
+        shown = min(episodes, positions.shape[0])
+        drawn = np.asarray(positions[:shown], np.float64) * MM_PER_M  # [e, T + 1, 3]
+        target = np.asarray(targets[name][:shown], np.float64) * MM_PER_M
+        count = drawn.shape[1]
+        frame = pd.DataFrame({
+            "episode": np.repeat(np.arange(shown), count), "period": np.tile(np.arange(count), shown),
+            "time_s": np.tile(np.arange(count) / float(control_hz), shown)})
+        for axis, letter in enumerate("xyz"):
+            frame[f"{letter}_mm"] = drawn[..., axis].reshape(-1)
+            frame[f"reference_{letter}_mm"] = target[..., axis].reshape(-1)
+        frame["error_mm"] = np.linalg.norm(drawn - target, axis=-1).reshape(-1)
+        frames.append(frame.assign(plant=plant, controller=controller, reference=name, seed=seed))
+    columns = ["plant", "controller", "reference", "seed", "episode", "period", "time_s"]
+    table = pd.concat(frames, ignore_index=True)
+    return table[columns + [c for c in table.columns if c not in columns]]
 
 
 def _follow(settings: ClosedLoopSettings, tracking: TrackingSettings, plants, loaded,

@@ -36,7 +36,9 @@ def _default_references() -> dict[str, Any]:
 
 # the settings of the tracking evaluation (left out of the artifact keys of env.task=reach)
 TRACK_EVALUATION_SETTINGS = ("references", "tracking_seconds", "tracking_settle_seconds",
-                             "reachable_tolerance_mm", "reaching")
+                             "reachable_tolerance_mm", "reaching", "tracking_baselines",
+                             "tracking_mpc_horizon", "tracking_mpc_per_period",
+                             "tracking_mpc_std_kpa")
 
 
 @dataclass
@@ -85,6 +87,17 @@ class EvaluationConfig:
     # env.task=track: also follow the references with the reaching policies of this config
     # (env.task=reach, no preview; trained upstream) fed the moving goal, as a baseline
     reaching: bool = False
+    # env.task=track: the baselines that follow the references: preload (do nothing) and mpc
+    # (sampling MPC on the learned model, mpc_samples and mpc_iterations, scoring candidates
+    # against the reference over tracking_mpc_horizon control periods, 1: the period's goal, the
+    # most precise on the default chain; null: env.preview + 1, the points the policies see;
+    # tracking_mpc_per_period: a command per period of the horizon, the first sent, else one
+    # held over it; tracking_mpc_std_kpa: the spread of the first samples around the last
+    # command, kPa)
+    tracking_baselines: list[str] = field(default_factory=lambda: ["preload", "mpc"])
+    tracking_mpc_horizon: int | None = 1
+    tracking_mpc_per_period: bool = True
+    tracking_mpc_std_kpa: float = 0.25
 
 
 @dataclass

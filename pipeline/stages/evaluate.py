@@ -13,12 +13,16 @@ nothing; ``random``: random safe actions; ``mpc``: sampling-based MPC on the lea
   robot config or of a calibrate artifact, started from the learned env's rest poses);
 - a **consecutive-goals** task: ``num_consecutive_goals`` targets one after another, no reset;
 - for ``env.task=track``, **tracking** (:mod:`pipeline.evaluation.tracking`): every policy, the
-  preload and (``evaluation.reaching``) the reaching policies of the same settings fed the moving
-  goal follow ``evaluation.references`` on every plant (``tracking.parquet``,
-  ``tracking_episodes.parquet``, the report's "Tracking" section);
+  baselines of ``evaluation.tracking_baselines`` (the preload; sampling MPC on the learned model
+  scored against the reference over its horizon) and (``evaluation.reaching``) the reaching
+  policies of the same settings fed the moving goal follow ``evaluation.references`` on every
+  plant (``tracking.parquet``, ``tracking_episodes.parquet``, the first episodes' paths in
+  ``tracking_paths.parquet``, the report's "Tracking" section);
 - on recorded data, the **cross-model protocol** (``evaluation.cross_model``,
   :mod:`pipeline.evaluation.cross_model`): each group of runs' policies in their own model and in
-  the model of the other, disjoint group (``cross_model.parquet``, ``cross_model_episodes.parquet``).
+  the model of the other, disjoint group (``cross_model.parquet``, ``cross_model_episodes.parquet``;
+  for ``env.task=track`` also following the references, with the baselines of the group,
+  ``cross_model_tracking.parquet``, ``cross_model_tracking_episodes.parquet``).
 
 Episodes last ``env.max_steps`` control periods and, unlike in training, do not end when the goal is
 first within ``env.goal_tolerance_m``: on an arm the controller has to get there and stay, so the
@@ -54,7 +58,13 @@ from pipeline.evaluation.sections import (
     ReportFacts,
     report_sections,
 )
-from pipeline.evaluation.tracking import Reaching, TrackingSettings, run_tracking
+from pipeline.evaluation.tracking import (
+    Reaching,
+    TrackingSettings,
+    cross_model_tracking,
+    run_tracking,
+    summarize_tracking,
+)
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.infra.records import ArtifactRecord, artifact_record
@@ -99,10 +109,8 @@ def evaluate(cfg: Any) -> Artifact:
         results = run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params, models,
                                  twins)
         if Task(cfg.env.task) is Task.track:
-            baseline = Reaching(env_settings(next(iter(chain.reaching_configs(cfg).values())))
-                                if reaching else None, _load_policies(reaching))
             tracked = run_tracking(closed_loop_settings(cfg), tracking_settings(cfg), loaded, env,
-                                   eval_params, models, twins, baseline)
+                                   eval_params, models, twins, _reaching(cfg, reaching))
             results["tables"].update(tracked["tables"])
             results["headline"].update(tracked["headline"])
             results["tracking"] = tracked
@@ -151,9 +159,23 @@ def tracking_settings(cfg: Any) -> TrackingSettings:
         centre = values.pop("centre_mm")
         shapes[str(name)] = ShapeSettings(
             **values, centre_mm=None if centre is None else tuple(float(v) for v in centre))
+    horizon = evaluation.get("tracking_mpc_horizon")
     return TrackingSettings(shapes, float(evaluation.tracking_seconds),
                             float(evaluation.tracking_settle_seconds),
-                            float(evaluation.reachable_tolerance_mm))
+                            float(evaluation.reachable_tolerance_mm),
+                            tuple(str(name) for name in evaluation.tracking_baselines),
+                            None if horizon is None else int(horizon),
+                            bool(evaluation.tracking_mpc_per_period),
+                            float(evaluation.tracking_mpc_std_kpa))
+
+
+def _reaching(cfg: Any, policies: dict[str, Artifact]) -> Reaching:
+    """The reaching baseline of ``cfg``'s tracking evaluation: the reaching policies
+    (``policies``, train_ppo artifacts by policy type; none without ``evaluation.reaching``) with
+    the env settings they were trained with."""
+    configs = chain.reaching_configs(cfg)
+    return Reaching(env_settings(next(iter(configs.values()))) if policies else None,
+                    _load_policies(policies))
 
 
 def _load_policies(policies: dict[str, Artifact]) -> dict[str, Policy]:
@@ -207,25 +229,35 @@ def _cross_model_inputs(cfg: Any, store: ArtifactStore, inputs: dict[str, str]
                          for name in cfg.evaluation.policies},
             "model": store.require("fit_model", keys.key("fit_model", train), hint=hint),
             "aligned": store.require("align", keys.key("align", train), hint=hint),
-            "other": store.require("fit_model", inputs[f"{prefix}/fit_model"], hint=hint)}
+            "other": store.require("fit_model", inputs[f"{prefix}/fit_model"], hint=hint),
+            "reaching": {name: store.require(
+                "train_ppo", inputs[f"{prefix}/reaching/train_ppo/{name}"],
+                hint=f" with agent={name} env.task=reach env.preview=0{hint}")
+                for name in chain.reaching_configs(train)}}
     return folds
 
 
 def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> None:
     """Both directions of the cross-model protocol into ``results``: the tables
     ``cross_model_episodes`` and ``cross_model`` (per direction, plant and controller) and the
-    headline's ``cross_model/<direction>/<controller>`` figures."""
-    episodes, summaries = [], []
+    headline's ``cross_model/<direction>/<controller>`` figures; for ``env.task=track`` also the
+    tracking evaluation's (:func:`_cross_model_tracking`)."""
+    episodes, summaries, tracked = [], [], []
     for direction, fold in folds.items():
-        env, _, eval_params = config_environment(fold["cfg"], fold["model"], fold["aligned"])
+        train = fold["cfg"]
+        env, _, eval_params = config_environment(train, fold["model"], fold["aligned"])
         other = load_dynamics(fold["other"].file("model.msgpack"))
-        rows = cross_model_episodes(closed_loop_settings(fold["cfg"]),
-                                    _load_policies(fold["policies"]), env, eval_params, other)
-        labels = {"direction": direction, "train_runs": "+".join(fold["cfg"].robot.files),
+        settings, policies = closed_loop_settings(train), _load_policies(fold["policies"])
+        rows = cross_model_episodes(settings, policies, env, eval_params, other)
+        labels = {"direction": direction, "train_runs": "+".join(train.robot.files),
                   "test_runs": "+".join(fold["test_runs"])}
         deployed = {name: _deployed_seed(artifact) for name, artifact in fold["policies"].items()}
         episodes.append(rows.assign(**labels))
         summaries.append(across_models(rows, deployed).assign(**labels))
+        if Task(train.env.task) is Task.track:
+            tracked.append(cross_model_tracking(
+                settings, tracking_settings(train), policies, env, eval_params, other,
+                _reaching(train, fold["reaching"])).assign(**labels))
     summary = pd.concat(summaries, ignore_index=True)
     results["tables"]["cross_model_episodes"] = pd.concat(episodes, ignore_index=True)
     results["tables"]["cross_model"] = summary
@@ -234,6 +266,22 @@ def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> N
             "median_final_mm": float(row.median_final_mm),
             "success_1mm": float(row.success_1mm), "success_3mm": float(row.success_3mm),
             "held_arrivals": float(row.held_arrivals)}
+    if tracked:
+        _cross_model_tracking(pd.concat(tracked, ignore_index=True), results)
+
+
+def _cross_model_tracking(episodes: pd.DataFrame, results: dict[str, Any]) -> None:
+    """The cross-model tracking episodes (both directions) into ``results``: the tables
+    ``cross_model_tracking_episodes`` and ``cross_model_tracking`` (medians per direction,
+    plant, controller and reference) and the headline's
+    ``cross_model_tracking/<direction>/<controller>/<reference>`` figures (in the other model)."""
+    summary = summarize_tracking(episodes, ("direction", "plant", "controller", "reference"))
+    results["tables"]["cross_model_tracking_episodes"] = episodes
+    results["tables"]["cross_model_tracking"] = summary
+    for row in summary[summary["plant"] == CROSS].itertuples():
+        results["headline"][f"cross_model_tracking/{row.direction}/{row.controller}/"
+                            f"{row.reference}"] = {"median_rmse_mm": float(row.median_rmse_mm),
+                                                   "median_lag_s": float(row.median_lag_s)}
 
 
 def _deployed_seed(policy: Artifact) -> int:

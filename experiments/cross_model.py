@@ -4,7 +4,8 @@ the model of another, disjoint group (both directions), per robustness variant.
     python -m experiments.cross_model [--variants plain ensemble randomized both incremental
         incremental_randomized incremental_randomized_ensemble
         incremental_randomized_ensemble_agreed]
-        [--directions A->B B->A] [--seeds 4] [--ppo-steps N] [--ensemble-seeds 3]
+        [--directions A->B B->A] [--seeds 4] [--agent ppo_ff|ppo_rnn|apg|apg_rnn]
+        [--ppo-steps N] [--ensemble-seeds 3]
         [--goal-agreement-mm MM] [--twin sim_sorolex] [--quick]
         [--set KEY=VALUE ...]
 
@@ -66,6 +67,8 @@ QUICK = ["model.num_steps=20", "model.eval_every=10", "model.checkpoint_every=10
          "evaluation.consecutive_episodes=1", "evaluation.num_consecutive_goals=2"]
 QUICK_PPO_STEPS = 1024  # --quick's budget per seed, unless --ppo-steps
 DIRECTIONS = ("A->B", "B->A")
+# policy types it trains: PPO, or analytic policy gradients through the model (agent=apg)
+AGENTS = ("ppo_ff", "ppo_rnn", "apg", "apg_rnn")
 GOAL_AGREEMENT_MM = 1.0  # the agreed variant's default env.goal_agreement_mm
 METRICS = ("median_final_mm", "p90_final_mm", "success_1mm", "success_3mm", "arrived_1mm",
            "held_arrivals", "within_1mm_after_arrival", "median_max_after_arrival_mm")
@@ -190,10 +193,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--directions", nargs="+", default=list(DIRECTIONS), choices=DIRECTIONS,
                         help="train in A and evaluate in B (A->B), the reverse (B->A), or both")
     parser.add_argument("--seeds", type=int, default=4, help="PPO seeds per variant")
-    parser.add_argument("--agent", default="ppo_ff", choices=("ppo_ff", "ppo_rnn"))
+    parser.add_argument("--agent", default="ppo_ff", choices=AGENTS)
     parser.add_argument("--ppo-steps", type=int, default=None,
-                        help="PPO environment steps per seed (default: experiment=real_arm's "
-                             "budget of the policy type)")
+                        help="training environment steps per seed (default: "
+                             "experiment=real_arm's budget of the policy type)")
     parser.add_argument("--ensemble-seeds", type=int, default=3,
                         help="model seeds of the ensemble variants")
     parser.add_argument("--goal-agreement-mm", type=float, default=GOAL_AGREEMENT_MM,

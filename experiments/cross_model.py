@@ -6,7 +6,7 @@ the model of another, disjoint group (both directions), per robustness variant.
         incremental_randomized_ensemble_agreed]
         [--directions A->B B->A] [--seeds 4] [--agent ppo_ff|ppo_rnn|apg|apg_rnn]
         [--ppo-steps N] [--ensemble-seeds 3]
-        [--goal-agreement-mm MM] [--twin sim_sorolex] [--quick]
+        [--goal-agreement-mm MM] [--twin sim_sorolex] [--reach] [--quick]
         [--set KEY=VALUE ...]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
@@ -40,7 +40,10 @@ arrival within 1 mm (the share of episodes that arrived, and of those the share 
 1.5 mm, ``held_arrivals``; :func:`pipeline.evaluation.metrics.hold_metrics`); the share of seeds whose
 median is within 1 mm across models; and the seed ``stage=control`` would deploy (the best in
 its training's last held-out evaluation) with its own and cross medians and its success within 1
-mm across models. The table is also written to ``<output-dir>/cross_model/results.csv``.
+mm across models; with ``--reach``, per plant the share of the goals that some constant
+command inside the arm's limits holds within 1 mm by the episode's end, and of the misses the
+share on such goals (:mod:`pipeline.evaluation.reachability`). The table is also written to
+``<output-dir>/cross_model/results.csv``.
 Everything goes through the pipeline's router (artifacts reused when present). ``--quick``
 shrinks every stage to check the script in minutes (the numbers then mean nothing). ``--set
 KEY=VALUE ...`` adds pipeline overrides for every stage (say ``agent.lr=3e-4``), beside the
@@ -108,31 +111,33 @@ def variant_overrides(variant: str, ensemble_seeds: int,
 
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],
             variant: str, ensemble_seeds: int, agent: str = "ppo_ff",
-            goal_agreement_mm: float = GOAL_AGREEMENT_MM, twin: str | None = None
-            ) -> dict[str, Any]:
+            goal_agreement_mm: float = GOAL_AGREEMENT_MM, twin: str | None = None,
+            reach: Any = None) -> dict[str, Any]:
     """``agent`` trained in ``train``'s model (``variant``), evaluated in its own and in
     ``test``'s model (and on the calibrated ``twin``, ``evaluation.twins``, where given: the
     ``twin_*`` figures): one row of the results table. Beside the figures over every seed's
     episodes: the share of seeds whose median is within 1 mm (own and cross), and the figures
     of the seed that ``stage=control`` would deploy (the best in the training's last held-out
-    evaluation, ``pipeline.rl.policy_io.best_seed``)."""
+    evaluation, ``pipeline.rl.policy_io.best_seed``). With ``reach``
+    (:class:`pipeline.evaluation.reachability.ReachSettings`): where the goals can be held at
+    all on each plant, and where the misses are (:func:`reach_figures`)."""
     from pipeline.evaluation.cross_model import across_models
     from pipeline.rl.policy_io import best_seed
 
     files = lambda names: f"robot.files=[{','.join(names)}]"  # noqa: E731
     where = f"paths.output_dir={output_dir}"
     other = run_stage("fit_model", where, *base, files(test))["fit_model"]
-    evaluated = run_stage("evaluate", where, *base, files(train),
-                          *variant_overrides(variant, ensemble_seeds, goal_agreement_mm),
-                          f"evaluation.policies=[{agent}]", "evaluation.baselines=[preload]",
-                          "evaluation.plant=false", "evaluation.cross_model=false",
-                          f"evaluation.models=[{other.path}]",
-                          f"evaluation.twins=[{twin or ''}]")
-    episodes = pd.read_parquet(evaluated["evaluate"].file("episodes.parquet"))
+    overrides = [where, *base, files(train),
+                 *variant_overrides(variant, ensemble_seeds, goal_agreement_mm),
+                 f"evaluation.policies=[{agent}]", "evaluation.baselines=[preload]",
+                 "evaluation.plant=false", "evaluation.cross_model=false",
+                 f"evaluation.models=[{other.path}]", f"evaluation.twins=[{twin or ''}]"]
+    evaluated = run_stage("evaluate", *overrides)
+    every = pd.read_parquet(evaluated["evaluate"].file("episodes.parquet"))
     plants = {"learned": "own", f"model {other.path.name}": "cross"}
     if twin:
         plants[f"twin {Path(twin).name}"] = "twin"
-    episodes = episodes[episodes["controller"] == agent].assign(
+    episodes = every[every["controller"] == agent].assign(
         plant=lambda frame: frame["plant"].map(plants))
     evaluation = evaluated["train_ppo"].file("evaluation.parquet")
     seed = best_seed(pd.read_parquet(evaluation), evaluation)  # the one stage=control drives
@@ -144,7 +149,75 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
                        "deployed_success_1mm"):
             if metric in summary:  # an evaluation written before the hold metrics has none
                 row[f"{where}_{metric}"] = float(summary.loc[where, metric])
+    if reach is not None:
+        row.update(reach_figures(overrides, evaluated, other, twin, every, agent, reach,
+                                 output_dir / "cross_model"))
     return row
+
+
+def reach_figures(overrides: list[str], evaluated: dict[str, Any], other: Any,
+                  twin: str | None, episodes: pd.DataFrame, agent: str, settings: Any,
+                  folder: Path) -> dict[str, float]:
+    """Where the evaluation's goals can be held at all, and where ``agent``'s misses are.
+
+    The evaluate stage's plants (own model, the other group's, the twin), goals and start
+    states rebuilt from its config (``overrides``); on each, per episode, the nearest distance
+    any constant command inside the arm's limits holds it at by the episode's end
+    (:func:`pipeline.evaluation.reachability.evaluation_reach`, ``settings``). Checked against
+    the evaluation itself: holding the preload must end where its ``preload`` baseline ended.
+    Kept in ``folder/reach_<model>_<other model>_<twin>_<grid>.parquet`` (the same for every
+    policy type of the direction). Returns ``<own|cross|twin>_<figure>`` of
+    :func:`~pipeline.evaluation.reachability.split_misses` for ``agent``.
+    """
+    from pipeline.evaluation.reachability import preload_mismatch_mm, split_misses
+
+    name = (f"reach_{evaluated['fit_model'].path.name}_{other.path.name}_"
+            f"{Path(twin).name if twin else 'none'}_{settings.grid_points}x"
+            f"{settings.refine_rounds}.parquet")
+    path = folder / name
+    if path.is_file():
+        reach = pd.read_parquet(path)
+    else:
+        reach = _reach_table(overrides, evaluated, other, twin, settings)
+        mismatch = preload_mismatch_mm(reach, episodes)
+        if not mismatch < 0.01:
+            raise SystemExit(f"the reach's plants are not the evaluation's: holding the preload "
+                             f"ends up to {mismatch:.4f} mm from where the evaluation's preload "
+                             f"baseline ended ({evaluated['evaluate'].path})")
+        folder.mkdir(parents=True, exist_ok=True)
+        reach.to_parquet(path)
+    plants = {"learned": "own", f"model {other.path.name}": "cross"}
+    if twin:
+        plants[f"twin {Path(twin).name}"] = "twin"
+    split = split_misses(episodes[episodes["controller"] == agent], reach)
+    row = {}
+    for record in split.itertuples():
+        for column in ("reachable_goals", "misses", "misses_reachable",
+                       "median_final_reachable_mm", "success_reachable", "median_reach_mm",
+                       "median_excess_unreachable_mm"):
+            row[f"{plants[record.plant]}_{column}"] = float(getattr(record, column))
+    return row
+
+
+def _reach_table(overrides: list[str], evaluated: dict[str, Any], other: Any,
+                 twin: str | None, settings: Any) -> pd.DataFrame:
+    """:func:`pipeline.evaluation.reachability.evaluation_reach` on the plants of the evaluate
+    stage's config ``overrides``, built as the stage builds them."""
+    from pipeline.arm.twins import twin_physics
+    from pipeline.config import compose
+    from pipeline.dynamics.checkpoints import load_dynamics
+    from pipeline.evaluation.reachability import evaluation_episodes, evaluation_reach
+    from pipeline.stages._environment import config_environment
+    from pipeline.stages.evaluate import closed_loop_settings
+
+    cfg = compose("stage=evaluate", *overrides)
+    env, _, eval_params = config_environment(cfg, evaluated["fit_model"], evaluated["align"])
+    models = {f"model {other.path.name}": load_dynamics(other.file("model.msgpack"))}
+    twins = ({f"twin {Path(twin).name}": twin_physics(twin, cfg.paths.artifact_dir)}
+             if twin else {})
+    plants, goals = evaluation_episodes(closed_loop_settings(cfg), env, eval_params, models,
+                                        twins)
+    return evaluation_reach(plants, goals, settings)
 
 
 def print_table(table: pd.DataFrame) -> None:
@@ -168,6 +241,8 @@ def print_table(table: pd.DataFrame) -> None:
             print(f"{row.variant:<32}{row.direction:<7}{row.twin_median_final_mm:>7.2f}"
                   f"{row.twin_p90_final_mm:>7.2f}{row.twin_success_1mm:>7.2f}"
                   f"{row.twin_success_3mm:>7.2f}{row.twin_deployed_median_final_mm:>7.2f}")
+    if "own_reachable_goals" in table:
+        print_reach(table)
     print("\nthe hold: share of episodes ever within 1 mm / of those, the share ended within "
           "1.5 mm, per plant")
     plants = [p for p in ("own", "cross", "twin") if f"{p}_held_arrivals" in table]
@@ -177,6 +252,23 @@ def print_table(table: pd.DataFrame) -> None:
         print(f"{row.variant:<32}{row.direction:<7}" + "".join(
             f"{getattr(row, f'{p}_arrived_1mm'):>15.2f}{getattr(row, f'{p}_held_arrivals'):>12.2f}"
             for p in plants))
+
+
+def print_reach(table: pd.DataFrame) -> None:
+    """The reach's figures per plant: the share of episodes whose goal a constant admissible
+    command holds within 1 mm, of the misses (> 1 mm at the end) the share on such goals, and
+    the median final distance and success within 1 mm over the episodes of such goals."""
+    print("\nreach: goals held within 1 mm by some admissible constant command / misses on "
+          "them / median [mm] and <= 1 mm over them")
+    plants = [p for p in ("own", "cross", "twin") if f"{p}_reachable_goals" in table]
+    print(f"{'variant':<32}{'dir':<7}" + "".join(
+        f"{p + ' reach':>12}{'on reach':>10}{'median':>8}{'<1mm':>7}" for p in plants))
+    for row in table.itertuples():
+        print(f"{row.variant:<32}{row.direction:<7}" + "".join(
+            f"{getattr(row, f'{p}_reachable_goals'):>12.2f}"
+            f"{getattr(row, f'{p}_misses_reachable'):>10.2f}"
+            f"{getattr(row, f'{p}_median_final_reachable_mm'):>8.2f}"
+            f"{getattr(row, f'{p}_success_reachable'):>7.2f}" for p in plants))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -208,6 +300,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--set", dest="overrides", nargs="+", action="extend", default=[],
                         metavar="KEY=VALUE",
                         help="further pipeline overrides for every stage (agent.lr=3e-4 ...)")
+    parser.add_argument("--reach", action="store_true",
+                        help="also find, per plant, the goals any constant command inside the "
+                             "arm's limits holds within 1 mm, and split the misses by them")
+    parser.add_argument("--reach-grid", type=int, nargs=2, default=(9, 10),
+                        metavar=("POINTS", "ROUNDS"),
+                        help="the reach's grid points per valve and local-search rounds")
     parser.add_argument("--quick", action="store_true",
                         help="shrink every stage (checks the script; the numbers mean nothing)")
     args = parser.parse_args(argv)
@@ -215,6 +313,11 @@ def main(argv: list[str] | None = None) -> None:
     group_a, group_b = groups(args.data_dir, args.group_a)
     print(f"group A: {group_a}\ngroup B: {group_b}", flush=True)
     steps = QUICK_PPO_STEPS if args.quick and args.ppo_steps is None else args.ppo_steps
+    reach = None
+    if args.reach:
+        from pipeline.evaluation.reachability import ReachSettings
+
+        reach = ReachSettings(*args.reach_grid)
     base = ["experiment=real_arm", f"agent={args.agent}", f"robot.data_dir={args.data_dir}",
             f"agent.num_seeds={args.seeds}", *(QUICK if args.quick else []),
             *([] if steps is None else budget_overrides(steps)), *args.overrides]
@@ -224,7 +327,7 @@ def main(argv: list[str] | None = None) -> None:
         train, test = splits[direction]
         for variant in args.variants:
             row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds,
-                          args.agent, args.goal_agreement_mm, args.twin)
+                          args.agent, args.goal_agreement_mm, args.twin, reach)
             rows.append({"direction": direction, **row, "overrides": " ".join(args.overrides)})
     table = pd.DataFrame(rows)
     out = args.output_dir / "cross_model"

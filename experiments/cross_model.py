@@ -6,7 +6,8 @@ the model of another, disjoint group (both directions), per robustness variant.
         incremental_randomized_ensemble_agreed]
         [--directions A->B B->A] [--seeds 4] [--agent ppo_ff|ppo_rnn|apg|apg_rnn]
         [--ppo-steps N] [--ensemble-seeds 3]
-        [--goal-agreement-mm MM] [--twin sim_sorolex] [--reach] [--quick]
+        [--goal-agreement-mm MM] [--twin sim_sorolex] [--reach] [--twin-tune STEPS]
+        [--quick]
         [--set KEY=VALUE ...]
 
 The recorded runs (``robot=sorolex_csv``, ``../shared/data/sorolex``) are split into two groups
@@ -112,7 +113,7 @@ def variant_overrides(variant: str, ensemble_seeds: int,
 def measure(output_dir: Path, base: list[str], train: list[str], test: list[str],
             variant: str, ensemble_seeds: int, agent: str = "ppo_ff",
             goal_agreement_mm: float = GOAL_AGREEMENT_MM, twin: str | None = None,
-            reach: Any = None) -> dict[str, Any]:
+            reach: Any = None, twin_tune_steps: int = 0) -> list[dict[str, Any]]:
     """``agent`` trained in ``train``'s model (``variant``), evaluated in its own and in
     ``test``'s model (and on the calibrated ``twin``, ``evaluation.twins``, where given: the
     ``twin_*`` figures): one row of the results table. Beside the figures over every seed's
@@ -120,8 +121,10 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
     of the seed that ``stage=control`` would deploy (the best in the training's last held-out
     evaluation, ``pipeline.rl.policy_io.best_seed``). With ``reach``
     (:class:`pipeline.evaluation.reachability.ReachSettings`): where the goals can be held at
-    all on each plant, and where the misses are (:func:`reach_figures`)."""
-    from pipeline.evaluation.cross_model import across_models
+    all on each plant, and where the misses are (:func:`reach_figures`). With
+    ``twin_tune_steps``, a second row: the policies fine-tuned in the twin
+    (:func:`twin_tuned`, kept in ``<output-dir>/cross_model/twin_tuned_<evaluate key>_<steps>
+    .parquet``), evaluated the same way (variant ``<variant>, tuned in the twin``)."""
     from pipeline.rl.policy_io import best_seed
 
     files = lambda names: f"robot.files=[{','.join(names)}]"  # noqa: E731
@@ -137,21 +140,49 @@ def measure(output_dir: Path, base: list[str], train: list[str], test: list[str]
     plants = {"learned": "own", f"model {other.path.name}": "cross"}
     if twin:
         plants[f"twin {Path(twin).name}"] = "twin"
-    episodes = every[every["controller"] == agent].assign(
-        plant=lambda frame: frame["plant"].map(plants))
     evaluation = evaluated["train_ppo"].file("evaluation.parquet")
     seed = best_seed(pd.read_parquet(evaluation), evaluation)  # the one stage=control drives
-    summary = across_models(episodes, {agent: seed}).set_index("plant")
     row: dict[str, Any] = {"agent": agent, "variant": variant, "train": "+".join(train),
-                           "test": "+".join(test), "deployed_seed": seed}
-    for where in ("own", "cross", *(["twin"] if twin else [])):
+                           "test": "+".join(test), "deployed_seed": seed,
+                           **plant_figures(every, agent, seed, plants)}
+    folder = output_dir / "cross_model"
+    if reach is not None:
+        row.update(reach_figures(overrides, evaluated, other, twin, every, agent, reach, folder))
+    if not (twin and twin_tune_steps):
+        return [row]
+    path = folder / f"twin_tuned_{evaluated['evaluate'].path.name}_{int(twin_tune_steps)}.parquet"
+    if path.is_file():
+        tuned = pd.read_parquet(path)
+    else:
+        tuned = twin_tuned(overrides, evaluated, other, twin, agent, twin_tune_steps)
+        folder.mkdir(parents=True, exist_ok=True)
+        tuned.to_parquet(path)
+    name = f"{agent}+twin"
+    tuned_row = {**{k: row[k] for k in ("agent", "train", "test", "deployed_seed")},
+                 "variant": f"{variant}, tuned in the twin",
+                 **plant_figures(tuned, name, seed, plants)}
+    if reach is not None:
+        tuned_row.update(reach_figures(overrides, evaluated, other, twin, tuned, name, reach,
+                                       folder))
+    return [row, tuned_row]
+
+
+def plant_figures(episodes: pd.DataFrame, controller: str, seed: int,
+                  plants: dict[str, str]) -> dict[str, float]:
+    """``<own|cross|twin>_<figure>`` of ``controller``'s episodes (evaluate's per-episode
+    table; ``plants`` maps its plant names to own, cross and twin) over every seed, and of the
+    deployed ``seed`` (:func:`pipeline.evaluation.cross_model.across_models`)."""
+    from pipeline.evaluation.cross_model import across_models
+
+    mine = episodes[episodes["controller"] == controller].assign(
+        plant=lambda frame: frame["plant"].map(plants))
+    summary = across_models(mine, {controller: seed}).set_index("plant")
+    row = {}
+    for where in plants.values():
         for metric in (*METRICS, "seeds_median_within_1mm", "deployed_median_final_mm",
                        "deployed_success_1mm"):
             if metric in summary:  # an evaluation written before the hold metrics has none
                 row[f"{where}_{metric}"] = float(summary.loc[where, metric])
-    if reach is not None:
-        row.update(reach_figures(overrides, evaluated, other, twin, every, agent, reach,
-                                 output_dir / "cross_model"))
     return row
 
 
@@ -254,6 +285,70 @@ def print_table(table: pd.DataFrame) -> None:
             for p in plants))
 
 
+def twin_tuned(overrides: list[str], evaluated: dict[str, Any], other: Any, twin: str,
+               agent: str, steps: int) -> pd.DataFrame:
+    """``agent``'s policies (every seed) fine-tuned in the calibrated ``twin`` by analytic
+    policy gradients through it (``pipeline.rl.apg``: windows of 10 control periods, lr 1e-3,
+    ``steps`` environment steps per seed), then evaluated as the evaluate stage of
+    ``overrides`` does (the same goals and start states, own model, the other group's, the
+    twin): its per-episode table, the controller named ``<agent>+twin``.
+
+    The twin is trained in as the training group's model is: observed with the same
+    normalization, started from its training rest poses, the training goals, the training
+    randomization of the plant (gain, offset, delay, rest offset, drift); its physics the
+    twin's nominal ones (the evaluation's twin)."""
+    import dataclasses
+
+    import jax
+
+    from pipeline.arm.twins import twin_physics, twin_sim_params
+    from pipeline.config import compose
+    from pipeline.dynamics.checkpoints import load_dynamics
+    from pipeline.evaluation.closed_loop import Policy, _sim_env, run_evaluation
+    from pipeline.rl.envs.learned import make_env_params
+    from pipeline.rl.envs.plants import SimPlantParams
+    from pipeline.rl.policy_io import load_policy
+    from pipeline.rl.ppo import train_seeds
+    from pipeline.schemas import AgentConfig
+    from pipeline.stages._environment import config_environment
+    from pipeline.stages.evaluate import closed_loop_settings
+
+    cfg = compose("stage=evaluate", *overrides)
+    env, train_params, eval_params = config_environment(cfg, evaluated["fit_model"],
+                                                        evaluated["align"])
+    settings = closed_loop_settings(cfg)
+    settings = dataclasses.replace(settings, evaluation=dataclasses.replace(
+        settings.evaluation, num_consecutive_goals=0))
+    physics = twin_physics(twin, cfg.paths.artifact_dir)
+    sim = twin_sim_params(physics)
+    twin_env = _sim_env(settings, env, sim.mocap_hz)
+    plant = SimPlantParams(sim, eval_params.preload)
+    shared = {"safe_set": eval_params.safe_set, "preload": eval_params.preload,
+              "obs_mean": train_params.obs_mean, "obs_scale": train_params.obs_scale,
+              "settings": settings.env}
+    tune_key, check_key = jax.random.split(jax.random.key(int(cfg.seed)))
+    tune_params = make_env_params(twin_env, plant, key=tune_key,
+                                  initial_poses=train_params.reset_initial_poses,
+                                  goal_set=train_params.goal_set,
+                                  randomization_params=train_params.randomization, **shared)
+    check_params = make_env_params(twin_env, plant, key=check_key,
+                                   initial_poses=eval_params.reset_initial_poses,
+                                   goal_set=eval_params.goal_set, **shared)
+    network, params, _ = load_policy(evaluated["train_ppo"].file("policy.msgpack"))
+    spec = evaluated["train_ppo"].manifest["spec"]["agent"]
+    tuning = AgentConfig.from_any({
+        **spec, "trainer": "apg", "num_steps": 10, "lr": 1.0e-3, "max_grad_norm": 1.0,
+        "total_timesteps": int(steps), "recurrent_total_timesteps": None, "num_evals": 4,
+        "eval_envs": 64}, progress=False)
+    tuning.check()
+    tuned = train_seeds(tuning, twin_env, tune_params, check_params, seed=int(cfg.seed) + 1,
+                        desc=f"{agent} in {twin}", init_params=params)
+    models = {f"model {other.path.name}": load_dynamics(other.file("model.msgpack"))}
+    results = run_evaluation(settings, {f"{agent}+twin": Policy(network, tuned.params)}, env,
+                             eval_params, models, {f"twin {Path(twin).name}": physics})
+    return results["tables"]["episodes"]
+
+
 def print_reach(table: pd.DataFrame) -> None:
     """The reach's figures per plant: the share of episodes whose goal a constant admissible
     command holds within 1 mm, of the misses (> 1 mm at the end) the share on such goals, and
@@ -306,6 +401,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reach-grid", type=int, nargs=2, default=(9, 10),
                         metavar=("POINTS", "ROUNDS"),
                         help="the reach's grid points per valve and local-search rounds")
+    parser.add_argument("--twin-tune", type=int, default=0, metavar="STEPS",
+                        help="also fine-tune the policies in the --twin by analytic policy "
+                             "gradients for STEPS env steps per seed and evaluate them again")
     parser.add_argument("--quick", action="store_true",
                         help="shrink every stage (checks the script; the numbers mean nothing)")
     args = parser.parse_args(argv)
@@ -326,9 +424,11 @@ def main(argv: list[str] | None = None) -> None:
     for direction in args.directions:
         train, test = splits[direction]
         for variant in args.variants:
-            row = measure(args.output_dir, base, train, test, variant, args.ensemble_seeds,
-                          args.agent, args.goal_agreement_mm, args.twin, reach)
-            rows.append({"direction": direction, **row, "overrides": " ".join(args.overrides)})
+            measured = measure(args.output_dir, base, train, test, variant,
+                               args.ensemble_seeds, args.agent, args.goal_agreement_mm,
+                               args.twin, reach, args.twin_tune)
+            rows += [{"direction": direction, **row, "overrides": " ".join(args.overrides)}
+                     for row in measured]
     table = pd.DataFrame(rows)
     out = args.output_dir / "cross_model"
     out.mkdir(parents=True, exist_ok=True)

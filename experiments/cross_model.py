@@ -252,13 +252,13 @@ def _reach_table(overrides: list[str], evaluated: dict[str, Any], other: Any,
 
 
 def print_table(table: pd.DataFrame) -> None:
-    header = (f"{'variant':<32}{'dir':<7}{'own median':>11}{'p90':>7}{'<1mm':>7}{'<3mm':>7}"
+    header = (f"{'variant':<50}{'dir':<7}{'own median':>11}{'p90':>7}{'<1mm':>7}{'<3mm':>7}"
               f"{'cross median':>14}{'p90':>7}{'<1mm':>7}{'<3mm':>7}{'seeds <1mm':>11}"
               f"{'deployed seed':>14}{'own':>6}{'cross':>7}{'<1mm':>7}")
     print(header)
     print("-" * len(header))
     for row in table.itertuples():
-        print(f"{row.variant:<32}{row.direction:<7}{row.own_median_final_mm:>11.2f}"
+        print(f"{row.variant:<50}{row.direction:<7}{row.own_median_final_mm:>11.2f}"
               f"{row.own_p90_final_mm:>7.2f}{row.own_success_1mm:>7.2f}"
               f"{row.own_success_3mm:>7.2f}{row.cross_median_final_mm:>14.2f}"
               f"{row.cross_p90_final_mm:>7.2f}{row.cross_success_1mm:>7.2f}"
@@ -269,7 +269,7 @@ def print_table(table: pd.DataFrame) -> None:
         print("\non the calibrated twin: median / p90 [mm], within 1 / 3 mm, deployed seed's "
               "median")
         for row in table.itertuples():
-            print(f"{row.variant:<32}{row.direction:<7}{row.twin_median_final_mm:>7.2f}"
+            print(f"{row.variant:<50}{row.direction:<7}{row.twin_median_final_mm:>7.2f}"
                   f"{row.twin_p90_final_mm:>7.2f}{row.twin_success_1mm:>7.2f}"
                   f"{row.twin_success_3mm:>7.2f}{row.twin_deployed_median_final_mm:>7.2f}")
     if "own_reachable_goals" in table:
@@ -277,10 +277,10 @@ def print_table(table: pd.DataFrame) -> None:
     print("\nthe hold: share of episodes ever within 1 mm / of those, the share ended within "
           "1.5 mm, per plant")
     plants = [p for p in ("own", "cross", "twin") if f"{p}_held_arrivals" in table]
-    print(f"{'variant':<32}{'dir':<7}" + "".join(f"{p + ' arrived':>15}{p + ' held':>12}"
+    print(f"{'variant':<50}{'dir':<7}" + "".join(f"{p + ' arrived':>15}{p + ' held':>12}"
                                                for p in plants))
     for row in table.itertuples():
-        print(f"{row.variant:<32}{row.direction:<7}" + "".join(
+        print(f"{row.variant:<50}{row.direction:<7}" + "".join(
             f"{getattr(row, f'{p}_arrived_1mm'):>15.2f}{getattr(row, f'{p}_held_arrivals'):>12.2f}"
             for p in plants))
 
@@ -356,10 +356,10 @@ def print_reach(table: pd.DataFrame) -> None:
     print("\nreach: goals held within 1 mm by some admissible constant command / misses on "
           "them / median [mm] and <= 1 mm over them")
     plants = [p for p in ("own", "cross", "twin") if f"{p}_reachable_goals" in table]
-    print(f"{'variant':<32}{'dir':<7}" + "".join(
+    print(f"{'variant':<50}{'dir':<7}" + "".join(
         f"{p + ' reach':>12}{'on reach':>10}{'median':>8}{'<1mm':>7}" for p in plants))
     for row in table.itertuples():
-        print(f"{row.variant:<32}{row.direction:<7}" + "".join(
+        print(f"{row.variant:<50}{row.direction:<7}" + "".join(
             f"{getattr(row, f'{p}_reachable_goals'):>12.2f}"
             f"{getattr(row, f'{p}_misses_reachable'):>10.2f}"
             f"{getattr(row, f'{p}_median_final_reachable_mm'):>8.2f}"

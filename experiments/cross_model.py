@@ -204,7 +204,7 @@ def reach_figures(overrides: list[str], evaluated: dict[str, Any], other: Any,
 
     name = (f"reach_{evaluated['fit_model'].path.name}_{other.path.name}_"
             f"{Path(twin).name if twin else 'none'}_{settings.grid_points}x"
-            f"{settings.refine_rounds}.parquet")
+            f"{settings.refine_rounds}x{settings.starts}+{settings.margin_kpa:g}.parquet")
     path = folder / name
     if path.is_file():
         reach = pd.read_parquet(path)
@@ -398,9 +398,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reach", action="store_true",
                         help="also find, per plant, the goals any constant command inside the "
                              "arm's limits holds within 1 mm, and split the misses by them")
-    parser.add_argument("--reach-grid", type=int, nargs=2, default=(9, 10),
-                        metavar=("POINTS", "ROUNDS"),
-                        help="the reach's grid points per valve and local-search rounds")
+    parser.add_argument("--reach-grid", type=int, nargs=3, default=(9, 30, 4),
+                        metavar=("POINTS", "ROUNDS", "STARTS"),
+                        help="the reach's grid points per valve, local-search rounds and "
+                             "the grid points it starts from")
+    parser.add_argument("--reach-margin", type=float, default=0.0, metavar="KPA",
+                        help="admit commands this far beyond each valve's limits (3x beyond "
+                             "the sum's): twice the twin's hysteresis play bounds any "
+                             "controller's hold on it")
     parser.add_argument("--twin-tune", type=int, default=0, metavar="STEPS",
                         help="also fine-tune the policies in the --twin by analytic policy "
                              "gradients for STEPS env steps per seed and evaluate them again")
@@ -415,7 +420,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.reach:
         from pipeline.evaluation.reachability import ReachSettings
 
-        reach = ReachSettings(*args.reach_grid)
+        reach = ReachSettings(*args.reach_grid, margin_kpa=args.reach_margin)
     base = ["experiment=real_arm", f"agent={args.agent}", f"robot.data_dir={args.data_dir}",
             f"agent.num_seeds={args.seeds}", *(QUICK if args.quick else []),
             *([] if steps is None else budget_overrides(steps)), *args.overrides]

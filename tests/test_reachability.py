@@ -71,6 +71,11 @@ def test_nearest_hold_on_the_toy_by_hand():
     # the preload leaves the toy at the origin
     np.testing.assert_allclose(reach.preload_mm, np.linalg.norm(goals, axis=-1) * 1e3,
                                rtol=1e-5)
+    # 1 kPa beyond each valve's limits (3 kPa beyond the sum's): the first valve stops at 8 kPa
+    wider = nearest_hold(PLANT, params, carries(params, 4), goals, SAFE, num_steps=1,
+                         settings=ReachSettings(margin_kpa=1.0))
+    np.testing.assert_allclose(wider.distance_mm[2:], [3.0, 1.0], atol=2e-3)
+    np.testing.assert_allclose(wider.distance_mm[1], 0.0, atol=2e-3)  # 15 kPa <= 16 kPa
     # the grid alone (no local search) is coarser: 0.875 kPa spacing over [0, 7]
     coarse = nearest_hold(PLANT, params, carries(params, 4), goals, SAFE, num_steps=1,
                           settings=ReachSettings(grid_points=9, refine_rounds=0))

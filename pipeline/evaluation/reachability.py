@@ -5,15 +5,20 @@ smallest distance to the goal at the end of the episode's horizon that a **const
 inside the safe set** (the arm's limits, ``p_min <= p_j <= p_max`` per valve and
 ``sum_j p_j <= sum_max`` kPa, :mod:`pipeline.arm.safety`) leaves the plant at, held from the
 episode's start for its whole horizon. Found by a grid over the safe set (``grid_points`` per
-valve, projected onto it) and, around each episode's best grid point, a local search whose step
-halves every round (the 27 commands ``best + step * {-1, 0, 1}^3``, projected, the best kept).
+valve, projected onto it) and, from each episode's few nearest grid points, a local search (the
+27 commands ``best + step * {-1, 0, 1}^3``, projected, the best kept; the step doubles after a
+move that came nearer and halves after one that did not).
 
 A goal within the tolerance of that distance is **reachable**: some admissible command holds the
 plant there. Beyond it no constant command does; a feedback controller can end nearer only
-through the plant's memory (hysteresis, creep, a model's drift under a held command), by about
-the play of the hysteresis at most on the simulated arm. The distance is an upper bound of what
-the best controller can reach, and a lower bound of what a controller that settles on a command
-can hold.
+through the plant's memory (hysteresis, creep, a model's drift under a held command) or by
+passing the goal at the very end. On the simulated arm the memory is a play of half-width
+``h`` per chamber: any controller holds each chamber's effective pressure within
+``[p_min + h, p_max - h]`` and their sum below ``sum_max + 3 h``, which constant commands
+``2 h`` beyond the limits (``margin_kpa``) cover: that reach bounds what any controller can hold
+from below. On a learned model a constant command held for the whole horizon is a command
+sequence it was never fitted to (its data is a walk at the control rate), so its reach there is
+a weaker statement.
 
 The plants are those of the evaluation (:mod:`pipeline.evaluation.closed_loop`): nominal, no
 randomization, the position the plant's own (an environment's randomized rest offset is zero
@@ -51,22 +56,36 @@ class ReachSettings:
 
     grid_points: commands per valve on the grid over ``[p_min, p_max]`` (``grid_points^3``
       before the projection onto the sum limit).
-    refine_rounds: rounds of the local search; its step starts at half the grid's spacing and
-      halves every round (10 rounds from 1.25 kPa: about 1e-3 kPa).
+    refine_rounds: rounds of the local search from each of the ``starts`` best grid points;
+      its step starts at half the grid's spacing, doubles (up to the spacing) after a round
+      that came nearer and halves after one that did not.
+    starts: grid points the local search starts from (the nearest ones): the map from the
+      pressures to the position is nearly flat along the mean pressure, so the nearest grid
+      point can lie in the wrong part of a long valley.
     tolerance_mm: a goal is reachable where the distance is within it.
+    margin_kpa: commands this far beyond each valve's limits (and three times it beyond the
+      sum limit) are admitted too: 0 for the arm's limits; twice a plant's hysteresis play
+      bounds what any controller (not only a constant command) can hold it at.
     """
 
     grid_points: int = 9
-    refine_rounds: int = 10
+    refine_rounds: int = 30
+    starts: int = 4
     tolerance_mm: float = 1.0
+    margin_kpa: float = 0.0
 
     def check(self) -> None:
         if int(self.grid_points) < 2:
             raise ValueError(f"grid_points must be >= 2, got {self.grid_points}")
         if int(self.refine_rounds) < 0:
             raise ValueError(f"refine_rounds must be >= 0, got {self.refine_rounds}")
+        if not 1 <= int(self.starts) <= int(self.grid_points) ** NUM_VALVES:
+            raise ValueError(f"starts must be between 1 and the grid's points, got "
+                             f"{self.starts}")
         if not float(self.tolerance_mm) > 0:
             raise ValueError(f"tolerance_mm must be > 0, got {self.tolerance_mm}")
+        if float(self.margin_kpa) < 0:
+            raise ValueError(f"margin_kpa must be >= 0, got {self.margin_kpa}")
 
 
 class Reach(NamedTuple):
@@ -119,30 +138,50 @@ def nearest_hold(plant: Plant, plant_params: Any, carries: Any, goals: jax.Array
     settings.check()
     goals = jnp.asarray(goals, jnp.float32)
     chex.assert_shape(goals, (None, 3))
-    count = goals.shape[0]
+    count, starts = goals.shape[0], int(settings.starts)
+    safe_set = widened(safe_set, settings.margin_kpa)
 
     def distances(pressures):  # [E, P, 3] kPa -> [E, P] m
         return _distances(plant, int(num_steps), plant_params, carries, goals, pressures)
 
     grid = safe_grid(safe_set, settings.grid_points)
     to_goal = distances(jnp.broadcast_to(grid, (count, *grid.shape)))
-    best = grid[jnp.argmin(to_goal, axis=1)]  # [E, 3]
-    best_distance = to_goal.min(axis=1)
-    step = 0.5 * (safe_set.p_max - safe_set.p_min) / (int(settings.grid_points) - 1)  # [3]
+    order = jnp.argsort(to_goal, axis=1)[:, :starts]  # [E, K] the best grid points
+    best = grid[order]  # [E, K, 3]
+    best_distance = jnp.take_along_axis(to_goal, order, axis=1)  # [E, K]
+    spacing = (safe_set.p_max - safe_set.p_min) / (int(settings.grid_points) - 1)  # [3]
+    step = jnp.broadcast_to(0.5 * spacing, (count, starts, NUM_VALVES))
     stencil = jnp.asarray(_STENCIL)
     for _ in range(int(settings.refine_rounds)):
-        candidates = project(best[:, None] + step * stencil, safe_set)  # [E, 27, 3]
-        to_goal = distances(candidates)
-        pick = jnp.argmin(to_goal, axis=1)
-        improved = to_goal.min(axis=1) < best_distance
-        best = jnp.where(improved[:, None], candidates[jnp.arange(count), pick], best)
-        best_distance = jnp.minimum(best_distance, to_goal.min(axis=1))
-        step = 0.5 * step
+        candidates = project(best[:, :, None] + step[:, :, None] * stencil, safe_set)
+        to_goal = distances(candidates.reshape(count, -1, NUM_VALVES)).reshape(
+            count, starts, -1)  # [E, K, 27]
+        pick = jnp.argmin(to_goal, axis=-1)
+        nearest = jnp.min(to_goal, axis=-1)
+        improved = nearest < best_distance
+        chosen = jnp.take_along_axis(candidates, pick[..., None, None], axis=2)[:, :, 0]
+        best = jnp.where(improved[..., None], chosen, best)
+        best_distance = jnp.minimum(best_distance, nearest)
+        # a move that helped is tried again twice as long, one that did not at half the length
+        step = jnp.where(improved[..., None], jnp.minimum(2.0 * step, spacing), 0.5 * step)
+    winner = jnp.argmin(best_distance, axis=1)
+    pressure = best[jnp.arange(count), winner]
     resting = np.full(count, np.nan)
     if preload is not None:
         still = jnp.broadcast_to(jnp.asarray(preload, jnp.float32), (count, 1, NUM_VALVES))
         resting = np.asarray(distances(still)[:, 0], np.float64) * MM_PER_M
-    return Reach(np.asarray(best_distance, np.float64) * MM_PER_M, np.asarray(best), resting)
+    return Reach(np.asarray(best_distance.min(axis=1), np.float64) * MM_PER_M,
+                 np.asarray(pressure), resting)
+
+
+def widened(safe_set: SafeSet, margin_kpa: float) -> SafeSet:
+    """``safe_set`` with every valve's limits ``margin_kpa`` further out and the sum limit
+    three times that (the set itself for 0)."""
+    if not margin_kpa:
+        return safe_set
+    margin = jnp.float32(margin_kpa)
+    return SafeSet(safe_set.p_min - margin, safe_set.p_max + margin,
+                   safe_set.sum_max + NUM_VALVES * margin)
 
 
 def episode_reach(env: Any, env_params: Any, goals: jax.Array, num_episodes: int,

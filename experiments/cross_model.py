@@ -196,8 +196,9 @@ def reach_figures(overrides: list[str], evaluated: dict[str, Any], other: Any,
     any constant command inside the arm's limits holds it at by the episode's end
     (:func:`pipeline.evaluation.reachability.evaluation_reach`, ``settings``). Checked against
     the evaluation itself: holding the preload must end where its ``preload`` baseline ended.
-    Kept in ``folder/reach_<model>_<other model>_<twin>_<grid>.parquet`` (the same for every
-    policy type of the direction). Returns ``<own|cross|twin>_<figure>`` of
+    Kept in ``folder/reach_<model>_<other model>_<twin>_<search>.parquet`` (the same for
+    every policy type of the direction). With a margin (``settings.margin_kpa``) on the twin
+    alone. Returns ``<own|cross|twin>_<figure>`` of
     :func:`~pipeline.evaluation.reachability.split_misses` for ``agent``.
     """
     from pipeline.evaluation.reachability import preload_mismatch_mm, split_misses
@@ -210,7 +211,7 @@ def reach_figures(overrides: list[str], evaluated: dict[str, Any], other: Any,
         reach = pd.read_parquet(path)
     else:
         reach = _reach_table(overrides, evaluated, other, twin, settings)
-        mismatch = preload_mismatch_mm(reach, episodes)
+        mismatch = preload_mismatch_mm(reach, episodes[episodes["plant"].isin(reach["plant"])])
         if not mismatch < 0.01:
             raise SystemExit(f"the reach's plants are not the evaluation's: holding the preload "
                              f"ends up to {mismatch:.4f} mm from where the evaluation's preload "
@@ -220,7 +221,8 @@ def reach_figures(overrides: list[str], evaluated: dict[str, Any], other: Any,
     plants = {"learned": "own", f"model {other.path.name}": "cross"}
     if twin:
         plants[f"twin {Path(twin).name}"] = "twin"
-    split = split_misses(episodes[episodes["controller"] == agent], reach)
+    mine = episodes[(episodes["controller"] == agent) & episodes["plant"].isin(reach["plant"])]
+    split = split_misses(mine, reach)
     row = {}
     for record in split.itertuples():
         for column in ("reachable_goals", "misses", "misses_reachable",
@@ -248,6 +250,8 @@ def _reach_table(overrides: list[str], evaluated: dict[str, Any], other: Any,
              if twin else {})
     plants, goals = evaluation_episodes(closed_loop_settings(cfg), env, eval_params, models,
                                         twins)
+    if settings.margin_kpa:  # a bound for the twin's hysteresis: the twin alone
+        plants = {name: plant for name, plant in plants.items() if name.startswith("twin ")}
     return evaluation_reach(plants, goals, settings)
 
 
@@ -272,7 +276,7 @@ def print_table(table: pd.DataFrame) -> None:
             print(f"{row.variant:<50}{row.direction:<7}{row.twin_median_final_mm:>7.2f}"
                   f"{row.twin_p90_final_mm:>7.2f}{row.twin_success_1mm:>7.2f}"
                   f"{row.twin_success_3mm:>7.2f}{row.twin_deployed_median_final_mm:>7.2f}")
-    if "own_reachable_goals" in table:
+    if any(f"{p}_reachable_goals" in table for p in ("own", "cross", "twin")):
         print_reach(table)
     print("\nthe hold: share of episodes ever within 1 mm / of those, the share ended within "
           "1.5 mm, per plant")

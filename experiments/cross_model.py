@@ -205,7 +205,8 @@ def reach_figures(overrides: list[str], evaluated: dict[str, Any], other: Any,
 
     name = (f"reach_{evaluated['fit_model'].path.name}_{other.path.name}_"
             f"{Path(twin).name if twin else 'none'}_{settings.grid_points}x"
-            f"{settings.refine_rounds}x{settings.starts}+{settings.margin_kpa:g}.parquet")
+            f"{settings.newton_rounds}x{settings.refine_rounds}x{settings.starts}+"
+            f"{settings.margin_kpa:g}.parquet")
     path = folder / name
     if path.is_file():
         reach = pd.read_parquet(path)
@@ -402,10 +403,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reach", action="store_true",
                         help="also find, per plant, the goals any constant command inside the "
                              "arm's limits holds within 1 mm, and split the misses by them")
-    parser.add_argument("--reach-grid", type=int, nargs=3, default=(9, 30, 4),
-                        metavar=("POINTS", "ROUNDS", "STARTS"),
-                        help="the reach's grid points per valve, local-search rounds and "
-                             "the grid points it starts from")
+    parser.add_argument("--reach-grid", type=int, nargs=4, default=(9, 10, 4, 12),
+                        metavar=("POINTS", "ROUNDS", "STARTS", "NEWTON"),
+                        help="the reach's grid points per valve, local-search rounds, the "
+                             "grid points it starts from and its Gauss-Newton steps")
     parser.add_argument("--reach-margin", type=float, default=0.0, metavar="KPA",
                         help="admit commands this far beyond each valve's limits (3x beyond "
                              "the sum's): twice the twin's hysteresis play bounds any "

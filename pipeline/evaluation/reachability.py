@@ -5,8 +5,9 @@ smallest distance to the goal at the end of the episode's horizon that a **const
 inside the safe set** (the arm's limits, ``p_min <= p_j <= p_max`` per valve and
 ``sum_j p_j <= sum_max`` kPa, :mod:`pipeline.arm.safety`) leaves the plant at, held from the
 episode's start for its whole horizon. Found by a grid over the safe set (``grid_points`` per
-valve, projected onto it) and, from each episode's few nearest grid points, a local search (the
-27 commands ``best + step * {-1, 0, 1}^3``, projected, the best kept; the step doubles after a
+valve, projected onto it) and, from each episode's few nearest grid points, damped Gauss-Newton
+steps through the plant (its Jacobian in the held pressures), then a local search (the 27
+commands ``best + step * {-1, 0, 1}^3``, projected, the best kept; the step doubles after a
 move that came nearer and halves after one that did not).
 
 A goal within the tolerance of that distance is **reachable**: some admissible command holds the
@@ -56,9 +57,12 @@ class ReachSettings:
 
     grid_points: commands per valve on the grid over ``[p_min, p_max]`` (``grid_points^3``
       before the projection onto the sum limit).
-    refine_rounds: rounds of the local search from each of the ``starts`` best grid points;
-      its step starts at half the grid's spacing, doubles (up to the spacing) after a round
-      that came nearer and halves after one that did not.
+    newton_rounds: damped Gauss-Newton (Levenberg-Marquardt) steps from each of the
+      ``starts`` nearest grid points, through the plant's Jacobian in the held pressures
+      (forward-mode through the hold), each projected onto the safe set.
+    refine_rounds: rounds of the local search after them; its step starts at 0.05 kPa (half
+      the grid's spacing without Gauss-Newton steps), doubles (up to the spacing) after a
+      round that came nearer and halves after one that did not.
     starts: grid points the local search starts from (the nearest ones): the map from the
       pressures to the position is nearly flat along the mean pressure, so the nearest grid
       point can lie in the wrong part of a long valley.
@@ -69,14 +73,17 @@ class ReachSettings:
     """
 
     grid_points: int = 9
-    refine_rounds: int = 30
+    refine_rounds: int = 10
     starts: int = 4
+    newton_rounds: int = 12
     tolerance_mm: float = 1.0
     margin_kpa: float = 0.0
 
     def check(self) -> None:
         if int(self.grid_points) < 2:
             raise ValueError(f"grid_points must be >= 2, got {self.grid_points}")
+        if int(self.newton_rounds) < 0:
+            raise ValueError(f"newton_rounds must be >= 0, got {self.newton_rounds}")
         if int(self.refine_rounds) < 0:
             raise ValueError(f"refine_rounds must be >= 0, got {self.refine_rounds}")
         if not 1 <= int(self.starts) <= int(self.grid_points) ** NUM_VALVES:
@@ -110,6 +117,22 @@ def held_positions(plant: Plant, plant_params: Any, carries: Any, pressures: jax
         return hold(plant, plant_params, carry, pressure, int(num_steps))[1][-1]
 
     return jax.vmap(jax.vmap(final, in_axes=(None, 0)), in_axes=(0, 0))(carries, pressures)
+
+
+@functools.partial(jax.jit, static_argnames=("plant", "num_steps"))
+def _linearized(plant: Plant, num_steps: int, plant_params: Any, carries: Any,
+                pressures: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Positions ``[E, P, 3]`` (m) of :func:`held_positions` and their Jacobians ``[E, P, 3,
+    3]`` (m/kPa) in the held pressures (forward mode, one pass)."""
+
+    def final(carry, pressure):
+        position = hold(plant, plant_params, carry, pressure, int(num_steps))[1][-1]
+        return position, position
+
+    jacobian = jax.jacfwd(final, argnums=1, has_aux=True)
+    jac, positions = jax.vmap(jax.vmap(jacobian, in_axes=(None, 0)), in_axes=(0, 0))(
+        carries, pressures)
+    return positions, jac
 
 
 @functools.partial(jax.jit, static_argnames=("plant", "num_steps"))
@@ -149,8 +172,12 @@ def nearest_hold(plant: Plant, plant_params: Any, carries: Any, goals: jax.Array
     order = jnp.argsort(to_goal, axis=1)[:, :starts]  # [E, K] the best grid points
     best = grid[order]  # [E, K, 3]
     best_distance = jnp.take_along_axis(to_goal, order, axis=1)  # [E, K]
+    best, best_distance = _levenberg_marquardt(
+        lambda p: _linearized(plant, int(num_steps), plant_params, carries, p), best,
+        best_distance, goals, safe_set, int(settings.newton_rounds))
     spacing = (safe_set.p_max - safe_set.p_min) / (int(settings.grid_points) - 1)  # [3]
-    step = jnp.broadcast_to(0.5 * spacing, (count, starts, NUM_VALVES))
+    first = 0.5 * spacing if not settings.newton_rounds else jnp.full_like(spacing, 0.05)
+    step = jnp.broadcast_to(first, (count, starts, NUM_VALVES))
     stencil = jnp.asarray(_STENCIL)
     for _ in range(int(settings.refine_rounds)):
         candidates = project(best[:, :, None] + step[:, :, None] * stencil, safe_set)
@@ -172,6 +199,31 @@ def nearest_hold(plant: Plant, plant_params: Any, carries: Any, goals: jax.Array
         resting = np.asarray(distances(still)[:, 0], np.float64) * MM_PER_M
     return Reach(np.asarray(best_distance.min(axis=1), np.float64) * MM_PER_M,
                  np.asarray(pressure), resting)
+
+
+def _levenberg_marquardt(linearized, pressures: jax.Array, distance: jax.Array,
+                         goals: jax.Array, safe_set: SafeSet, rounds: int
+                         ) -> tuple[jax.Array, jax.Array]:
+    """``rounds`` damped Gauss-Newton steps toward ``goals [E, 3]`` from ``pressures [E, K,
+    3]`` (kPa; their distances ``[E, K]`` m), each projected onto ``safe_set``; a step that
+    does not come nearer is refused and the damping raised tenfold, one that does lowers it
+    threefold. ``linearized(pressures) -> (positions, jacobians)``."""
+    damping = jnp.full(distance.shape, 1e-6)  # (m/kPa)^2
+    positions, jac = linearized(pressures)
+    for _ in range(rounds):
+        error = goals[:, None] - positions  # [E, K, 3] m
+        normal = jnp.einsum("ekji,ekjl->ekil", jac, jac) + damping[..., None, None] * jnp.eye(3)
+        move = jnp.linalg.solve(normal, jnp.einsum("ekji,ekj->eki", jac, error)[..., None])
+        trial = project(pressures + move[..., 0], safe_set)
+        trial_positions, trial_jac = linearized(trial)
+        trial_distance = jnp.linalg.norm(goals[:, None] - trial_positions, axis=-1)
+        better = trial_distance < distance
+        pressures = jnp.where(better[..., None], trial, pressures)
+        positions = jnp.where(better[..., None], trial_positions, positions)
+        jac = jnp.where(better[..., None, None], trial_jac, jac)
+        distance = jnp.where(better, trial_distance, distance)
+        damping = jnp.where(better, damping / 3.0, damping * 10.0)
+    return pressures, distance
 
 
 def widened(safe_set: SafeSet, margin_kpa: float) -> SafeSet:

@@ -403,7 +403,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reach", action="store_true",
                         help="also find, per plant, the goals any constant command inside the "
                              "arm's limits holds within 1 mm, and split the misses by them")
-    parser.add_argument("--reach-grid", type=int, nargs=4, default=(9, 10, 4, 12),
+    parser.add_argument("--reach-grid", type=int, nargs=4, default=(9, 24, 4, 12),
                         metavar=("POINTS", "ROUNDS", "STARTS", "NEWTON"),
                         help="the reach's grid points per valve, local-search rounds, the "
                              "grid points it starts from and its Gauss-Newton steps")

@@ -60,9 +60,9 @@ class ReachSettings:
     newton_rounds: damped Gauss-Newton (Levenberg-Marquardt) steps from each of the
       ``starts`` nearest grid points, through the plant's Jacobian in the held pressures
       (forward-mode through the hold), each projected onto the safe set.
-    refine_rounds: rounds of the local search after them; its step starts at 0.05 kPa (half
-      the grid's spacing without Gauss-Newton steps), doubles (up to the spacing) after a
-      round that came nearer and halves after one that did not.
+    refine_rounds: rounds of the local search after them (where a projected step stalls on
+      the limits); its step starts at half the grid's spacing, doubles (up to the spacing)
+      after a round that came nearer and halves after one that did not.
     starts: grid points the local search starts from (the nearest ones): the map from the
       pressures to the position is nearly flat along the mean pressure, so the nearest grid
       point can lie in the wrong part of a long valley.
@@ -73,7 +73,7 @@ class ReachSettings:
     """
 
     grid_points: int = 9
-    refine_rounds: int = 10
+    refine_rounds: int = 24
     starts: int = 4
     newton_rounds: int = 12
     tolerance_mm: float = 1.0
@@ -176,8 +176,7 @@ def nearest_hold(plant: Plant, plant_params: Any, carries: Any, goals: jax.Array
         lambda p: _linearized(plant, int(num_steps), plant_params, carries, p), best,
         best_distance, goals, safe_set, int(settings.newton_rounds))
     spacing = (safe_set.p_max - safe_set.p_min) / (int(settings.grid_points) - 1)  # [3]
-    first = 0.5 * spacing if not settings.newton_rounds else jnp.full_like(spacing, 0.05)
-    step = jnp.broadcast_to(first, (count, starts, NUM_VALVES))
+    step = jnp.broadcast_to(0.5 * spacing, (count, starts, NUM_VALVES))
     stencil = jnp.asarray(_STENCIL)
     for _ in range(int(settings.refine_rounds)):
         candidates = project(best[:, :, None] + step[:, :, None] * stencil, safe_set)

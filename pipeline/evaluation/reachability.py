@@ -10,14 +10,16 @@ steps through the plant (its Jacobian in the held pressures), then a local searc
 commands ``best + step * {-1, 0, 1}^3``, projected, the best kept; the step doubles after a
 move that came nearer and halves after one that did not).
 
-A goal within the tolerance of that distance is **reachable**: some admissible command holds the
-plant there. Beyond it no constant command does; a feedback controller can end nearer only
-through the plant's memory (hysteresis, creep, a model's drift under a held command) or by
-passing the goal at the very end. On the simulated arm the memory is a play of half-width
-``h`` per chamber: any controller holds each chamber's effective pressure within
-``[p_min + h, p_max - h]`` and their sum below ``sum_max + 3 h``, which constant commands
-``2 h`` beyond the limits (``margin_kpa``) cover: that reach bounds what any controller can hold
-from below. On a learned model a constant command held for the whole horizon is a command
+A goal within the tolerance of that distance is **reachable**: the command found holds the
+plant there. The search is local, so the distance it finds is an upper bound of the nearest
+constant hold, and the share of reachable goals a lower bound. A feedback controller can end
+nearer than any constant command only through the plant's memory (hysteresis, creep, a model's
+drift under a held command) or by passing the goal at the very end. On the simulated arm the
+memory is a play of half-width ``h`` per chamber: any controller holds each chamber's effective
+pressure within ``[p_min + h, p_max - h]`` and their sum below ``sum_max + 3 h``, which
+constant commands ``2 h`` beyond the limits (``margin_kpa``) cover, so the exact nearest hold
+with that margin bounds every controller's hold from below (the search's, only as far as it
+finds it). On a learned model a constant command held for the whole horizon is a command
 sequence it was never fitted to (its data is a walk at the control rate), so its reach there is
 a weaker statement.
 

@@ -43,7 +43,9 @@ median is within 1 mm across models; and the seed ``stage=control`` would deploy
 its training's last held-out evaluation) with its own and cross medians and its success within 1
 mm across models; with ``--reach``, per plant the share of the goals that some constant
 command inside the arm's limits holds within 1 mm by the episode's end, and of the misses the
-share on such goals (:mod:`pipeline.evaluation.reachability`). The table is also written to
+share on such goals (:mod:`pipeline.evaluation.reachability`); with ``--twin-tune STEPS``, a
+second row per direction: the policies fine-tuned in the twin by analytic policy gradients
+through it, evaluated the same way. The table is also written to
 ``<output-dir>/cross_model/results.csv``.
 Everything goes through the pipeline's router (artifacts reused when present). ``--quick``
 shrinks every stage to check the script in minutes (the numbers then mean nothing). ``--set
@@ -409,8 +411,8 @@ def main(argv: list[str] | None = None) -> None:
                              "grid points it starts from and its Gauss-Newton steps")
     parser.add_argument("--reach-margin", type=float, default=0.0, metavar="KPA",
                         help="admit commands this far beyond each valve's limits (3x beyond "
-                             "the sum's): twice the twin's hysteresis play bounds any "
-                             "controller's hold on it")
+                             "the sum's); twice the twin's hysteresis play admits every hold "
+                             "any controller can reach on it; with a margin, the twin alone")
     parser.add_argument("--twin-tune", type=int, default=0, metavar="STEPS",
                         help="also fine-tune the policies in the --twin by analytic policy "
                              "gradients for STEPS env steps per seed and evaluate them again")

@@ -95,7 +95,7 @@ def test_measure_reports_the_seeds_and_the_one_control_would_deploy(tmp_path, mo
     answers = iter([{"fit_model": other}, {"evaluate": evaluated, "train_ppo": policy}])
     monkeypatch.setattr(cross_model, "run_stage", lambda *args: next(answers))
 
-    row = cross_model.measure(tmp_path, [], ["a"], ["b"], "plain", 3)
+    (row,) = cross_model.measure(tmp_path, [], ["a"], ["b"], "plain", 3)
     assert row["deployed_seed"] == 1
     assert row["own_deployed_median_final_mm"] == pytest.approx(0.4)
     assert row["cross_deployed_median_final_mm"] == pytest.approx(0.6)

@@ -138,23 +138,20 @@ def _agent_file(name: str) -> Any:
 
 
 def agent_option(name: str, base: Any) -> Any:
-    """``base`` (the composed ``agent``) with the settings of option ``name`` laid over it.
+    """The agent of option ``name`` with what ``base`` (the composed ``agent``) changed.
 
     The option file (``conf/agent/<name>.yaml``) says what makes the policy type (name,
-    trainer, recurrent, its budget, ...); everything else, e.g. an experiment's seeds and
-    budget, carries over. What ``base``'s own option file set (and nothing laid over it since)
-    goes back to the schema's default first, so an option laid over the composed agent is the
-    same agent as the option chosen (``agent=<name>``), whichever option the composed one is.
+    trainer, recurrent, its budget, ...). What the composed agent holds beyond its own option
+    file (an experiment's seeds and budget, a command line's settings) is laid over it, as when
+    the option is chosen (``agent=<name>`` with the same experiment and overrides): an option
+    laid over the composed agent is the agent that choosing it gives, whichever option the
+    composed one is.
     """
-    node = _agent_file(name)
-    own = _agent_file(str(base.name)) if (PROJECT_ROOT / "conf" / "agent"
-                                          / f"{base.name}.yaml").is_file() else {}
     defaults = OmegaConf.structured(AgentConfig)
-    base = base.copy()
-    for key, value in own.items():
-        if key in defaults and key in base and base[key] == value:
-            base[key] = defaults[key]
-    return OmegaConf.merge(base, node)
+    own = (OmegaConf.merge(defaults, _agent_file(str(base.name)))
+           if (PROJECT_ROOT / "conf" / "agent" / f"{base.name}.yaml").is_file() else defaults)
+    changed = {key: base[key] for key in base if key not in own or base[key] != own[key]}
+    return OmegaConf.merge(defaults, _agent_file(name), changed)
 
 
 def policy_configs(cfg: Any) -> dict[str, Any]:

@@ -203,9 +203,9 @@ def test_an_option_is_the_same_agent_chosen_or_laid_over_another(make_cfg, optio
     assert AgentConfig.from_any(laid_over).trainer is expected
 
 
-def test_an_option_keeps_what_an_experiment_set_for_every_policy_type(make_cfg):
-    # experiment=real_arm sets the seeds, learning rate and budgets of its (PPO) agent: a PPO
-    # option laid over it keeps them, an APG option keeps the seeds and brings its own budget
+def test_an_option_keeps_what_an_experiment_or_a_command_line_set(make_cfg):
+    # experiment=real_arm sets the seeds, learning rate and budgets of its (PPO) agent: every
+    # option laid over it keeps them, as choosing the option with the experiment does
     from pipeline.chain import agent_option
 
     composed = make_cfg("experiment=real_arm").agent
@@ -213,5 +213,11 @@ def test_an_option_keeps_what_an_experiment_set_for_every_policy_type(make_cfg):
     assert (rnn.trainer, rnn.num_seeds, rnn.lr, rnn.recurrent_total_timesteps) == (
         "ppo", 20, 1.0e-3, 4_000_000)
     apg = agent_option("apg", composed)
+    assert dict(apg) == dict(make_cfg("experiment=real_arm", "agent=apg").agent)
     assert (apg.trainer, apg.num_seeds, apg.total_timesteps, apg.num_steps) == (
-        "apg", 20, 256_000, 10)
+        "apg", 20, 2_000_000, 10)
+    # a setting given on the command line reaches every policy type the run trains
+    given = make_cfg("agent.total_timesteps=1000", "agent.num_steps=20").agent
+    for option in ("apg", "apg_rnn", "ppo_ff"):
+        laid = agent_option(option, given)
+        assert (laid.total_timesteps, laid.num_steps) == (1000, 20), option

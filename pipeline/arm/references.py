@@ -21,9 +21,12 @@ anything moves.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import chex
 import jax
@@ -32,7 +35,7 @@ import numpy as np
 import pandas as pd
 from flax import struct
 
-from pipeline.schemas import ConfigError
+from pipeline.schemas import ConfigError, ReferenceConfig
 
 MM_PER_M = 1000.0
 SHAPES = ("circle", "ellipse", "figure_eight")
@@ -349,3 +352,20 @@ def check_reachable(reference: Reference, duration_s: float, sample_hz: float,
         f"{np.round(path[first] * MM_PER_M, 1).tolist()} mm, lies "
         f"{nearest[first] * MM_PER_M:.1f} mm from the nearest reachable position (tolerance "
         f"{tolerance_mm:g} mm); the reachable set ({len(reachable)} positions) spans {extent} mm")
+
+
+def shape_settings(entry: Any, what: str) -> ShapeSettings:
+    """The :class:`ShapeSettings` of a mapping of :class:`ReferenceConfig` fields (those it leaves
+    out at their defaults; ``centre_mm`` may stay None); one :class:`InvalidReference` naming
+    ``what`` for anything else."""
+    known = sorted(field.name for field in dataclasses.fields(ReferenceConfig))
+    entry = {} if entry is None else entry  # every setting at its default
+    if not isinstance(entry, Mapping):
+        raise InvalidReference(f"{what}: expected a shape with some of {known}, got {entry!r}")
+    unknown = sorted(set(map(str, entry)) - set(known))
+    if unknown:
+        raise InvalidReference(f"{what}: unknown setting(s) {unknown}; expected some of {known}")
+    values = {**dataclasses.asdict(ReferenceConfig()), **entry}
+    centre = values.pop("centre_mm")
+    return ShapeSettings(**values, centre_mm=None if centre is None
+                         else tuple(float(v) for v in centre))

@@ -31,13 +31,12 @@ import numpy as np
 import pandas as pd
 
 from pipeline.arm import references
-from pipeline.arm.references import InvalidReference, Reference, ShapeSettings
+from pipeline.arm.references import InvalidReference, Reference, shape_settings
 from pipeline.control.goals import GoalError, GoalSchedule
 from pipeline.control.records import REFERENCE_COLUMNS
 from pipeline.data.schemas import XYZ
 from pipeline.evaluation.tracking import tracking_metrics
 from pipeline.rl.envs import task
-from pipeline.schemas import ReferenceConfig
 
 MM_PER_M = 1000.0
 CHECK_HZ = 10.0  # the reference is checked against the reachable set at least this often
@@ -84,23 +83,6 @@ class Trajectory:
     reference: Reference
     source: str
     duration_s: float | None
-
-
-def shape_settings(entry: Any, what: str) -> ShapeSettings:
-    """The :class:`ShapeSettings` of a mapping of :class:`ReferenceConfig` fields (those it leaves
-    out at their defaults; ``centre_mm`` may stay None); one :class:`InvalidReference` naming
-    ``what`` for anything else."""
-    known = sorted(field.name for field in dataclasses.fields(ReferenceConfig))
-    entry = {} if entry is None else entry  # every setting at its default
-    if not isinstance(entry, Mapping):
-        raise InvalidReference(f"{what}: expected a shape with some of {known}, got {entry!r}")
-    unknown = sorted(set(map(str, entry)) - set(known))
-    if unknown:
-        raise InvalidReference(f"{what}: unknown setting(s) {unknown}; expected some of {known}")
-    values = {**dataclasses.asdict(ReferenceConfig()), **entry}
-    centre = values.pop("centre_mm")
-    return ShapeSettings(**values, centre_mm=None if centre is None
-                         else tuple(float(v) for v in centre))
 
 
 def trajectory_of(given: Any, named: Mapping[str, Any], centre_mm: np.ndarray) -> Trajectory:

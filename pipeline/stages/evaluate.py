@@ -35,7 +35,6 @@ Figures and ``report.md`` / ``report.html`` close the run.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
@@ -46,7 +45,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import chain, keys
-from pipeline.arm.references import ShapeSettings
+from pipeline.arm.references import shape_settings
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, SimArm, run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
@@ -71,7 +70,7 @@ from pipeline.infra.records import ArtifactRecord, artifact_record
 from pipeline.rl.envs.factory import sim_plant_params
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.rl.results import return_curves
-from pipeline.schemas import ConfigError, EnvName, ReferenceConfig, RobotKind, Task
+from pipeline.schemas import EnvName, RobotKind, Task
 from pipeline.stages._environment import config_environment, env_settings
 
 log = logging.getLogger(__name__)
@@ -148,17 +147,9 @@ def closed_loop_settings(cfg: Any) -> ClosedLoopSettings:
 def tracking_settings(cfg: Any) -> TrackingSettings:
     """The tracking evaluation's settings of ``cfg.evaluation`` (its references as shapes)."""
     evaluation = cfg.evaluation
-    shapes, known = {}, {f.name for f in dataclasses.fields(ReferenceConfig)}
-    for name, entry in evaluation.references.items():
-        given = OmegaConf.to_container(entry, resolve=True) if entry is not None else {}
-        unknown = sorted(set(given) - known) if isinstance(given, dict) else given
-        if unknown or not isinstance(given, dict):
-            raise ConfigError(f"evaluation.references.{name}: unknown setting(s) {unknown}; "
-                              f"expected some of {sorted(known)}")
-        values = {**dataclasses.asdict(ReferenceConfig()), **given}
-        centre = values.pop("centre_mm")
-        shapes[str(name)] = ShapeSettings(
-            **values, centre_mm=None if centre is None else tuple(float(v) for v in centre))
+    shapes = {str(name): shape_settings(
+        OmegaConf.to_container(entry, resolve=True) if entry is not None else None,
+        f"evaluation.references.{name}") for name, entry in evaluation.references.items()}
     horizon = evaluation.get("tracking_mpc_horizon")
     return TrackingSettings(shapes, float(evaluation.tracking_seconds),
                             float(evaluation.tracking_settle_seconds),

@@ -129,7 +129,7 @@ def test_closing_summary_of_the_chain(tmp_path, make_cfg, monkeypatch):
     assert f"artifact: {evaluate.relative_to(tmp_path)}" in text
     assert f"report:   {evaluate.relative_to(tmp_path)}/report.html" in text
     # the next command keeps the run's overrides, not its stage or force
-    assert ("next:     python -m pipeline stage=control experiment=quick control.policy=ppo_ff "
+    assert ("next:     python -m pipeline stage=control experiment=quick control.policy=apg "
             "'control.goals=[[30.0,350.0,200.0],[30.0,350.0,200.0],[30.0,350.0,200.0]]'") in text
     assert len(lines) < 25  # read in ten seconds
 

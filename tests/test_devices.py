@@ -54,6 +54,7 @@ def test_a_device_count_below_one_is_refused_naming_the_key():
         configure_cpu_devices(0)
 
 
+@pytest.mark.slow  # about 45 s on 2 cores: a subprocess with two CPU devices compiles it all
 def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
     report = run_python("""
         import json

@@ -101,6 +101,18 @@ def latency_summary(periods: pd.DataFrame) -> dict[str, float | None]:
             "pose_age_ms": describe(commanded["pose_age_s"].to_numpy(np.float64) * 1e3)}
 
 
+def _save(fig: Any, ax: Any, path: Path, **legend: Any) -> Path:
+    """The figure with ``ax``'s legend (``legend``: its settings, small type) written to
+    ``path`` at the control report's resolution, and closed."""
+    import matplotlib.pyplot as plt
+
+    ax.legend(**{"fontsize": 8, **legend})
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def make_figures(folder: Path, periods: pd.DataFrame, limits: Any) -> dict[str, Path]:
     """distance.png (with the 1 mm line), path_xz.png (with the goals), pressures.png."""
     import matplotlib
@@ -118,11 +130,7 @@ def make_figures(folder: Path, periods: pd.DataFrame, limits: Any) -> dict[str, 
         ax.plot(segment["t"], distance, label=f"goal {segment['goal_index']}")
     ax.axhline(1.0, color="k", ls="--", lw=1, label="1 mm")
     ax.set(xlabel="arm time [s]", ylabel="distance to goal [mm]", yscale="log")
-    ax.legend(fontsize=8, ncol=4)
-    fig.tight_layout()
-    paths["distance"] = folder / "distance.png"
-    fig.savefig(paths["distance"], dpi=110)
-    plt.close(fig)
+    paths["distance"] = _save(fig, ax, folder / "distance.png", ncol=4)
 
     fig, ax = plt.subplots(figsize=(5.5, 5))
     table = periods.sort_values("period")
@@ -131,11 +139,7 @@ def make_figures(folder: Path, periods: pd.DataFrame, limits: Any) -> dict[str, 
         ax.plot(*(segment["goal"][[0, 2]] * MM_PER_M), "x", ms=10, mew=2,
                 label=f"goal {segment['goal_index']}")
     ax.set(xlabel="x [mm]", ylabel="z [mm]", aspect="equal")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    paths["path"] = folder / "path_xz.png"
-    fig.savefig(paths["path"], dpi=110)
-    plt.close(fig)
+    paths["path"] = _save(fig, ax, folder / "path_xz.png")
 
     paths["pressures"] = _pressure_figure(folder, table, limits)
     return paths
@@ -151,12 +155,7 @@ def _pressure_figure(folder: Path, table: pd.DataFrame, limits: Any) -> Path:
         ax.step(commanded["t"], commanded[column], where="post", label=f"valve {j}")
     ax.axhline(float(limits.p_max), color="r", ls=":", lw=1, label="p_max")
     ax.set(xlabel="arm time [s]", ylabel="command [kPa]")
-    ax.legend(fontsize=8, ncol=4)
-    fig.tight_layout()
-    path = folder / "pressures.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, ax, folder / "pressures.png", ncol=4)
 
 
 def tracking_figures(folder: Path, periods: pd.DataFrame, limits: Any, settle_s: float
@@ -181,22 +180,14 @@ def tracking_figures(folder: Path, periods: pd.DataFrame, limits: Any, settle_s:
     ax.plot(position[:, 0], position[:, 2], color="C0", lw=1.2, label="path")
     ax.plot(position[0, 0], position[0, 2], "o", color="C0", label="start")
     ax.set(xlabel="x [mm]", ylabel="z [mm]", aspect="equal")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    paths["tracking_path"] = folder / "path_xz.png"
-    fig.savefig(paths["tracking_path"], dpi=110)
-    plt.close(fig)
+    paths["tracking_path"] = _save(fig, ax, folder / "path_xz.png")
 
     fig, ax = plt.subplots(figsize=(9, 3.6))
     ax.plot(table["t"], np.linalg.norm(position - reference, axis=1), color="C0")
     ax.axhline(1.0, color="k", ls="--", lw=1, label="1 mm")
     ax.axvline(settle_s, color="0.5", ls=":", lw=1, label="settled: scored from here")
     ax.set(xlabel="arm time [s]", ylabel="distance to the reference [mm]")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    paths["error"] = folder / "error.png"
-    fig.savefig(paths["error"], dpi=110)
-    plt.close(fig)
+    paths["error"] = _save(fig, ax, folder / "error.png")
     paths["pressures"] = _pressure_figure(folder, table, limits)
     return paths
 

@@ -122,13 +122,15 @@ def fit_model_spec(cfg: Any) -> Spec:
 
 def env_spec(cfg: Any) -> dict[str, Any]:
     """``cfg.env`` as keys see it: without ``env.models`` (where those lie does not matter, their
-    keys are inputs), without ``env.train_max_steps`` where unset (the keys of before), for
-    absolute actions without the incremental step and, to reach, without the tracking task's
-    settings (unused)."""
+    keys are inputs), without ``env.train_max_steps`` where unset and ``env.deadband_m`` where
+    0 (the keys of before), for absolute actions without the incremental step and, to reach,
+    without the tracking task's settings (unused)."""
     env = _container(cfg.env)
     env.pop("models", None)
     if env.get("train_max_steps") is None:  # unset: training's horizon is max_steps, as before
         env.pop("train_max_steps", None)
+    if not env.get("deadband_m"):  # off: every controller acts as before it existed
+        env.pop("deadband_m", None)
     if Task(env.get("task", Task.reach)) is Task.reach:
         for setting in TRACK_SETTINGS:
             env.pop(setting, None)
@@ -160,7 +162,9 @@ def train_ppo_spec(cfg: Any) -> Spec:
     for name, unset in _AGENT_KEYS_UNLESS_SET.items():
         if name in agent and agent[name] == unset:
             agent.pop(name)
-    spec: dict[str, Any] = _versioned("train_ppo", {"env": env_spec(cfg), "agent": agent,
+    env = env_spec(cfg)
+    env.pop("deadband_m", None)  # deployment only: training never meets it
+    spec: dict[str, Any] = _versioned("train_ppo", {"env": env, "agent": agent,
                                                     "seed": int(cfg.seed)})
     if agent.get("init_policy"):  # a warm start: the starting policy's content decides too
         from pipeline.rl.policy_io import init_policy_file  # JAX only where a policy is read
@@ -270,7 +274,10 @@ def control_spec(cfg: Any) -> Spec:
     if RobotKind(cfg.robot.kind) is RobotKind.ros2:
         control.pop("arm_seed", None)
     stage, policy_key = control_policy(cfg)
-    return _versioned("control", {"control": control, "robot": robot}), {stage: policy_key}
+    spec = {"control": control, "robot": robot}
+    if cfg.env.get("deadband_m") and "trajectory" not in control:  # goals: deadband on
+        spec["deadband_m"] = float(cfg.env.deadband_m)
+    return _versioned("control", spec), {stage: policy_key}
 
 
 def _control_trajectory(cfg: Any, control: dict[str, Any]) -> None:
@@ -278,6 +285,12 @@ def _control_trajectory(cfg: Any, control: dict[str, Any]) -> None:
     (goals: the key as before), else the shape it names in ``evaluation.references`` or a CSV's
     content, and the evaluation's timing it defaults to."""
     trajectory = control.pop("trajectory", None)
+    if not control.get("trajectory_topic"):  # unset: the key as before it existed
+        control.pop("trajectory_topic", None)
+    elif trajectory is None:  # a live reference: scored with the evaluation's settle time
+        control["trajectory"] = {"tracking_settle_seconds":
+                                 cfg.evaluation.tracking_settle_seconds}
+        return
     if trajectory is None:
         control.pop("settle_s", None)
         return

@@ -325,6 +325,10 @@ def _check_env(cfg: Any) -> None:
     if not (math.isfinite(bonus) and bonus >= 0):
         raise ConfigError(f"env.hold_bonus_mm={bonus} must be finite and >= 0 (mm of reward per "
                           f"control period at the goal)")
+    deadband = float(env.deadband_m)
+    if not (math.isfinite(deadband) and 0 <= deadband <= float(env.goal_tolerance_m)):
+        raise ConfigError(f"env.deadband_m={deadband} must lie in [0, env.goal_tolerance_m="
+                          f"{env.goal_tolerance_m}] m (where the last command stays; 0: off)")
     decay = float(env.error_integral_decay)
     if not 0.0 <= decay < 1.0:
         raise ConfigError(f"env.error_integral_decay={decay} must lie in [0, 1) (the accumulated "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -334,6 +335,26 @@ def test_live_goals_take_effect_at_the_next_period_and_bad_ones_are_refused(poli
     np.testing.assert_allclose(commanded[["goal_x", "goal_y", "goal_z"]].to_numpy()[-1],
                                np.asarray(cfg_goals[1]) / 1e3)
     np.testing.assert_array_equal(np.asarray(arm.commands)[[0, 1, -1]], [[2.0] * 3] * 3)
+
+
+def test_the_arm_keeps_the_last_command_within_the_deadband(policies):
+    """env.deadband_m of the session (not of the training) reaches the deployed step: a pose
+    measured 0.9 mm from the goal sends the last command again, 1.1 mm away the policy's; a
+    reference (control.trajectory) moves on, so there it is off."""
+    cfg = copy.deepcopy(policies["ppo_ff"])
+    cfg.env.deadband_m = 0.001
+    deployment = load_deployment(cfg, ArtifactStore(cfg.paths.artifact_dir))
+    assert float(deployment.env_params.deadband_m) == pytest.approx(0.001)
+    goal = np.asarray(deployment.env_params.goal_set[0], np.float64)
+    last = np.array([2.5, 3.0, 1.0])
+    preview = np.zeros((0, 3))
+    for offset_mm, held in ((0.9, True), (1.1, False)):
+        measured = goal + np.array([offset_mm, 0.0, 0.0]) / 1e3
+        _, _, _, pressure = deployment.act(deployment.hidden, True, measured, goal, preview, last)
+        assert np.allclose(pressure, last, atol=1e-5) == held
+    cfg.control.trajectory = "circle"
+    assert float(load_deployment(cfg, ArtifactStore(cfg.paths.artifact_dir))
+                 .env_params.deadband_m) == 0.0
 
 
 def test_control_is_routed_alone_and_never_by_the_chain(make_cfg):

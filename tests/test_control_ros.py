@@ -233,3 +233,74 @@ def test_a_trained_tracking_policy_follows_the_circle_alike_on_the_twin_and_in_p
         assert runner.wait(timeout=300) == 0, pipe.log("control")
     on_twin = tracking_metrics_of(control_artifact(pipe, *common))
     assert abs(on_twin["rmse_mm"] - in_process["rmse_mm"]) <= 0.3, (on_twin, in_process)
+
+
+# a reference publisher in its own rclpy process: a circle in xz, each point stamped (ROS time)
+# LEAD arm seconds ahead of when it is sent, one point every 0.05 wall seconds
+PUBLISHER = """
+import math, sys, time
+import rclpy
+from pipeline.data.ros_messages import message_class, write_stamp_ns
+topic, cx, cy, cz, radius, period, scale, lead, wall = sys.argv[1:]
+cx, cy, cz, radius, period, scale, lead, wall = map(float, (cx, cy, cz, radius, period, scale,
+                                                          lead, wall))
+rclpy.init()
+node = rclpy.create_node("reference_publisher")
+Point = message_class("geometry_msgs/msg/PointStamped")
+publisher = node.create_publisher(Point, topic, 10)
+start = time.monotonic()
+while time.monotonic() - start < wall:
+    message = Point()
+    write_stamp_ns(message, "header.stamp",
+                   node.get_clock().now().nanoseconds + int(lead / scale * 1e9))
+    angle = 2 * math.pi * ((time.monotonic() - start) * scale + lead) / period
+    message.point.x = cx + radius * math.cos(angle)
+    message.point.y = cy
+    message.point.z = cz + radius * math.sin(angle)
+    publisher.publish(message)
+    time.sleep(0.05)
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+
+@pytest.mark.slow  # a twin session and a publisher process
+def test_a_reference_published_live_is_followed_on_the_twin(tmp_path, ros_domain):
+    """A tracking policy (random network, preview 3) follows a 2 mm circle whose points arrive
+    on control.trajectory_topic, stamped 2 arm seconds ahead: every period's goal lies on the
+    circle, the session is scored, and it ends at the preload within the limits."""
+    import subprocess
+    import sys
+
+    cfg = compose_config(tmp_path / "sim", *SMALL, "env.task=track", "env.preview=3",
+                         "control.policy=ppo_rnn", "stage=control")
+    artifact, train_params = write_policy(cfg)
+    centre = np.median(np.asarray(train_params.goal_set), axis=0) * 1e3
+    common = [f"control.policy_file={artifact.file('policy.msgpack')}",
+              "control.trajectory_topic=/reference", "control.duration_s=10",
+              "control.settle_s=2", "control.workspace_margin_mm=10"]
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = ROS
+    record = tmp_path / "twin_received.jsonl"
+    with twin_of(pipe, record):
+        run = pipe.start("control", *common)
+        pipe.wait_for_log("control", "arm ready", timeout_s=240)
+        publisher = subprocess.Popen(
+            [sys.executable, "-c", PUBLISHER, "/reference", *(str(v / 1e3) for v in centre),
+             "0.002", "8.0", str(TIME_SCALE), "2.0", "6.0"], env=pipe.env)
+        assert run.wait(timeout=240) == 0, pipe.log("control")
+        assert publisher.wait(timeout=60) == 0
+        time.sleep(0.2)
+    on_twin = control_artifact(pipe, *common)
+    periods = pd.read_parquet(on_twin.file("periods.parquet"))
+    followed = periods[periods["goal_index"] >= 0]
+    assert 12 <= len(followed) <= 20  # the preload until the first point arrived
+    goals = followed[["goal_x", "goal_y", "goal_z"]].to_numpy() * 1e3
+    radius = np.linalg.norm((goals - centre)[:, [0, 2]], axis=1)
+    np.testing.assert_allclose(radius, 2.0, atol=0.05)  # on the circle (chords: 0.01 mm in)
+    np.testing.assert_allclose(goals[:, 1], centre[1], atol=1e-6)
+    assert np.ptp(goals[:, 0]) > 1.0  # and moving along it
+    assert np.isfinite(tracking_metrics_of(on_twin)["rmse_mm"])
+    wire = received(record)[CMD_COLUMNS].to_numpy()
+    np.testing.assert_allclose(wire[-1], PRELOAD)
+    assert_within_limits(wire)

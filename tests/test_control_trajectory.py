@@ -13,7 +13,12 @@ import pytest
 from pipeline.arm.references import InvalidReference
 from pipeline.control.goals import GoalSchedule
 from pipeline.control.records import GOAL_COLUMNS, REFERENCE_COLUMNS
-from pipeline.control.trajectory import trajectory_metrics, trajectory_of, trajectory_schedule
+from pipeline.control.trajectory import (
+    live_trajectory,
+    trajectory_metrics,
+    trajectory_of,
+    trajectory_schedule,
+)
 from pipeline.data.schemas import CMD_COLUMNS
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.keys import key
@@ -331,3 +336,118 @@ def test_the_accumulated_error_takes_the_goal_of_the_period_that_led_to_the_pose
     np.testing.assert_allclose(integral, np.array(expected), rtol=1e-4, atol=1e-4)
     # the current goal would differ: the reference moves 0.8 mm a period
     assert np.abs(goals[1:] - goals[:-1]).max() > 5e-4
+
+
+# ---- a reference that arrives while it is followed (control.trajectory_topic) --------------------
+def test_a_live_reference_runs_in_straight_segments_between_its_points():
+    """Points due at 1 s (A) and 3 s (B), 2 Hz: period k's goal is the reference at (k + 1) / 2 s,
+    A until 1 s, then a quarter of the way to B every half second, B from 3 s on; its preview
+    the reference 1, 2 periods later; its tick k / 2 s is scored against the reference then."""
+    a, b = np.array([0.03, 0.353, 0.2]), np.array([0.034, 0.353, 0.196])
+    schedule = live_trajectory("/reference", 10.0, 2.0, 2.0)
+    assert schedule.goal(0) is None and schedule.reference(0) is None  # nothing yet: the preload
+    assert schedule.add_point(1.0, a, now_s=0.0) is None
+    assert schedule.add_point(3.0, b, now_s=0.0) is None
+    np.testing.assert_allclose(schedule.goal(0)[1], a)
+    np.testing.assert_allclose(schedule.goal(2)[1], a + 0.25 * (b - a))
+    np.testing.assert_allclose(schedule.preview(2, 2), [a + 0.5 * (b - a), a + 0.75 * (b - a)])
+    np.testing.assert_allclose(schedule.reference(4), a + 0.5 * (b - a))
+    np.testing.assert_allclose(schedule.goal(9)[1], b)
+    # a point already past is due now; one due before the last point taken is refused
+    c = np.array([0.032, 0.353, 0.2])
+    assert schedule.add_point(0.5, c, now_s=4.0) is None
+    np.testing.assert_allclose(schedule.goal(7)[1], c)  # the reference at 4 s
+    problem = schedule.add_point(3.5, c, now_s=3.5)
+    assert "a point due at t=3.500 s arrived after one due at t=4.000 s" in problem
+    assert len(schedule.times_s) == 3
+    with pytest.raises(InvalidReference, match=r"control.settle_s=12.0: expected >= 0 s"):
+        live_trajectory("/reference", 10.0, 12.0, 2.0)
+
+
+def test_the_arm_follows_live_points_and_refuses_bad_ones(tmp_path):
+    """On the simulated arm with a publisher in the loop: nothing before the first point (the
+    preload), then each period's goal along the segments; a point outside the workspace and one
+    out of order are refused and the session goes on; the metrics score from the first point."""
+    from omegaconf import OmegaConf
+
+    from pipeline.control.loop import ControlLoop, LoopSettings, SimArm
+    from pipeline.control.records import PeriodRecorder
+    from pipeline.ros2.gate import CommandGate
+    from pipeline.stages.control import load_deployment, session_schedule
+
+    cfg, goals, _ = tracking_policy(tmp_path, "ppo_ff", task=())
+    cfg.control.trajectory_topic, cfg.control.duration_s, cfg.control.settle_s = "/ref", 4.0, 0.5
+    deployment = load_deployment(cfg, ArtifactStore(cfg.paths.artifact_dir))
+    assert float(deployment.env_params.deadband_m) == 0.0
+    schedule = session_schedule(cfg, OmegaConf.to_object(cfg.control), deployment)
+    a, b = goals[0], goals[1]
+    published = [(1.0, 0.5, a), (1.0, 3.0, b), (1.5, 3.0, np.array([0.5, 0.35, 0.2])),
+                 (1.5, 2.0, a)]  # (arm s it is published, s it is due, point)
+
+    class Publisher:
+        def __init__(self, arm):
+            self.arm, self.sent = arm, 0
+
+        def __getattr__(self, name):
+            return getattr(self.arm, name)
+
+        def take_points(self):
+            due = [(t, p) for at, t, p in published[self.sent:] if at <= self.arm.now()]
+            self.sent += len(due)
+            return due
+
+    robot = OmegaConf.to_object(cfg.robot)
+    gate = CommandGate(robot.limits, 3)
+    arm = Publisher(SimArm(robot, 0, gate))
+    recorder = PeriodRecorder(tmp_path / "chunks", deployment.env.obs_dim, {}, {})
+    settings = LoopSettings.of(robot, OmegaConf.to_object(cfg.control))
+    outcome = ControlLoop(deployment, schedule, gate, arm, recorder, settings).run()
+    assert outcome.reason is None and outcome.periods == 8, outcome
+    rows = recorder.read_all()
+    commanded = rows[rows["goal_index"] >= 0]
+    assert commanded["period"].tolist() == [2, 3, 4, 5, 6, 7]  # points from 1 s (period 2)
+    # the segment from 1 s (a, published then, due at once) to 3 s (b), at each period's end
+    ramp = {2: a + 0.25 * (b - a), 3: a + 0.5 * (b - a), 4: a + 0.75 * (b - a), 5: b, 6: b,
+            7: b}
+    np.testing.assert_allclose(commanded[GOAL_COLUMNS].to_numpy(),
+                               [ramp[k] for k in commanded["period"]], atol=1e-9)
+    np.testing.assert_allclose(commanded[REFERENCE_COLUMNS].to_numpy()[0], a)  # tick 1 s
+    assert len(schedule.times_s) == 2  # the far point and the one out of order: refused
+    np.testing.assert_array_equal(np.asarray(arm.commands)[[0, 1, -1]], [[2.0] * 3] * 3)
+    metrics = trajectory_metrics(rows, 2.0, schedule.settle_s)
+    assert metrics["periods"][0] == 6 and np.isfinite(metrics["rmse_mm"][0])  # periods 2 .. 7
+
+
+def test_a_live_reference_goes_alone_needs_ros2_and_keys_the_settle_time(tmp_path):
+    from pipeline.keys import control_spec
+
+    cfg, _, _ = tracking_policy(tmp_path, "ppo_ff", task=())
+    cfg.control.trajectory_topic = "/ref"
+    with pytest.raises(ConfigError, match=r"control.trajectory_topic need robot=ros2"):
+        control(cfg)
+    spec = control_spec(cfg)[0]
+    assert spec["control"]["trajectory_topic"] == "/ref"
+    assert spec["control"]["trajectory"] == {"tracking_settle_seconds": 10.0}
+    cfg.control.trajectory_topic = None
+    assert "trajectory_topic" not in control_spec(cfg)[0]["control"]  # unset: the key as before
+
+
+def test_reference_points_are_due_at_their_stamps_on_the_arms_clock():
+    from types import SimpleNamespace
+
+    from pipeline.control.ros_arm import RosArm
+
+    arm = object.__new__(RosArm)  # only the point queue and the clock
+    arm._points, arm._t0_ns, arm.scale = [], 5_000_000_000, 1.0
+    arm.now = lambda: 1.25
+
+    def message(sec, nanosec, x):
+        return SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(sec=sec,
+                                                                             nanosec=nanosec)),
+                               point=SimpleNamespace(x=x, y=0.0, z=0.0))
+
+    arm._on_point(message(7, 500_000_000, 1.0))  # 2.5 s after the start
+    arm._on_point(message(0, 0, 2.0))  # unstamped: on arrival
+    (t1, p1), (t2, p2) = arm.take_points()
+    assert (t1, p1[0], t2, p2[0]) == (2.5, 1.0, 1.25, 2.0)
+    assert arm.take_points() == []

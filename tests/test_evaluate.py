@@ -116,9 +116,9 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
     cfg.stage, cfg.evaluation.models = "evaluate", [str(model.path)]
     built = []  # the environment of every rollout program compiled
 
-    def counting(env, make):
+    def counting(env, make, deadband=False):
         built.append(env)
-        return rollout_program(env, make)
+        return rollout_program(env, make, deadband)
 
     monkeypatch.setattr(closed_loop, "rollout_program", counting)
     crossed = run(cfg)["evaluate"]

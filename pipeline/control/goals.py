@@ -75,6 +75,11 @@ class GoalSchedule:
         self.goals_m = np.concatenate([self.goals_m.reshape(-1, 3), np.asarray(goal_m)[None]])
         self.starts = np.append(self.starts, period)
 
+    def add_point(self, t_s: float, point_m: np.ndarray, now_s: float) -> str | None:
+        """A live reference's point (``control.trajectory_topic``:
+        :class:`pipeline.control.trajectory.LiveTrajectory`); goals take none."""
+        raise GoalError("live reference points are followed with control.trajectory_topic only")
+
 
 def _as_goals(values: Any, what: str) -> np.ndarray:
     goals = np.asarray(values, np.float64)

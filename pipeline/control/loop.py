@@ -8,8 +8,10 @@ Each control period ``k`` (``1 / robot.control_hz`` arm seconds; the settings: :
 3. the observation, exactly as the training environment builds it
    (:func:`pipeline.rl.envs.observation.observe`; the period's goal and, for a policy trained with
    a preview, the goals of the next periods: :meth:`GoalSchedule.preview`; following a
-   reference, :class:`pipeline.control.trajectory.TrajectorySchedule`), the deterministic action
-   with the recurrent carry, the pressures (the environment's action mapping): one jitted call,
+   reference, :class:`pipeline.control.trajectory.TrajectorySchedule`, or one whose points
+   arrive live, :class:`~pipeline.control.trajectory.LiveTrajectory`), the deterministic action
+   with the recurrent carry (within ``env.deadband_m`` of a goal, the last command again), the
+   pressures (the environment's action mapping): one jitted call,
    compiled before the first command (:class:`pipeline.control.policy.Deployment`); a
    non-finite output stops it;
 4. the command gate (:class:`pipeline.ros2.gate.CommandGate`: projection onto ``robot.limits``,
@@ -80,6 +82,9 @@ class Arm(Protocol):
     def take_frames(self) -> list[Frame]: ...  # frames arrived since the last call, in order
 
     def take_goals(self) -> list[np.ndarray]: ...  # live goals [3] m arrived since the last call
+
+    # live reference points (arm s they are due, [3] m) arrived since the last call
+    def take_points(self) -> list[tuple[float, np.ndarray]]: ...
 
     def publish(self, pressures: np.ndarray) -> float: ...  # gated kPa; returns the publish time
 
@@ -165,6 +170,11 @@ class ControlLoop:
             log.info("control: new goal %s mm from period %d",
                      np.round(goal * MM_PER_M, 1).tolist(), period)
             self.schedule.add(period, goal)
+        for due, point in self.arm.take_points():
+            problem = (workspace_problem(point, self.deployment.workspace_m, self.margin_mm)
+                       or self.schedule.add_point(due, point, period * self.period_s))
+            if problem:
+                log.error("control: reference point refused: %s", problem)
 
     def _wait_until(self, tick: float) -> None:
         while self.arm.now() < tick:
@@ -362,6 +372,9 @@ class SimArm:
         return frames
 
     def take_goals(self) -> list[np.ndarray]:
+        return []
+
+    def take_points(self) -> list[tuple[float, np.ndarray]]:
         return []
 
     def publish(self, pressures: np.ndarray) -> float:

@@ -71,7 +71,9 @@ class Deployment:
 def make_step(network: Any, env: SoftArmReachEnv) -> Any:
     """The jitted control step: observation (the environment's :func:`observe`, with the preview
     where the policy was trained with one), the deterministic action (evaluate's policy
-    controller), the pressures (the environment's action mapping). Its carry is ``(recurrent
+    controller), within ``env_params.deadband_m`` of the goal the last command again (the
+    environment's :meth:`~SoftArmReachEnv.deadband_action`, as evaluate deploys it), the
+    pressures (the environment's action mapping). Its carry is ``(recurrent
     state, accumulated error, last goal)``; the accumulated error is zero at the first period
     and then updated with each measured pose and the goal of the period that led to it, as the
     environment's step does (:func:`update_error_integral`)."""
@@ -86,6 +88,7 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
                       preview=preview if env.preview else None)
         act = policy_controller(network, policy_params)
         (hidden, _), action = act(None, obs, None, (hidden, first))
+        action = env.deadband_action(action, measured, goal, last_pressure, env_params)
         return ((hidden, integral, goal), obs, action,
                 env.command(action, last_pressure, env_params))
 
@@ -111,7 +114,8 @@ def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict
     centre = workspace.mean(axis=0)
     deployment.act(deployment.hidden, True, centre, centre,
                    np.broadcast_to(centre, (deployment.preview, 3)), preload)
-    log.info("control: policy %s seed %d (%s on %s, preview %d), workspace %s mm",
-             artifact.path, seed, meta["agent"]["name"], meta.get("env_name"),
-             deployment.preview, np.round(workspace * MM_PER_M, 1).tolist())
+    log.info("control: policy %s seed %d (%s on %s, preview %d, deadband %g mm), workspace %s "
+             "mm", artifact.path, seed, meta["agent"]["name"], meta.get("env_name"),
+             deployment.preview, float(eval_params.deadband_m) * MM_PER_M,
+             np.round(workspace * MM_PER_M, 1).tolist())
     return deployment

@@ -8,7 +8,9 @@ together; :meth:`~pipeline.ros2.collector.Session.stop_safely`: the preload publ
 its delivery awaited). Arm time is ``robot.time_scale`` times the monotonic seconds since
 :meth:`RosArm.start` (the loop's deadlines: a step of the wall clock moves none); pose and
 publish times are ROS times (header stamps) since the ROS time of the start, on the same scale.
-Live goals arrive as ``geometry_msgs/msg/PointStamped`` (metres) on ``control.goal_topic``.
+Live goals arrive as ``geometry_msgs/msg/PointStamped`` (metres) on ``control.goal_topic``; a
+live reference's points as the same messages on ``control.trajectory_topic``, each due at its
+header stamp (ROS time; a zero stamp: on arrival).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.control.loop import Frame, Stop
-from pipeline.data.ros_messages import NS_PER_S, message_class
+from pipeline.data.ros_messages import NS_PER_S, message_class, read_stamp_ns
 from pipeline.ros2.collector import ArmLink, Session
 from pipeline.ros2.gate import CommandGate
 from pipeline.schemas import Ros2RobotConfig
@@ -27,11 +29,12 @@ from pipeline.schemas import Ros2RobotConfig
 log = logging.getLogger(__name__)
 _SPIN_SLICE_S = 0.002  # wall: longest wait inside the executor
 MAX_QUEUED_GOALS = 8  # live goals kept between two periods (the oldest dropped beyond)
+MAX_QUEUED_POINTS = 256  # reference points kept between two periods (the oldest dropped beyond)
 
 
 class RosArm:
     def __init__(self, node: Any, executor: Any, robot: Ros2RobotConfig, goal_topic: str | None,
-                 gate: CommandGate, signals: Any):
+                 gate: CommandGate, signals: Any, trajectory_topic: str | None = None):
         self.link = ArmLink(node, executor, robot)
         self.session = Session(robot, self.link, gate, None, signals)
         self.robot, self.signals = robot, signals
@@ -39,11 +42,14 @@ class RosArm:
         self.watchdog_wall_s = float(robot.watchdog_s) / self.scale
         self._t0_ns, self._t0_s = 0, 0.0  # the start: ROS ns, monotonic s (session.clock)
         self._goals: list[np.ndarray] = []
-        if goal_topic:
-            from rclpy.qos import QoSProfile
+        self._points: list[tuple[int, np.ndarray]] = []  # (stamp ns, 0: on arrival; [3] m)
+        for topic, callback, depth in ((goal_topic, self._on_goal, 10),
+                                       (trajectory_topic, self._on_point, MAX_QUEUED_POINTS)):
+            if topic:
+                from rclpy.qos import QoSProfile
 
-            node.create_subscription(message_class("geometry_msgs/msg/PointStamped"),
-                                     str(goal_topic), self._on_goal, QoSProfile(depth=10))
+                node.create_subscription(message_class("geometry_msgs/msg/PointStamped"),
+                                         str(topic), callback, QoSProfile(depth=depth))
 
     def _on_goal(self, message: Any) -> None:
         point = message.point
@@ -52,6 +58,15 @@ class RosArm:
             log.warning("control: more than %d live goals queued within a period: dropped %s m",
                         MAX_QUEUED_GOALS, dropped.tolist())
         self._goals.append(np.array([point.x, point.y, point.z], np.float64))
+
+    def _on_point(self, message: Any) -> None:
+        if len(self._points) >= MAX_QUEUED_POINTS:
+            dropped = self._points.pop(0)
+            log.warning("control: more than %d reference points queued within a period: "
+                        "dropped %s m", MAX_QUEUED_POINTS, dropped[1].tolist())
+        point = message.point
+        self._points.append((read_stamp_ns(message, "header.stamp"),
+                             np.array([point.x, point.y, point.z], np.float64)))
 
     def _arm_time(self, ns: int) -> float:
         return (ns - self._t0_ns) / NS_PER_S * self.scale
@@ -90,6 +105,13 @@ class RosArm:
     def take_goals(self) -> list[np.ndarray]:
         goals, self._goals = self._goals, []
         return goals
+
+    def take_points(self) -> list[tuple[float, np.ndarray]]:
+        """The reference points arrived since the last call, each with the arm time it is due
+        (a zero stamp, or one already past: now)."""
+        now = self.now()
+        points, self._points = self._points, []
+        return [(self._arm_time(ns) if ns else now, point) for ns, point in points]
 
     def publish(self, pressures: np.ndarray) -> float:
         return self._arm_time(self.link.publish(pressures))

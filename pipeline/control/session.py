@@ -41,7 +41,7 @@ from pipeline.control.results import (
     tracking_figures,
     write_control_report,
 )
-from pipeline.control.trajectory import SCORES, TrajectorySchedule
+from pipeline.control.trajectory import SCORES, ReferenceSchedule
 from pipeline.data.raw import CollectionInterrupted
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.ros2.gate import CommandGate
@@ -102,7 +102,8 @@ def run_session(robot: RobotConfig, control: ControlConfig, deployment: Deployme
             from pipeline.ros2.node import arm_domain, ros_node
 
             with ros_node(str(control.node_name), arm_domain(robot)) as (node, executor):
-                arm = RosArm(node, executor, robot, control.goal_topic, gate, signals)
+                arm = RosArm(node, executor, robot, control.goal_topic, gate, signals,
+                             control.trajectory_topic)
                 outcome = ControlLoop(deployment, schedule, gate, arm, recorder, settings).run()
     periods = recorder.read_all()
     if periods.empty or not (periods["goal_index"] >= 0).any():
@@ -117,9 +118,9 @@ def report_session(folder: Path, record: SessionRecord, metrics: pd.DataFrame,
                    ) -> dict[str, Any]:
     """Figures and ``report.md`` / ``report.html`` of a session into ``folder``; returns the
     summary for the artifact's manifest. ``metrics``: :func:`goal_metrics` of its periods, or
-    following a reference (a :class:`TrajectorySchedule`) its :func:`trajectory_metrics`."""
+    following a reference (a :class:`ReferenceSchedule`) its :func:`trajectory_metrics`."""
     periods, outcome = record.periods, record.outcome
-    tracking = isinstance(schedule, TrajectorySchedule)
+    tracking = isinstance(schedule, ReferenceSchedule)
     figures = (tracking_figures(folder / "figures", periods, robot.limits, schedule.settle_s)
                if tracking else make_figures(folder / "figures", periods, robot.limits))
     latency = latency_summary(periods)
@@ -170,7 +171,7 @@ def _goal_summary(metrics: pd.DataFrame) -> dict[str, Any]:
                               for v in metrics["time_to_1mm_s"]]}
 
 
-def _tracking_summary(metrics: pd.DataFrame, schedule: TrajectorySchedule) -> dict[str, Any]:
+def _tracking_summary(metrics: pd.DataFrame, schedule: ReferenceSchedule) -> dict[str, Any]:
     row = metrics.iloc[0]
     return {"trajectory": schedule.source, "settle_s": schedule.settle_s,
             **{name: None if not np.isfinite(row[name]) else round(float(row[name]), 4)

@@ -44,18 +44,24 @@ SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s")  # tracking_metr
 
 
 @dataclass
-class TrajectorySchedule(GoalSchedule):
+class ReferenceSchedule(GoalSchedule):
+    """A reference followed, not goals: one goal index (0) for all periods, scored with
+    :func:`trajectory_metrics` after ``settle_s`` s."""
+
+    settle_s: float
+
+
+@dataclass
+class TrajectorySchedule(ReferenceSchedule):
     """A reference followed period by period (see the module doc); ``goals_m [T, 3]``: the goal
-    of each period, one goal index (0) for all.
+    of each period.
 
     previews_m: [T, P, 3] m, the preview of each period (P: the policy's ``env.preview``).
     ticks_m: [T + 1, 3] m, the reference at each tick ``k / control_hz``, ``k = 0 .. T``.
-    settle_s: s, the first part of the session left out of the tracking metrics.
     """
 
     previews_m: np.ndarray
     ticks_m: np.ndarray
-    settle_s: float
 
     def goal(self, period: int) -> tuple[int, np.ndarray] | None:
         if period < 0:
@@ -73,6 +79,75 @@ class TrajectorySchedule(GoalSchedule):
 
     def add(self, period: int, goal_m: np.ndarray) -> None:
         raise GoalError("a session following control.trajectory takes no live goals")
+
+
+@dataclass
+class LiveTrajectory(ReferenceSchedule):
+    """A reference that arrives while it is followed (``control.trajectory_topic``): points
+    ``goals_m [N, 3]`` m due at arm times ``times_s [N]`` s (their stamps), joined by straight
+    segments; before the first point's time the first point, after the last the last. Period
+    ``k`` gets what a shape gives it (the module doc): its goal is the reference at
+    ``(k + 1) / control_hz``, its preview the reference ``1 .. P`` periods later, its tick
+    ``k / control_hz`` is scored against the reference then. A publisher that sends its points
+    at least the policy's preview ahead gives it the preview it was trained with; points not
+    yet received are not previewed (the reference holds the last one received).
+    """
+
+    times_s: np.ndarray
+    control_hz: float
+
+    def _at(self, t_s: np.ndarray) -> np.ndarray:
+        """``[len(t_s), 3]`` m: the reference at arm times ``t_s``."""
+        return np.stack([np.interp(t_s, self.times_s, self.goals_m[:, axis])
+                         for axis in range(3)], axis=-1)
+
+    def goal(self, period: int) -> tuple[int, np.ndarray] | None:
+        if period < 0 or not len(self.times_s):
+            return None
+        return 0, self._at(np.array([(period + 1) / self.control_hz]))[0]
+
+    def preview(self, period: int, count: int) -> np.ndarray:
+        ahead = (period + 1 + np.arange(1, count + 1)) / self.control_hz
+        return self._at(ahead) if len(self.times_s) else np.zeros((count, 3))
+
+    def reference(self, period: int) -> np.ndarray | None:
+        if not len(self.times_s):
+            return None
+        return self._at(np.array([max(period, 0) / self.control_hz]))[0]
+
+    def add(self, period: int, goal_m: np.ndarray) -> None:
+        raise GoalError("a session following control.trajectory_topic takes no live goals")
+
+    def add_point(self, t_s: float, point_m: np.ndarray, now_s: float) -> str | None:
+        """Take a point due at arm time ``t_s`` (a time already past: due now, ``now_s``);
+        returns why it is refused (None: taken): a point due before the last one taken."""
+        t_s = max(float(t_s), float(now_s))
+        if len(self.times_s) and t_s < self.times_s[-1]:
+            return (f"a point due at t={t_s:.3f} s arrived after one due at "
+                    f"t={self.times_s[-1]:.3f} s (points must arrive in the order they are due)")
+        self.times_s = np.append(self.times_s, t_s)
+        self.goals_m = np.concatenate([self.goals_m.reshape(-1, 3),
+                                       np.asarray(point_m, np.float64)[None]])
+        return None
+
+
+def live_trajectory(topic: str, duration_s: float | None, settle_s: float,
+                    control_hz: float) -> LiveTrajectory:
+    """An empty :class:`LiveTrajectory` of ``control.trajectory_topic``, followed for
+    ``duration_s`` s from the first tick (None: until stopped), scored after ``settle_s`` s."""
+    end = None
+    if duration_s is not None:
+        end = round(float(duration_s) * control_hz)
+        if not (math.isfinite(float(duration_s)) and end >= 1):
+            raise InvalidReference(f"control.duration_s={duration_s}: a reference is followed "
+                                   f"for at least one control period (1 / {control_hz:g} s)")
+    if not (math.isfinite(settle_s) and settle_s >= 0.0
+            and (end is None or settle_s < end / control_hz)):
+        raise InvalidReference(f"control.settle_s={settle_s}: expected >= 0 s and shorter than "
+                               f"control.duration_s={duration_s}")
+    return LiveTrajectory(np.zeros((0, 3)), np.zeros(1, int), end,
+                          f"the points on {topic}", float(settle_s), times_s=np.zeros(0),
+                          control_hz=float(control_hz))
 
 
 @dataclass(frozen=True)
@@ -143,20 +218,21 @@ def trajectory_schedule(trajectory: Trajectory, duration_s: float, settle_s: flo
         previews = np.zeros((periods, 0, 3))
     ticks = np.asarray(references.positions(reference, jnp.arange(periods + 1) / control_hz),
                        np.float64)
-    return TrajectorySchedule(goals, np.zeros(1, int), periods, trajectory.source, previews,
-                              ticks, float(settle_s))
+    return TrajectorySchedule(goals, np.zeros(1, int), periods, trajectory.source,
+                              float(settle_s), previews_m=previews, ticks_m=ticks)
 
 
 def trajectory_metrics(periods: pd.DataFrame, control_hz: float, settle_s: float
                        ) -> pd.DataFrame:
     """One row: :func:`~pipeline.evaluation.tracking.tracking_metrics` of the session's records
-    (the pose at each tick against ``ref_x, ref_y, ref_z``) after ``settle_s``, with the periods
-    scored and ``interpolated`` (periods skipped after a stall have no row: their pose and
-    reference are interpolated between the neighbouring ticks). A session that ended before the
-    settle time (interrupted) scores NaN."""
+    (the pose at each tick against ``ref_x, ref_y, ref_z``) from the first period recorded (a
+    live reference: the first with a point) and after ``settle_s`` more, with the periods scored
+    and ``interpolated`` (periods skipped after a stall have no row: their pose and reference
+    are interpolated between the neighbouring ticks). A session that ended before the settle
+    time (interrupted) scores NaN."""
     table = periods.sort_values("period").drop_duplicates("period", keep="last")
     table = table[table["period"] >= 0].set_index("period")
-    ticks = np.arange(int(table.index.max()) + 1)
+    ticks = np.arange(int(table.index.min()), int(table.index.max()) + 1)
     grid = table[[*XYZ, *REFERENCE_COLUMNS]].reindex(ticks)
     interpolated = int(grid.isna().any(axis=1).sum())
     grid = grid.interpolate(limit_direction="both")

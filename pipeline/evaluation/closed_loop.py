@@ -4,7 +4,8 @@ For every policy type (all seeds) and every baseline (``preload``: do nothing; `
 safe actions; ``mpc``: sampling-based MPC on the learned model, :mod:`pipeline.evaluation.mpc`), on
 the same held-out goals and start states: on the **learned environment**, on the **plant** (the
 simulated arm for ``robot=sim``, observed through the same normalization the policies were
-trained with) and on a **consecutive-goals** task (several targets in a row, no reset).
+trained with) and on a **consecutive-goals** task (several targets in a row, no reset). The
+policies act as deployed: within ``env.deadband_m`` of the goal the last command stays.
 """
 
 from __future__ import annotations
@@ -125,16 +126,17 @@ class Controllers(NamedTuple):
     carries: Any
 
 
-def rollout_program(env: SoftArmReachEnv, make: Callable[[Any, EnvParams], rollouts.Controller]
-                    ) -> Callable[..., tuple[jax.Array, jax.Array]]:
+def rollout_program(env: SoftArmReachEnv, make: Callable[[Any, EnvParams], rollouts.Controller],
+                    deadband: bool = False) -> Callable[..., tuple[jax.Array, jax.Array]]:
     """One compiled program for a controller kind on ``env``, every seed and episode at once:
     ``(env_params, params [S], carries [S, E], keys [E], starts [E], goals [E, T, 3],
     references [E] or None) -> positions [S, E, T + 1, 3], commands [S, E, T, 3]``. Seeds see
-    the same keys, starts, goals and references (a tracking env's; None: the goals)."""
+    the same keys, starts, goals and references (a tracking env's; None: the goals).
+    ``deadband``: reaching as deployed (:func:`pipeline.evaluation.rollouts.rollout`)."""
 
     def one(env_params, params, carry, key, start_carry, start_position, goal_path, reference):
         return rollouts.rollout(env, env_params, make(params, env_params), carry, key,
-                                start_carry, start_position, goal_path, reference)
+                                start_carry, start_position, goal_path, reference, deadband)
 
     episodes = jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0, 0, 0))
     return jax.jit(jax.vmap(episodes, in_axes=(None, 0, 0, None, None, None, None, None)))
@@ -191,14 +193,14 @@ class _Programs:
     the same program."""
 
     def __init__(self):
-        self._programs: dict[tuple[SoftArmReachEnv, str], Callable[..., Any]] = {}
+        self._programs: dict[tuple[SoftArmReachEnv, str, bool], Callable[..., Any]] = {}
 
     def run(self, name: str, env: SoftArmReachEnv, env_params: EnvParams,
-            controllers: Controllers, keys, starts, goals, references=None
-            ) -> tuple[np.ndarray, np.ndarray]:
-        program = (env, name)  # environments compare by identity
+            controllers: Controllers, keys, starts, goals, references=None,
+            deadband: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        program = (env, name, deadband)  # environments compare by identity
         if program not in self._programs:
-            self._programs[program] = rollout_program(env, controllers.make)
+            self._programs[program] = rollout_program(env, controllers.make, deadband)
         params, carries = controllers.params, controllers.carries
         # the episodes split over the devices (the CPU's cores), each part in parallel
         split = batch_split(int(np.shape(keys)[0]))
@@ -310,7 +312,8 @@ def _episodes(settings: ClosedLoopSettings, plants, loaded, eval_params: EnvPara
         starts = _starts(plant_params, episodes)
         for controller, batch in controllers.items():
             positions, commands = programs.run(controller, plant_env_i, plant_params, batch,
-                                               keys, starts, goal_paths)
+                                               keys, starts, goal_paths,
+                                               deadband=controller in loaded)
             for seed in range(positions.shape[0]):
                 table = episode_metrics(positions[seed], np.asarray(goals), commands[seed],
                                         settings.limits)
@@ -362,7 +365,7 @@ def _consecutive(settings: ClosedLoopSettings, plants, loaded, key, eval_params,
             if controller in ("preload", "random"):
                 continue
             positions, _ = programs.run(controller, env, params, batch, keys, starts,
-                                        jnp.asarray(goals))
+                                        jnp.asarray(goals), deadband=controller in loaded)
             ends = positions[:, :, per_goal::per_goal]  # pose at the end of each goal's time
             targets = goals[:, per_goal - 1::per_goal]
             distance = np.linalg.norm(ends - targets, axis=-1) * MM_PER_M  # [S, E, goals]

@@ -33,11 +33,15 @@ def rollout(
     start_position: chex.Array,
     goals: chex.Array,
     reference: Any = None,
+    deadband: bool = False,
 ) -> tuple[chex.Array, chex.Array]:
     """Run ``controller`` from a settled start for ``goals.shape[0]`` control periods (the
     episode's randomization, none with zero magnitudes, drawn as at a reset). A tracking
     environment (``env.tracking``) follows ``reference``, by default the goals themselves
-    (:func:`pipeline.arm.references.goal_table`: its preview shows the goals to come)."""
+    (:func:`pipeline.arm.references.goal_table`: its preview shows the goals to come). With
+    ``deadband`` (reaching, as deployed), a period whose measured position lies within
+    ``params.deadband_m`` of its goal keeps the last command
+    (:meth:`~pipeline.rl.envs.learned.SoftArmReachEnv.deadband_action`)."""
     chex.assert_shape(start_position, (3,))
     chex.assert_rank(goals, 2)
     if env.tracking and reference is None:
@@ -50,8 +54,11 @@ def rollout(
         goal, period_key = inputs
         obs_key, act_key, step_key = jax.random.split(period_key, 3)
         state = state.replace(goal=goal)
-        obs = env.observe(obs_key, state, None, params)
+        measured = env.measure(obs_key, state.position, params)
+        obs = env.observe_measured(measured, state, params)
         controller_carry, action = controller(act_key, obs, state, controller_carry)
+        if deadband:
+            action = env.deadband_action(action, measured, goal, state.last_pressure, params)
         _, state, _, _, info = env.step_env(step_key, state, action, params)
         return (state, controller_carry), (state.position, info["pressure"])
 

@@ -68,6 +68,11 @@ class EnvConfig:
     # more trains the policy in the states after arrival, where evaluation and the arm keep it
     hold_periods: int = 1
     hold_bonus_mm: float = 0.0  # reward [mm] for every control period that ends at the goal
+    # deployment (evaluate's reaching episodes, stage=control's goals): a control period whose
+    # measured position is within this distance of the goal keeps the last command instead of
+    # the policy's [m]: a deadband that stops a policy from moving off a goal it has reached.
+    # Training never meets it (its episodes end at the goal); 0: off
+    deadband_m: float = 0.0
     goal_mode: GoalMode = GoalMode.data
     goal_perturbation_m: float = 0.01
     # a new goal every this many control periods, drawn as at a reset (goal_mode=perturb: around

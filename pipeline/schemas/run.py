@@ -111,7 +111,11 @@ class ControlConfig:
     of ``evaluation.references``, a shape (the fields of ReferenceConfig; no centre: the held-out
     goals' median) or a CSV file ``t,x,y,z`` (s, mm), followed for ``duration_s`` (null: a
     shape for ``evaluation.tracking_seconds``, a CSV to its last time) and scored after
-    ``settle_s`` (null: ``evaluation.tracking_settle_seconds``).
+    ``settle_s`` (null: ``evaluation.tracking_settle_seconds``). Or a reference that arrives
+    while it is followed, ``trajectory_topic`` (robot=ros2 only): ``geometry_msgs/msg/PointStamped``
+    points in metres, each due at its header stamp (ROS time; zero: on arrival), joined by
+    straight segments, followed for ``duration_s`` (null: until stopped) and scored like a
+    ``trajectory`` from its first point on.
     """
 
     policy: str = "apg"  # agent option (conf/agent/<policy>.yaml) of the train_ppo artifact
@@ -123,6 +127,7 @@ class ControlConfig:
     # live goals, a trajectory: arm s to run (None: until Ctrl-C; a trajectory: see above)
     duration_s: float | None = None
     trajectory: Any = None  # a reference to follow: a name, a shape {kind: ...} or a CSV path
+    trajectory_topic: str | None = None  # a reference to follow, its points live on this topic
     settle_s: float | None = None  # trajectory: s left out of its metrics (None: evaluation's)
     hold_s: float = 20.0  # arm seconds each goal is held (the last waypoint too)
     workspace_margin_mm: float = 2.0  # goals this far outside the training goals' box are allowed

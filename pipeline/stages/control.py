@@ -38,7 +38,8 @@ from pipeline.control.session import (
     set_aside_interrupted,
 )
 from pipeline.control.trajectory import (
-    TrajectorySchedule,
+    ReferenceSchedule,
+    live_trajectory,
     trajectory_metrics,
     trajectory_of,
     trajectory_schedule,
@@ -62,8 +63,9 @@ def control(cfg: Any) -> Artifact:
     if kind not in (RobotKind.sim, RobotKind.ros2):
         raise ValueError(f"stage=control drives an arm: robot=ros2 (or the twin) or robot=sim; "
                          f"got robot={robot.name} (recorded data)")
-    if kind is RobotKind.sim and settings.goal_topic:
-        raise GoalError("control.goal_topic needs robot=ros2 (live goals arrive over ROS 2)")
+    if kind is RobotKind.sim and (settings.goal_topic or settings.trajectory_topic):
+        raise GoalError("control.goal_topic and control.trajectory_topic need robot=ros2 (live "
+                        "goals and references arrive over ROS 2)")
     if kind is RobotKind.ros2:
         if not float(robot.time_scale) > 0:
             raise ValueError(f"robot.time_scale={robot.time_scale} must be positive")
@@ -83,7 +85,7 @@ def control(cfg: Any) -> Artifact:
         recovery = Path(cfg.paths.output_dir) / "recovery" / f"{STAGE}-{writer.key}-{started}"
         record = run_session(robot, settings, deployment, schedule, recovery, spec)
         record.recorder.write(writer.file("periods.parquet"), record.periods)
-        if isinstance(schedule, TrajectorySchedule):
+        if isinstance(schedule, ReferenceSchedule):
             metrics = trajectory_metrics(record.periods, deployment.control_hz, schedule.settle_s)
             metrics.to_parquet(writer.file("tracking.parquet"), index=False)
         else:
@@ -111,14 +113,22 @@ def session_schedule(cfg: Any, settings: ControlConfig, deployment: Deployment
                      ) -> GoalSchedule:
     """The goals of ``control.goals`` / ``goals_csv`` / ``goal_topic``, or the reference of
     ``control.trajectory`` (a name of ``evaluation.references``, an inline shape, a CSV) with the
-    preview the policy was trained with, each checked before anything moves."""
-    if settings.trajectory is None:
+    preview the policy was trained with, each checked before anything moves; or the live
+    reference of ``control.trajectory_topic`` (its points checked as they arrive)."""
+    if settings.trajectory is None and not settings.trajectory_topic:
         return goal_schedule(settings, deployment.control_hz, deployment.workspace_m)
-    given = [name for name in ("goals", "goals_csv", "goal_topic") if getattr(settings, name)]
+    own = "trajectory" if settings.trajectory is not None else "trajectory_topic"
+    given = [name for name in ("goals", "goals_csv", "goal_topic", "trajectory")
+             if name != own and getattr(settings, name)]
     if given:
-        raise GoalError(f"control.trajectory={settings.trajectory} is followed on its own; "
+        raise GoalError(f"control.{own}={getattr(settings, own)} is followed on its own; "
                         f"leave out {', '.join(f'control.{name}' for name in given)}")
     evaluation = cfg.evaluation
+    settle = (evaluation.tracking_settle_seconds if settings.settle_s is None
+              else settings.settle_s)
+    if settings.trajectory_topic:
+        return live_trajectory(str(settings.trajectory_topic), settings.duration_s,
+                               float(settle), deployment.control_hz)
     named = OmegaConf.to_container(evaluation.references, resolve=True) or {}
     held_out = np.asarray(deployment.env_params.goal_set, np.float64)
     trained = deployment.train_goals_m
@@ -127,8 +137,6 @@ def session_schedule(cfg: Any, settings: ControlConfig, deployment: Deployment
     duration = (settings.duration_s if settings.duration_s is not None
                 else trajectory.duration_s if trajectory.duration_s is not None
                 else evaluation.tracking_seconds)
-    settle = (evaluation.tracking_settle_seconds if settings.settle_s is None
-              else settings.settle_s)
     return trajectory_schedule(trajectory, float(duration), float(settle), deployment.control_hz,
                                deployment.preview, np.concatenate([trained, held_out]),
                                float(settings.workspace_margin_mm))
@@ -158,5 +166,9 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
     if not 0 <= seed < num_seeds:
         raise ValueError(f"control.seed={seed}: {artifact.file('policy.msgpack')} holds seeds "
                          f"0..{num_seeds - 1}")
+    # the deadband is how this session deploys the policy (goals only: a reference moves on)
+    following = cfg.control.trajectory is not None or cfg.control.get("trajectory_topic")
+    deadband = 0.0 if following else float(cfg.env.deadband_m)
+    eval_params = eval_params.replace(deadband_m=np.float32(deadband))
     return deploy(artifact, seed, network, stacked, meta, env, train_params, eval_params,
                   control_hz)

@@ -188,6 +188,8 @@ class EnvParams:
     goal_tolerance_m: m, the distance within which a control period counts as at the goal.
     hold_periods: int32 scalar >= 1, terminate after this many consecutive periods at the goal.
     hold_bonus_mm: mm of reward for every control period that ends at the goal.
+    deadband_m: m, deployment only: a control period whose measured position is within it of the
+      goal keeps the last command (:meth:`SoftArmReachEnv.deadband_action`; 0: off).
     obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
     obs_noise_std_m: m, Gaussian noise on the observed position.
     error_scale_m: m, divides ``goal - measured`` in the observation (``include_error``).
@@ -219,6 +221,7 @@ class EnvParams:
     goal_tolerance_m: jax.Array
     hold_periods: jax.Array
     hold_bonus_mm: jax.Array
+    deadband_m: jax.Array
     obs_mean: jax.Array
     obs_scale: jax.Array
     obs_noise_std_m: jax.Array
@@ -403,7 +406,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         state = EnvState(carry, position, goal, pressure, state.time + 1,
                          perturbation.replace(received=received), integral, periods_within,
                          state.reference)
-        obs = self._observation(measured, state, params)
+        obs = self.observe_measured(measured, state, params)
         obs, state = self._apply_transition_gradient_policy(obs, state)
         return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
 
@@ -421,14 +424,16 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         """``[obs_dim]``: standardized noisy position, standardized goal (, scaled error)
         (, accumulated error) (, last pressure); see
         :func:`pipeline.rl.envs.observation.observe`."""
-        return self._observation(self.measure(key, state.position, params), state, params)
+        return self.observe_measured(self.measure(key, state.position, params), state, params)
 
     def measure(self, key: jax.Array, position: jax.Array, params: EnvParams) -> jax.Array:
         """``[3]`` m: ``position`` as measured (plus ``N(0, obs_noise_std_m)`` per axis)."""
         return position + params.obs_noise_std_m * jax.random.normal(key, (POSITION_DIM,))
 
-    def _observation(self, measured: jax.Array, state: EnvState, params: EnvParams
-                     ) -> jax.Array:
+    def observe_measured(self, measured: jax.Array, state: EnvState, params: EnvParams
+                         ) -> jax.Array:
+        """``[obs_dim]``: the observation of ``state`` with its position measured at ``measured``
+        [3] m (:meth:`observe` draws that measurement)."""
         return observation.observe(
             measured, state.goal, state.last_pressure, params, include_error=self.include_error,
             include_last_action=self.include_last_action,
@@ -465,6 +470,16 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         if self.incremental_actions:
             return jnp.clip((pressure - last_pressure) / params.action_step_kpa, -1.0, 1.0)
         return self.pressure_to_action(pressure, params)
+
+    def deadband_action(self, action: jax.Array, measured: jax.Array, goal: jax.Array,
+                        last_pressure: jax.Array, params: EnvParams) -> jax.Array:
+        """``[3]``: the action deployment sends, ``action`` or, where ``measured [3]`` m lies
+        within ``params.deadband_m`` of ``goal [3]`` m, the action that commands ``last_pressure
+        [3]`` kPa again (:meth:`action_for`): a policy that has reached its goal is not let to
+        move off it. Evaluation's reaching episodes and the arm apply it; training does not (its
+        episodes end at the goal)."""
+        within = (params.deadband_m > 0) & (jnp.linalg.norm(goal - measured) <= params.deadband_m)
+        return jnp.where(within, self.action_for(last_pressure, last_pressure, params), action)
 
     @staticmethod
     def pressure_command(action: jax.Array, params: EnvParams) -> jax.Array:

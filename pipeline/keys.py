@@ -32,6 +32,7 @@ from pipeline.schemas import (
     TRACK_SETTINGS,
     ConfigError,
     EnvName,
+    HoldTune,
     ModelProtocol,
     RobotKind,
     StopAt,
@@ -56,7 +57,8 @@ _SPLIT_KEYS = ("train_fraction", "split_seed")
 _NON_DETERMINING_AGENT_KEYS = ("progress",)
 # agent settings kept out of the key at these values (their default: training as before they
 # existed), so that the artifacts made before them keep their keys
-_AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt())}
+_AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt()),
+                          "hold_tune": dataclasses.asdict(HoldTune())}
 
 
 # The version of each stage's spec. A change to what a stage's artifact holds or to how its spec is

@@ -11,6 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 import pytest
 
 from pipeline import keys
@@ -127,3 +128,74 @@ def test_the_training_horizon_reaches_the_env_and_the_key_only_where_set(make_cf
 def test_unusable_training_horizons_are_refused(make_cfg, overrides, message):
     with pytest.raises(ConfigError, match=message):
         validate_config(make_cfg(*overrides))
+
+
+# ---- the hold tune: a phase of analytic policy gradients on episodes that never end -------------
+class _Folder:
+    """What train_into writes into (an ArtifactWriter's ``file``), a plain folder."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def file(self, name):
+        return self.path / name
+
+
+def test_the_hold_tune_fine_tunes_the_trained_policies_on_episodes_that_never_end(
+        tmp_path, monkeypatch):
+    """PPO, then agent.hold_tune: APG from the trained policies (not from scratch) with its own
+    step size, window and keys, in the training parameters with hold_periods = the horizon (no
+    end at the goal); its evaluations and timesteps follow the trainer's in the tables, marked
+    by phase, and its window distance falls."""
+    from pipeline.rl.ppo import seed_keys
+    from pipeline.schemas import AgentConfig, HoldTune, Trainer
+    from pipeline.stages import _policies
+    from tests.test_ppo import toy_reaching
+
+    env, params = toy_reaching()
+    agent = AgentConfig(num_seeds=2, num_envs=16, num_steps=10, total_timesteps=16 * 10 * 4,
+                        num_evals=2, eval_envs=16, hidden=16, progress=False,
+                        hold_tune=HoldTune(steps=16 * 5 * 20, lr=3e-3, window=5))
+    calls = []
+    train_seeds = _policies.train_seeds
+
+    def spying(agent, env, env_params, eval_params, **kwargs):
+        output = train_seeds(agent, env, env_params, eval_params, **kwargs)
+        calls.append((agent, env_params, kwargs, output))
+        return output
+
+    monkeypatch.setattr(_policies, "train_seeds", spying)
+    trained = _policies.train_into(_Folder(tmp_path), "train_ppo", agent, env, params, params,
+                                   seed=3, config={}, policy_meta={}, desc="toy",
+                                   warm_start=False)
+    (first, first_params, first_kwargs, ppo), (tune, holding, kwargs, tuned) = calls
+    assert first.trainer is Trainer.ppo and first_kwargs.get("stream", 0) == 0
+    assert int(first_params.hold_periods) == 1
+    assert (tune.trainer, tune.lr, tune.num_steps, tune.max_grad_norm, tune.timesteps) == (
+        Trainer.apg, 3e-3, 5, 1.0, 16 * 5 * 20)
+    assert tune.hold_tune == HoldTune() and tune.num_seeds == 2
+    assert int(holding.hold_periods) == int(params.max_steps_in_episode) == 10
+    assert kwargs["stream"] == 1 and kwargs["seed"] == 3
+    assert not np.array_equal(np.asarray(seed_keys(3, 2, 1)), np.asarray(seed_keys(3, 2)))
+    jax.tree.map(np.testing.assert_array_equal, kwargs["init_params"], ppo.params)
+    window = np.asarray(tuned.metrics["window_distance_m"])  # [seeds, updates]
+    assert np.all(window[:, -5:].mean(1) < window[:, :5].mean(1)), window
+    evaluation = pd.read_parquet(tmp_path / "evaluation.parquet")
+    assert evaluation.groupby("phase")["evaluation"].unique().map(list).to_dict() == {
+        "train": [0, 1], "hold_tune": [2, 3]}
+    ppo_steps = 16 * 10 * 4
+    assert evaluation.loc[evaluation["phase"] == "hold_tune", "timesteps"].min() > ppo_steps
+    assert trained.timesteps_per_seed == ppo_steps + 16 * 5 * 20
+    metrics = pd.read_parquet(tmp_path / "metrics.parquet")
+    assert metrics.groupby("phase")["update"].agg(["min", "max"]).to_dict("index") == {
+        "hold_tune": {"min": 4, "max": 4 + 20 - 1}, "train": {"min": 0, "max": 3}}
+
+
+def test_the_hold_tune_is_in_the_key_only_where_set_and_checked(make_cfg):
+    base = keys.train_ppo_spec(make_cfg("experiment=quick"))[0]["agent"]
+    assert "hold_tune" not in base  # off: the keys of before
+    tuned = keys.train_ppo_spec(make_cfg("experiment=quick", "agent.hold_tune.steps=1000"))
+    assert tuned[0]["agent"]["hold_tune"]["steps"] == 1000
+    with pytest.raises(ConfigError, match=r"agent.hold_tune=.*window >= 1"):
+        validate_config(make_cfg("experiment=quick", "agent.hold_tune.steps=1000",
+                                 "agent.hold_tune.window=0"))

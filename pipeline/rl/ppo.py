@@ -400,9 +400,13 @@ def _has_distance(env: Any, env_params: Any) -> bool:
     return "distance_m" in info
 
 
-def seed_keys(seed: int, num_seeds: int) -> jax.Array:
-    """``[num_seeds]`` keys: ``fold_in(PRNGKey(seed), i)`` for seed index i."""
+def seed_keys(seed: int, num_seeds: int, stream: int = 0) -> jax.Array:
+    """``[num_seeds]`` keys: ``fold_in(PRNGKey(seed), i)`` for seed index i; a later phase of
+    the same run (``stream`` > 0) folds ``stream`` into ``PRNGKey(seed)`` first, so that it draws
+    anew."""
     base = jax.random.PRNGKey(int(seed))
+    if stream:
+        base = jax.random.fold_in(base, int(stream))
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
 
 
@@ -467,13 +471,14 @@ def _run_chunks(config: AgentConfig, chunk: Callable, runner: Any, num_chunks: i
 
 def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = None,
                 seed: int = 0, progress: bool | None = None, desc: str = "ppo",
-                timings: dict[str, Any] | None = None, init_params: Any = None
-                ) -> TrainOutput:
+                timings: dict[str, Any] | None = None, init_params: Any = None,
+                stream: int = 0) -> TrainOutput:
     """Train ``agent.num_seeds`` seeds at once (vmap over seeds); arrays come back with a leading
     [num_seeds] axis. ``timings`` (if given) receives ``compile_s``, ``run_s`` and
     ``devices`` (how many devices the seeds were split over).
     ``init_params`` (optional): starting network variables, stacked over seeds
-    (``[num_seeds, ...]`` leaves, as :func:`load_policy` returns them).
+    (``[num_seeds, ...]`` leaves, as :func:`load_policy` returns them). ``stream``: a later
+    phase of the run draws its own keys (:func:`seed_keys`).
 
     Two compiled programs, the same for every run of this configuration and so kept by the
     persistent compilation cache: ``init``, and one evaluation chunk, called ``agent.num_evals``
@@ -489,7 +494,7 @@ def train_seeds(agent: Any, env: Any, env_params: Any, eval_env_params: Any = No
     show = config.progress if progress is None else progress
     eval_env_params = env_params if eval_env_params is None else eval_env_params
     program = program_builder(config)(config, env, env_params, eval_env_params)
-    keys = seed_keys(seed, config.num_seeds)
+    keys = seed_keys(seed, config.num_seeds, stream)
     if init_params is not None:
         sizes = {int(np.shape(x)[0]) if np.ndim(x) else 0 for x in jax.tree.leaves(init_params)}
         if sizes != {config.num_seeds}:

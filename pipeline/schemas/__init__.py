@@ -10,6 +10,7 @@ from __future__ import annotations
 from pipeline.schemas.adapt import AdaptConfig
 from pipeline.schemas.agent import (
     AgentConfig,
+    HoldTune,
     StopAt,
     Trainer,
     budget_overrides,
@@ -110,6 +111,7 @@ __all__ = [
     "GoalMode",
     "GoalSource",
     "GuardConfig",
+    "HoldTune",
     "ImportRobotConfig",
     "LoggerConfig",
     "LrSchedule",

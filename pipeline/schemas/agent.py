@@ -4,6 +4,7 @@ model), its policy network and budget, and when training may stop early.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -53,6 +54,21 @@ class StopAt:
 
 
 @dataclass
+class HoldTune:
+    """A phase after the trainer's: every seed's policy fine-tuned by analytic policy gradients
+    through the training environment (``pipeline/rl/apg.py``) on episodes that never end at the
+    goal, so that the distance of every control period of the horizon is the loss, the periods
+    after the goal is reached included (training that ends at the first arrival never trains
+    them). ``steps`` 0 (the default): none. Measured in docs/results/PPO_RESULTS.md ("Holding
+    what was reached")."""
+
+    steps: int = 0  # environment steps per seed
+    lr: float = 3.0e-5  # Adam step size (decayed to 0 with agent.anneal_lr)
+    window: int = 10  # control periods per gradient window (the state detached between them)
+    max_grad_norm: float = 1.0  # the gradient's global norm is clipped to this
+
+
+@dataclass
 class AgentConfig:
     """The trainer (``trainer``: PPO or APG) and its policy; ``recurrent`` selects the GRU
     actor-critic. APG (``pipeline/rl/apg.py``) reads the same fields where they mean the same
@@ -99,6 +115,8 @@ class AgentConfig:
     init_policy_log_std: float | None = None
     # stop when the held-out evaluations are good enough (StopAt; default: the whole budget)
     stop_at: StopAt = field(default_factory=StopAt)
+    # then fine-tune to hold what is reached (HoldTune; default: no such phase)
+    hold_tune: HoldTune = field(default_factory=HoldTune)
 
     def __post_init__(self) -> None:
         if self.trainer not in {t.value for t in Trainer}:
@@ -107,6 +125,9 @@ class AgentConfig:
         self.trainer = Trainer(self.trainer)
         if isinstance(self.stop_at, Mapping) or hasattr(self.stop_at, "items"):
             self.stop_at = StopAt(**dataclass_values(StopAt, self.stop_at, "agent.stop_at"))
+        if isinstance(self.hold_tune, Mapping) or hasattr(self.hold_tune, "items"):
+            self.hold_tune = HoldTune(**dataclass_values(HoldTune, self.hold_tune,
+                                                         "agent.hold_tune"))
 
     @classmethod
     def from_any(cls, config: Any, **overrides: Any) -> AgentConfig:
@@ -135,6 +156,17 @@ class AgentConfig:
         """Updates actually run: a multiple of ``num_evals`` (:attr:`timesteps` rounded down)."""
         return self.updates_per_eval * self.num_evals
 
+    def hold_tuning(self) -> AgentConfig:
+        """The agent of the :class:`HoldTune` phase: analytic policy gradients with its step
+        size, window, clip and budget; the same network, seeds, environments and evaluations;
+        no early stop and no warm start of its own (it starts from the trained policies)."""
+        tune = self.hold_tune
+        return dataclasses.replace(
+            self, trainer=Trainer.apg, num_steps=int(tune.window), lr=float(tune.lr),
+            max_grad_norm=float(tune.max_grad_norm), total_timesteps=int(tune.steps),
+            recurrent_total_timesteps=None, stop_at=StopAt(), init_policy=None,
+            init_policy_seed=None, init_policy_log_std=None, hold_tune=HoldTune())
+
     def check(self) -> None:
         stop = self.stop_at
         if stop.median_distance_mm is not None and not stop.median_distance_mm > 0:
@@ -152,6 +184,12 @@ class AgentConfig:
             if self.eval_envs < 1:
                 raise ConfigError(f"agent.eval_envs={self.eval_envs} must be >= 1: "
                                   f"agent.stop_at reads the held-out evaluations")
+        tune = self.hold_tune
+        if not (int(tune.steps) >= 0 and float(tune.lr) > 0 and int(tune.window) >= 1
+                and float(tune.max_grad_norm) > 0):
+            raise ConfigError(f"agent.hold_tune={dataclasses.asdict(tune)}: steps must be >= 0 "
+                              f"(0: no such phase), lr and max_grad_norm > 0, window >= 1 "
+                              f"control period")
         if self.trainer is not Trainer.ppo:  # the minibatches are PPO's
             return
         if self.recurrent and self.num_envs % self.num_minibatches:

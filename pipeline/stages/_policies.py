@@ -2,11 +2,13 @@
 ``adapt`` (its policy fine-tune) share.
 
 ``train_into`` trains ``agent.num_seeds`` seeds with ``agent.trainer``
-(``pipeline.rl.ppo.train_seeds``), optionally warm started from ``agent.init_policy``, and
-writes ``metrics.parquet`` (per seed and update), ``evaluation.parquet`` (per seed and held-out
-evaluation), ``episodes.parquet`` (the last evaluation's episodes) and ``policy.msgpack`` (the
-seeds' parameters stacked, with what ``evaluate`` and ``control`` need to rebuild the network
-and its environment).
+(``pipeline.rl.ppo.train_seeds``), optionally warm started from ``agent.init_policy`` and
+followed by ``agent.hold_tune``'s phase (:func:`hold_tune`), and writes ``metrics.parquet``
+(per seed and update), ``evaluation.parquet`` (per seed and held-out evaluation),
+``episodes.parquet`` (the last evaluation's episodes) and ``policy.msgpack`` (the seeds'
+parameters stacked, with what ``evaluate`` and ``control`` need to rebuild the network and its
+environment). With the hold tune the first two tables have a column ``phase`` (``train``,
+``hold_tune``) and the episodes are the tuned policies'.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
@@ -53,6 +56,18 @@ def train_into(writer: ArtifactWriter, stage: str, agent: AgentConfig, env: Any,
                             int(train_params.max_steps_in_episode), agent.num_steps)
     summary, episodes = evaluation_tables(
         {k: np.asarray(v) for k, v in output.evaluation.items()})
+    timesteps = len(timings["chunk_seconds"]) * agent.updates_per_eval * agent.steps_per_update
+    if agent.hold_tune.steps:
+        output, tuned = hold_tune(agent, env, train_params, eval_params, output.params,
+                                  seed=seed, desc=desc, timesteps=timesteps,
+                                  updates=int(metrics["update"].nunique()),
+                                  evaluations=int(summary["evaluation"].nunique()))
+        metrics = pd.concat([metrics.assign(phase="train"), tuned.metrics], ignore_index=True)
+        summary = pd.concat([summary.assign(phase="train"), tuned.summary], ignore_index=True)
+        episodes = tuned.episodes
+        timings = {**timings, "compile_s": timings["compile_s"] + tuned.timings["compile_s"],
+                   "run_s": timings["run_s"] + tuned.timings["run_s"]}
+        timesteps += tuned.timesteps_per_seed
     write_results(metrics, writer.file("metrics.parquet"), config, stage)
     write_results(summary, writer.file("evaluation.parquet"), config, stage)
     write_results(episodes, writer.file("episodes.parquet"), config, stage)
@@ -60,5 +75,32 @@ def train_into(writer: ArtifactWriter, stage: str, agent: AgentConfig, env: Any,
         **policy_meta, "env_name": env.name, "obs_dim": obs_dim, "action_dim": action_dim,
         "action_low": low.tolist(), "action_high": high.tolist(),
         "num_seeds": agent.num_seeds})
-    timesteps = len(timings["chunk_seconds"]) * agent.updates_per_eval * agent.steps_per_update
     return Trained(metrics, summary, episodes, timings, timesteps)
+
+
+def hold_tune(agent: AgentConfig, env: Any, train_params: Any, eval_params: Any,
+              params: Any, *, seed: int, desc: str, timesteps: int, updates: int,
+              evaluations: int) -> tuple[Any, Trained]:
+    """``agent.hold_tune``'s phase (:class:`~pipeline.schemas.HoldTune`): the policies
+    ``params`` (stacked over seeds) fine-tuned by analytic policy gradients
+    (:meth:`AgentConfig.hold_tuning`) in ``train_params`` with episodes that never end at the
+    goal (``hold_periods`` = the training horizon), keys of their own (stream 1); returns
+    ``train_seeds``' output and its tables, marked ``phase = "hold_tune"``, their timesteps,
+    updates and evaluations counted on from the trainer's ``timesteps`` (per seed),
+    ``updates`` and ``evaluations``."""
+    tuning = agent.hold_tuning()
+    holding = train_params.replace(hold_periods=jnp.asarray(
+        int(train_params.max_steps_in_episode), jnp.int32))
+    timings: dict[str, Any] = {}
+    output = train_seeds(tuning, env, holding, eval_params, seed=seed, desc=f"{desc}, hold tune",
+                         timings=timings, init_params=params, stream=1)
+    metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()},
+                            int(holding.max_steps_in_episode), tuning.num_steps)
+    summary, episodes = evaluation_tables(
+        {k: np.asarray(v) for k, v in output.evaluation.items()})
+    tuned = len(timings["chunk_seconds"]) * tuning.updates_per_eval * tuning.steps_per_update
+    metrics = metrics.assign(phase="hold_tune", timesteps=metrics["timesteps"] + timesteps,
+                             update=metrics["update"] + updates)
+    summary = summary.assign(phase="hold_tune", timesteps=summary["timesteps"] + timesteps,
+                             evaluation=summary["evaluation"] + evaluations)
+    return output, Trained(metrics, summary, episodes, timings, tuned)

@@ -80,7 +80,8 @@ def train_ppo(cfg: Any) -> Artifact:
                      f"{agent.name} on {env.name}")
         with tracking(OmegaConf.to_object(cfg.logger), Path(cfg.paths.output_dir), STAGE,
                       OmegaConf.to_container(cfg, resolve=True)) as tracker:
-            per_update = metrics.drop(columns=["seed"]).groupby("update").mean()
+            per_update = (metrics.drop(columns=["seed", "phase"], errors="ignore")
+                          .groupby("update").mean())
             tracker.log_table(per_update.reset_index().rename(columns={"update": "step"}))
 
         final = episodes["final_distance_m"].to_numpy()

@@ -30,9 +30,9 @@ from pipeline.infra.artifacts import MANIFEST, artifact_key
 from pipeline.schemas import (
     TRACK_EVALUATION_SETTINGS,
     TRACK_SETTINGS,
+    AgentConfig,
     ConfigError,
     EnvName,
-    HoldTune,
     ModelProtocol,
     RobotKind,
     StopAt,
@@ -57,8 +57,7 @@ _SPLIT_KEYS = ("train_fraction", "split_seed")
 _NON_DETERMINING_AGENT_KEYS = ("progress",)
 # agent settings kept out of the key at these values (their default: training as before they
 # existed), so that the artifacts made before them keep their keys
-_AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt()),
-                          "hold_tune": dataclasses.asdict(HoldTune())}
+_AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt())}
 
 
 # The version of each stage's spec. A change to what a stage's artifact holds or to how its spec is
@@ -164,6 +163,8 @@ def train_ppo_spec(cfg: Any) -> Spec:
     for name, unset in _AGENT_KEYS_UNLESS_SET.items():
         if name in agent and agent[name] == unset:
             agent.pop(name)
+    if "hold_tune" in agent and not AgentConfig.from_any(cfg.agent).hold_tune_timesteps:
+        agent.pop("hold_tune")  # no such phase for this policy type: the key as without it
     env = env_spec(cfg)
     env.pop("deadband_m", None)  # deployment only: training never meets it
     spec: dict[str, Any] = _versioned("train_ppo", {"env": env, "agent": agent,

@@ -196,6 +196,13 @@ def test_the_hold_tune_is_in_the_key_only_where_set_and_checked(make_cfg):
     assert "hold_tune" not in base  # off: the keys of before
     tuned = keys.train_ppo_spec(make_cfg("experiment=quick", "agent.hold_tune.steps=1000"))
     assert tuned[0]["agent"]["hold_tune"]["steps"] == 1000
+    # a policy type with no such phase (the recurrent one here) keeps its key
+    rnn = ("experiment=quick", "agent=ppo_rnn")
+    assert keys.key("train_ppo", make_cfg(*rnn, "agent.hold_tune.steps=1000",
+                                          "agent.hold_tune.recurrent_steps=0")) == \
+        keys.key("train_ppo", make_cfg(*rnn))
+    assert keys.key("train_ppo", make_cfg(*rnn, "agent.hold_tune.recurrent_steps=1000")) != \
+        keys.key("train_ppo", make_cfg(*rnn))
     with pytest.raises(ConfigError, match=r"agent.hold_tune=.*window >= 1"):
         validate_config(make_cfg("experiment=quick", "agent.hold_tune.steps=1000",
                                  "agent.hold_tune.window=0"))

@@ -63,6 +63,8 @@ class HoldTune:
     what was reached")."""
 
     steps: int = 0  # environment steps per seed
+    # the recurrent policy's where it needs another (None: steps; 0: no such phase for it)
+    recurrent_steps: int | None = None
     lr: float = 3.0e-5  # Adam step size (decayed to 0 with agent.anneal_lr)
     window: int = 10  # control periods per gradient window (the state detached between them)
     max_grad_norm: float = 1.0  # the gradient's global norm is clipped to this
@@ -156,6 +158,16 @@ class AgentConfig:
         """Updates actually run: a multiple of ``num_evals`` (:attr:`timesteps` rounded down)."""
         return self.updates_per_eval * self.num_evals
 
+    @property
+    def hold_tune_timesteps(self) -> int:
+        """This policy type's :class:`HoldTune` budget per seed (0: no such phase):
+        ``hold_tune.recurrent_steps`` for a recurrent policy where it is set, else
+        ``hold_tune.steps``."""
+        tune = self.hold_tune
+        if self.recurrent and tune.recurrent_steps is not None:
+            return int(tune.recurrent_steps)
+        return int(tune.steps)
+
     def hold_tuning(self) -> AgentConfig:
         """The agent of the :class:`HoldTune` phase: analytic policy gradients with its step
         size, window, clip and budget; the same network, seeds, environments and evaluations;
@@ -163,7 +175,7 @@ class AgentConfig:
         tune = self.hold_tune
         return dataclasses.replace(
             self, trainer=Trainer.apg, num_steps=int(tune.window), lr=float(tune.lr),
-            max_grad_norm=float(tune.max_grad_norm), total_timesteps=int(tune.steps),
+            max_grad_norm=float(tune.max_grad_norm), total_timesteps=self.hold_tune_timesteps,
             recurrent_total_timesteps=None, stop_at=StopAt(), init_policy=None,
             init_policy_seed=None, init_policy_log_std=None, hold_tune=HoldTune())
 
@@ -185,11 +197,12 @@ class AgentConfig:
                 raise ConfigError(f"agent.eval_envs={self.eval_envs} must be >= 1: "
                                   f"agent.stop_at reads the held-out evaluations")
         tune = self.hold_tune
-        if not (int(tune.steps) >= 0 and float(tune.lr) > 0 and int(tune.window) >= 1
+        if not (int(tune.steps) >= 0 and int(tune.recurrent_steps or 0) >= 0
+                and float(tune.lr) > 0 and int(tune.window) >= 1
                 and float(tune.max_grad_norm) > 0):
-            raise ConfigError(f"agent.hold_tune={dataclasses.asdict(tune)}: steps must be >= 0 "
-                              f"(0: no such phase), lr and max_grad_norm > 0, window >= 1 "
-                              f"control period")
+            raise ConfigError(f"agent.hold_tune={dataclasses.asdict(tune)}: steps and "
+                              f"recurrent_steps must be >= 0 (0: no such phase), lr and "
+                              f"max_grad_norm > 0, window >= 1 control period")
         if self.trainer is not Trainer.ppo:  # the minibatches are PPO's
             return
         if self.recurrent and self.num_envs % self.num_minibatches:

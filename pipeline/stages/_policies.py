@@ -57,7 +57,7 @@ def train_into(writer: ArtifactWriter, stage: str, agent: AgentConfig, env: Any,
     summary, episodes = evaluation_tables(
         {k: np.asarray(v) for k, v in output.evaluation.items()})
     timesteps = len(timings["chunk_seconds"]) * agent.updates_per_eval * agent.steps_per_update
-    if agent.hold_tune.steps:
+    if agent.hold_tune_timesteps:
         output, tuned = hold_tune(agent, env, train_params, eval_params, output.params,
                                   seed=seed, desc=desc, timesteps=timesteps,
                                   updates=int(metrics["update"].nunique()),

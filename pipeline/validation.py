@@ -349,11 +349,13 @@ def _check_agent(cfg: Any) -> None:
         return
     config = AgentConfig.from_any(agent)
     env = cfg.get("env")
-    if (config.trainer is Trainer.apg and env is not None
+    if ((config.trainer is Trainer.apg or config.hold_tune_timesteps) and env is not None
             and EnvName(env.name) is EnvName.gymnax):
-        raise ConfigError("agent.trainer=apg differentiates through the soft-arm environment "
-                          "(env=learned or env=sim); env=gymnax is a black box: train it with "
-                          "agent=ppo_ff")
+        what = ("agent.trainer=apg" if config.trainer is Trainer.apg
+                else "agent.hold_tune (analytic policy gradients)")
+        raise ConfigError(f"{what} differentiates through the soft-arm environment "
+                          f"(env=learned or env=sim); env=gymnax is a black box: train it with "
+                          f"agent=ppo_ff and no agent.hold_tune")
     config.check()
 
 def _check_task(env: Any) -> None:

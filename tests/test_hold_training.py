@@ -203,6 +203,9 @@ def test_the_hold_tune_is_in_the_key_only_where_set_and_checked(make_cfg):
         keys.key("train_ppo", make_cfg(*rnn))
     assert keys.key("train_ppo", make_cfg(*rnn, "agent.hold_tune.recurrent_steps=1000")) != \
         keys.key("train_ppo", make_cfg(*rnn))
+    with pytest.raises(ConfigError, match=r"agent.hold_tune \(analytic policy gradients\) "
+                                          r"differentiates through the soft-arm environment"):
+        validate_config(make_cfg("experiment=pendulum", "agent.hold_tune.steps=1000"))
     with pytest.raises(ConfigError, match=r"agent.hold_tune=.*window >= 1"):
         validate_config(make_cfg("experiment=quick", "agent.hold_tune.steps=1000",
                                  "agent.hold_tune.window=0"))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -50,6 +50,7 @@ class GoalSchedule:
     starts: np.ndarray
     end: int | None
     source: str
+    takes_points: ClassVar[bool] = False  # live reference points (:meth:`add_point`)
 
     def goal(self, period: int) -> tuple[int, np.ndarray] | None:
         """``(goal index, goal [3] m)`` in force at ``period``; None before the first goal."""

@@ -83,7 +83,8 @@ class Arm(Protocol):
 
     def take_goals(self) -> list[np.ndarray]: ...  # live goals [3] m arrived since the last call
 
-    # live reference points (arm s they are due, [3] m) arrived since the last call
+    # live reference points (arm s they are due, [3] m) arrived since the last call; asked
+    # only where the schedule takes them (control.trajectory_topic)
     def take_points(self) -> list[tuple[float, np.ndarray]]: ...
 
     def publish(self, pressures: np.ndarray) -> float: ...  # gated kPa; returns the publish time
@@ -170,6 +171,8 @@ class ControlLoop:
             log.info("control: new goal %s mm from period %d",
                      np.round(goal * MM_PER_M, 1).tolist(), period)
             self.schedule.add(period, goal)
+        if not self.schedule.takes_points:
+            return
         for due, point in self.arm.take_points():
             problem = (workspace_problem(point, self.deployment.workspace_m, self.margin_mm)
                        or self.schedule.add_point(due, point, period * self.period_s))

@@ -23,7 +23,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -95,6 +95,7 @@ class LiveTrajectory(ReferenceSchedule):
 
     times_s: np.ndarray
     control_hz: float
+    takes_points: ClassVar[bool] = True
 
     def _at(self, t_s: np.ndarray) -> np.ndarray:
         """``[len(t_s), 3]`` m: the reference at arm times ``t_s``."""

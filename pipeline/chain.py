@@ -187,6 +187,14 @@ def control_policy_config(cfg: Any) -> Any:
     return variant
 
 
+def control_deadband_m(cfg: Any) -> float:
+    """The deadband [m] ``stage=control`` deploys its policy with: ``env.deadband_m`` for goals,
+    0 following a reference (``control.trajectory``, ``control.trajectory_topic``), which moves
+    on."""
+    following = cfg.control.trajectory is not None or cfg.control.get("trajectory_topic")
+    return 0.0 if following else float(cfg.env.get("deadband_m") or 0.0)
+
+
 def cross_model_groups(cfg: Any) -> tuple[list[str], list[str]] | None:
     """The two disjoint groups of recordings (names) of the cross-model protocol, or None where
     it does not run. ``evaluation.cross_model``: true runs it (an error where it cannot), false

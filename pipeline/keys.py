@@ -18,6 +18,7 @@ from omegaconf import OmegaConf
 from pipeline.arm.twins import twin_physics
 from pipeline.chain import (
     IMPORT_KINDS,
+    control_deadband_m,
     control_policy_config,
     cross_model_folds,
     ensemble_configs,
@@ -278,8 +279,8 @@ def control_spec(cfg: Any) -> Spec:
         control.pop("arm_seed", None)
     stage, policy_key = control_policy(cfg)
     spec = {"control": control, "robot": robot}
-    if cfg.env.get("deadband_m") and "trajectory" not in control:  # goals: deadband on
-        spec["deadband_m"] = float(cfg.env.deadband_m)
+    if deadband := control_deadband_m(cfg):  # off: the key as before it existed
+        spec["deadband_m"] = deadband
     return _versioned("control", spec), {stage: policy_key}
 
 

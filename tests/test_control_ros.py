@@ -75,6 +75,17 @@ def control_artifact(pipe: Pipeline, *overrides: str):
     return ArtifactStore(cfg.paths.artifact_dir).require("control", key("control", cfg))
 
 
+def twin_session(tmp_path, ros_domain, overrides: list[str]):
+    """``stage=control`` with ``overrides`` on the twin over ROS 2, a process each; the control
+    artifact."""
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = ROS
+    with twin_of(pipe, tmp_path / "twin_received.jsonl"):
+        runner = pipe.start("control", *overrides)
+        assert runner.wait(timeout=300) == 0, pipe.log("control")
+    return control_artifact(pipe, *overrides)
+
+
 def test_twin_matches_the_simulated_arm_then_sigterm_stops_at_the_preload(tmp_path,
                                                                           ros_domain):
     sim_cfg, policy_file = sim_policy(tmp_path, "ppo_rnn", hold_s=3.0)
@@ -162,12 +173,7 @@ def test_trained_policies_end_at_the_same_distances_on_the_twin_and_in_process(
     sim_cfg = compose_config(out, "experiment=quick", "stage=control", *common)
     in_process = final_distances(control(sim_cfg))
 
-    pipe = Pipeline(tmp_path, ros_domain)
-    pipe.overrides = ROS
-    with twin_of(pipe, tmp_path / "twin_received.jsonl"):
-        runner = pipe.start("control", *common)
-        assert runner.wait(timeout=300) == 0, pipe.log("control")
-    on_twin = final_distances(control_artifact(pipe, *common))
+    on_twin = final_distances(twin_session(tmp_path, ros_domain, common))
     assert np.median(np.abs(on_twin - in_process)) <= 0.3, (on_twin, in_process)
 
 
@@ -226,12 +232,7 @@ def test_a_trained_tracking_policy_follows_the_circle_alike_on_the_twin_and_in_p
     sim_cfg = compose_config(out, "experiment=[quick,tracking]", "stage=control", *common)
     in_process = tracking_metrics_of(control(sim_cfg))
 
-    pipe = Pipeline(tmp_path, ros_domain)
-    pipe.overrides = ROS
-    with twin_of(pipe, tmp_path / "twin_received.jsonl"):
-        runner = pipe.start("control", *common)
-        assert runner.wait(timeout=300) == 0, pipe.log("control")
-    on_twin = tracking_metrics_of(control_artifact(pipe, *common))
+    on_twin = tracking_metrics_of(twin_session(tmp_path, ros_domain, common))
     assert abs(on_twin["rmse_mm"] - in_process["rmse_mm"]) <= 0.3, (on_twin, in_process)
 
 

@@ -52,55 +52,57 @@ def train_into(writer: ArtifactWriter, stage: str, agent: AgentConfig, env: Any,
     timings: dict[str, Any] = {}
     output = train_seeds(agent, env, train_params, eval_params, seed=seed, desc=desc,
                          timings=timings, init_params=init_params)
+    trained = _tables(agent, train_params, output, timings)
+    if agent.hold_tune_timesteps:
+        output, trained = hold_tune(agent, env, train_params, eval_params, output.params,
+                                    trained, seed=seed, desc=desc)
+    write_results(trained.metrics, writer.file("metrics.parquet"), config, stage)
+    write_results(trained.summary, writer.file("evaluation.parquet"), config, stage)
+    write_results(trained.episodes, writer.file("episodes.parquet"), config, stage)
+    save_policy(writer.file("policy.msgpack"), output.params, {
+        **policy_meta, "env_name": env.name, "obs_dim": obs_dim, "action_dim": action_dim,
+        "action_low": low.tolist(), "action_high": high.tolist(),
+        "num_seeds": agent.num_seeds})
+    return trained
+
+
+def _tables(agent: AgentConfig, train_params: Any, output: Any, timings: dict[str, Any]
+            ) -> Trained:
+    """The tables of one ``train_seeds`` run of ``agent`` in ``train_params`` (its ``output``
+    and ``timings``), and the timesteps per seed of the chunks it ran."""
     metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()},
                             int(train_params.max_steps_in_episode), agent.num_steps)
     summary, episodes = evaluation_tables(
         {k: np.asarray(v) for k, v in output.evaluation.items()})
     timesteps = len(timings["chunk_seconds"]) * agent.updates_per_eval * agent.steps_per_update
-    if agent.hold_tune_timesteps:
-        output, tuned = hold_tune(agent, env, train_params, eval_params, output.params,
-                                  seed=seed, desc=desc, timesteps=timesteps,
-                                  updates=int(metrics["update"].nunique()),
-                                  evaluations=int(summary["evaluation"].nunique()))
-        metrics = pd.concat([metrics.assign(phase="train"), tuned.metrics], ignore_index=True)
-        summary = pd.concat([summary.assign(phase="train"), tuned.summary], ignore_index=True)
-        episodes = tuned.episodes
-        timings = {**timings, "compile_s": timings["compile_s"] + tuned.timings["compile_s"],
-                   "run_s": timings["run_s"] + tuned.timings["run_s"]}
-        timesteps += tuned.timesteps_per_seed
-    write_results(metrics, writer.file("metrics.parquet"), config, stage)
-    write_results(summary, writer.file("evaluation.parquet"), config, stage)
-    write_results(episodes, writer.file("episodes.parquet"), config, stage)
-    save_policy(writer.file("policy.msgpack"), output.params, {
-        **policy_meta, "env_name": env.name, "obs_dim": obs_dim, "action_dim": action_dim,
-        "action_low": low.tolist(), "action_high": high.tolist(),
-        "num_seeds": agent.num_seeds})
     return Trained(metrics, summary, episodes, timings, timesteps)
 
 
 def hold_tune(agent: AgentConfig, env: Any, train_params: Any, eval_params: Any,
-              params: Any, *, seed: int, desc: str, timesteps: int, updates: int,
-              evaluations: int) -> tuple[Any, Trained]:
+              params: Any, trained: Trained, *, seed: int, desc: str) -> tuple[Any, Trained]:
     """``agent.hold_tune``'s phase (:class:`~pipeline.schemas.HoldTune`): the policies
     ``params`` (stacked over seeds) fine-tuned by analytic policy gradients
     (:meth:`AgentConfig.hold_tuning`) in ``train_params`` with episodes that never end at the
-    goal (``hold_periods`` = the training horizon), keys of their own (stream 1); returns
-    ``train_seeds``' output and its tables, marked ``phase = "hold_tune"``, their timesteps,
-    updates and evaluations counted on from the trainer's ``timesteps`` (per seed),
-    ``updates`` and ``evaluations``."""
+    goal (``hold_periods`` = the training horizon), keys of their own (stream 1). Returns
+    ``train_seeds``' output and ``trained`` (the trainer's) followed by the phase: rows marked
+    ``phase`` ``train`` and ``hold_tune``, whose timesteps, updates and evaluations count on
+    from the trainer's; the episodes the tuned policies'; times and timesteps summed."""
     tuning = agent.hold_tuning()
     holding = train_params.replace(hold_periods=jnp.asarray(
         int(train_params.max_steps_in_episode), jnp.int32))
     timings: dict[str, Any] = {}
     output = train_seeds(tuning, env, holding, eval_params, seed=seed, desc=f"{desc}, hold tune",
                          timings=timings, init_params=params, stream=1)
-    metrics = metrics_table({k: np.asarray(v) for k, v in output.metrics.items()},
-                            int(holding.max_steps_in_episode), tuning.num_steps)
-    summary, episodes = evaluation_tables(
-        {k: np.asarray(v) for k, v in output.evaluation.items()})
-    tuned = len(timings["chunk_seconds"]) * tuning.updates_per_eval * tuning.steps_per_update
-    metrics = metrics.assign(phase="hold_tune", timesteps=metrics["timesteps"] + timesteps,
-                             update=metrics["update"] + updates)
-    summary = summary.assign(phase="hold_tune", timesteps=summary["timesteps"] + timesteps,
-                             evaluation=summary["evaluation"] + evaluations)
-    return output, Trained(metrics, summary, episodes, timings, tuned)
+    tuned = _tables(tuning, holding, output, timings)
+    metrics = tuned.metrics.assign(
+        phase="hold_tune", timesteps=tuned.metrics["timesteps"] + trained.timesteps_per_seed,
+        update=tuned.metrics["update"] + trained.metrics["update"].nunique())
+    summary = tuned.summary.assign(
+        phase="hold_tune", timesteps=tuned.summary["timesteps"] + trained.timesteps_per_seed,
+        evaluation=tuned.summary["evaluation"] + trained.summary["evaluation"].nunique())
+    both = {**trained.timings,
+            **{name: trained.timings[name] + timings[name] for name in ("compile_s", "run_s")}}
+    return output, Trained(
+        pd.concat([trained.metrics.assign(phase="train"), metrics], ignore_index=True),
+        pd.concat([trained.summary.assign(phase="train"), summary], ignore_index=True),
+        tuned.episodes, both, trained.timesteps_per_seed + tuned.timesteps_per_seed)

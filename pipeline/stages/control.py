@@ -26,6 +26,7 @@ from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.arm.limits import validate_limits
+from pipeline.chain import control_deadband_m
 from pipeline.control.goals import GoalError, GoalSchedule, goal_schedule
 from pipeline.control.loop import Outcome
 from pipeline.control.policy import MM_PER_M, Deployment, deploy
@@ -166,9 +167,7 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
     if not 0 <= seed < num_seeds:
         raise ValueError(f"control.seed={seed}: {artifact.file('policy.msgpack')} holds seeds "
                          f"0..{num_seeds - 1}")
-    # the deadband is how this session deploys the policy (goals only: a reference moves on)
-    following = cfg.control.trajectory is not None or cfg.control.get("trajectory_topic")
-    deadband = 0.0 if following else float(cfg.env.deadband_m)
-    eval_params = eval_params.replace(deadband_m=np.float32(deadband))
+    # the deadband is how this session deploys the policy, not how it was trained
+    eval_params = eval_params.replace(deadband_m=np.float32(control_deadband_m(cfg)))
     return deploy(artifact, seed, network, stacked, meta, env, train_params, eval_params,
                   control_hz)

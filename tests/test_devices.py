@@ -80,12 +80,12 @@ def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
         controllers = closed_loop.Controllers(
             lambda p, env_params: rollouts.policy_controller(network, p), split.params,
             (jnp.zeros((4, 6, 1, 1)), jnp.ones((4, 6), bool)))
-        runs = [closed_loop._Programs().run("ppo_ff", env, params, controllers, keys, starts,
-                                            goals)]
+        runs = [closed_loop._Programs().run(env, params, {"ppo_ff": controllers}, keys, starts,
+                                            goals)["ppo_ff"]]
         ppo.batch_split = closed_loop.batch_split = lambda size: None  # one device
         whole = ppo.train_seeds(agent, env, params)
-        runs.append(closed_loop._Programs().run("ppo_ff", env, params, controllers, keys,
-                                                starts, goals))
+        runs.append(closed_loop._Programs().run(env, params, {"ppo_ff": controllers}, keys,
+                                                starts, goals)["ppo_ff"])
         print(json.dumps({
             "parts": [batch_split(n) and batch_split(n).mesh.size for n in (3, 4, 6)],
             "devices": sorted(devices), "timed_devices": timings["devices"],

@@ -51,6 +51,58 @@ def test_plant_rollouts_under_vmap_match_single_ones(make_cfg):
     assert (metrics["steps_above_limits"] == 0).all() and (metrics["smoothness_kpa"] == 0).all()
 
 
+def test_controllers_rolled_out_together_match_each_rolled_out_alone(make_cfg):
+    """Three kinds in one program (two seeds of a gain controller acting as deployed, the
+    random one, the preload), the plant stepped once a period for all: each seed and episode
+    is what :func:`rollouts.rollout` gives for it alone, keys and deadband included."""
+    cfg = make_cfg("env=sim", "env.num_goals=16", "env.reset_bank_size=4", "env.max_steps=6")
+    env, _, params = config_environment(cfg)
+    params = params.replace(deadband_m=jnp.asarray(0.004, jnp.float32))  # 4 mm: it acts here
+    episodes = 3
+    starts = (jax.tree.map(lambda x: x[:episodes], params.reset_carries),
+              params.reset_positions[:episodes])
+    # the first episode's goal is where it starts: within the deadband from the first period
+    targets = params.goal_set[:episodes].at[0].set(starts[1][0])
+    goals = jnp.broadcast_to(targets[:, None], (episodes, 6, 3))
+    keys = jax.random.split(jax.random.key(0), episodes)
+
+    def gain(gains, env_params):  # pushes along its gains, counting its periods in its carry
+        return lambda key, obs, state, count: (count + 1, jnp.tanh(gains * obs[:3]))
+
+    kinds = (rollouts.Kind(gain, deadband=True),
+             rollouts.Kind(lambda p, e: rollouts.random_controller()),
+             rollouts.Kind(lambda p, e: rollouts.preload_controller(env, e)))
+    seeds = jnp.asarray([[0.5, -1.0, 2.0], [-3.0, 1.0, 0.2]])
+    together = jax.jit(lambda p: rollouts.rollout_together(
+        env, p, kinds, [seeds, jnp.zeros(1), jnp.zeros(1)],
+        [jnp.zeros((2, episodes), jnp.int32), jnp.zeros((1, episodes)),
+         jnp.zeros((1, episodes))], keys, *starts, goals))(params)
+    assert [run[0].shape for run in together] == [(2, episodes, 7, 3), (1, episodes, 7, 3),
+                                                  (1, episodes, 7, 3)]
+
+    def alone(controller, deadband, episode):
+        return jax.jit(lambda p: rollouts.rollout(
+            env, p, controller, jnp.zeros((), jnp.int32), keys[episode],
+            jax.tree.map(lambda x: x[episode], starts[0]), starts[1][episode], goals[episode],
+            deadband=deadband))(params)
+
+    held = 0
+    for episode in range(episodes):
+        for seed in range(2):
+            positions, commands = alone(gain(seeds[seed], params), True, episode)
+            np.testing.assert_allclose(together[0][0][seed, episode], positions, atol=1e-6)
+            np.testing.assert_allclose(together[0][1][seed, episode], commands, atol=1e-5)
+            held += int((np.abs(np.diff(np.asarray(commands), axis=0)).max(-1) < 1e-6).sum())
+        for number, controller in ((1, rollouts.random_controller()),
+                                   (2, rollouts.preload_controller(env, params))):
+            positions, commands = alone(controller, False, episode)
+            np.testing.assert_allclose(together[number][0][0, episode], positions, atol=1e-6)
+            np.testing.assert_allclose(together[number][1][0, episode], commands, atol=1e-5)
+    assert held > 0  # the deadband kept some command
+    # the random kind's commands differ from the gain seeds': each kind acts on its own
+    assert np.abs(np.asarray(together[1][1][0]) - np.asarray(together[0][1][0])).max() > 0.1
+
+
 TINY = ["experiment=quick", "robot.num_runs=2", "exploration.num_steps=40",
         "agent.num_seeds=1", "agent.total_timesteps=4096", "agent.num_evals=1",
         "evaluation.num_episodes=4", "evaluation.consecutive_episodes=2",
@@ -116,14 +168,17 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
     cfg.stage, cfg.evaluation.models = "evaluate", [str(model.path)]
     built = []  # the environment of every rollout program compiled
 
-    def counting(env, make, deadband=False):
-        built.append(env)
-        return rollout_program(env, make, deadband)
+    def counting(env, kinds):
+        built.append((env, len(kinds)))
+        return rollout_program(env, kinds)
 
     monkeypatch.setattr(closed_loop, "rollout_program", counting)
     crossed = run(cfg)["evaluate"]
-    # the other model runs the learned env's programs: one per (environment, controller)
-    assert len(built) == 2 * 4 and len({id(env) for env in built}) == 2
+    # the other model runs the learned env's program: one per environment, every controller
+    # in it
+    # (the consecutive goals, without the preload, in another per environment)
+    assert len(built) == 4 and len({id(env) for env, _ in built}) == 2
+    assert [kinds for _, kinds in built] == [4, 4, 3, 3]
     assert crossed.key != artifact.key
     summary = pd.read_parquet(crossed.file("summary.parquet"))
     other = f"model {model.key}"

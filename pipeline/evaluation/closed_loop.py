@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -78,28 +78,37 @@ class Policy(NamedTuple):
     params: Any
 
 
-def _sim_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, mocap_hz: float
-             ) -> SoftArmReachEnv:
+def _sim_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, mocap_hz: float,
+             built: dict[float, SoftArmReachEnv] | None = None) -> SoftArmReachEnv:
     """The simulated arm at ``mocap_hz`` frames, stepped a model step at a time, observed exactly
-    like the learned env (which make_learned_env built from the same options)."""
+    like the learned env (which make_learned_env built from the same options). ``built``: the
+    environments already built by frame rate, taken from and added to, so that plants of one
+    frame rate (the arm, its twins) share one environment and with it their compiled
+    programs."""
+    if built is not None and mocap_hz in built:
+        return built[mocap_hz]
     frames = round(mocap_hz / float(settings.model_hz))
     if frames < 1 or not math.isclose(mocap_hz / frames, float(settings.model_hz),
                                       rel_tol=1e-6):
         raise ConfigError(f"the simulated arm integrates at {mocap_hz:g} Hz, which "
                           f"dataset.model_hz={settings.model_hz} does not divide")
-    return SoftArmReachEnv(sim_plant(mocap_hz, frames), learned_env.control_hz,
-                           **observation_options(settings.env))
+    env = SoftArmReachEnv(sim_plant(mocap_hz, frames), learned_env.control_hz,
+                          **observation_options(settings.env))
+    if built is not None:
+        built[mocap_hz] = env
+    return env
 
 
 def _plant_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv,
-               learned_params: EnvParams, key: jax.Array
+               learned_params: EnvParams, key: jax.Array,
+               built: dict[float, SoftArmReachEnv] | None = None
                ) -> tuple[SoftArmReachEnv, EnvParams] | None:
     """The ground-truth plant as an environment observed like the learned one (same goals and
     normalization), or None when there is none."""
     sim = settings.sim
     if sim is None:
         return None
-    env = _sim_env(settings, learned_env, float(sim.mocap_hz))
+    env = _sim_env(settings, learned_env, float(sim.mocap_hz), built)
     plant = sim.plant
     params = make_env_params(
         env, plant, key=key, safe_set=learned_params.safe_set, preload=plant.preload,
@@ -126,20 +135,22 @@ class Controllers(NamedTuple):
     carries: Any
 
 
-def rollout_program(env: SoftArmReachEnv, make: Callable[[Any, EnvParams], rollouts.Controller],
-                    deadband: bool = False) -> Callable[..., tuple[jax.Array, jax.Array]]:
-    """One compiled program for a controller kind on ``env``, every seed and episode at once:
-    ``(env_params, params [S], carries [S, E], keys [E], starts [E], goals [E, T, 3],
-    references [E] or None) -> positions [S, E, T + 1, 3], commands [S, E, T, 3]``. Seeds see
-    the same keys, starts, goals and references (a tracking env's; None: the goals).
-    ``deadband``: reaching as deployed (:func:`pipeline.evaluation.rollouts.rollout`)."""
+def rollout_program(env: SoftArmReachEnv, kinds: tuple[rollouts.Kind, ...]
+                    ) -> Callable[..., list[tuple[jax.Array, jax.Array]]]:
+    """One compiled program for ``kinds`` of controllers on ``env``, every kind, seed and
+    episode at once (:func:`pipeline.evaluation.rollouts.rollout_together`, the plant stepped
+    once a period for all): ``(env_params, params (per kind, [S_k]), carries (per kind,
+    [S_k, E]), keys [E], start_carries [E], start_positions [E, 3], goals [E, T, 3],
+    references [E] or None) -> per kind (positions [S_k, E, T + 1, 3], commands [S_k, E, T,
+    3])``. Seeds and kinds see the same keys, starts, goals and references (a tracking env's;
+    None: the goals)."""
 
-    def one(env_params, params, carry, key, start_carry, start_position, goal_path, reference):
-        return rollouts.rollout(env, env_params, make(params, env_params), carry, key,
-                                start_carry, start_position, goal_path, reference, deadband)
+    def program(env_params, params, carries, keys, start_carries, start_positions, goals,
+                reference):
+        return rollouts.rollout_together(env, env_params, kinds, params, carries, keys,
+                                         start_carries, start_positions, goals, reference)
 
-    episodes = jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0, 0, 0))
-    return jax.jit(jax.vmap(episodes, in_axes=(None, 0, 0, None, None, None, None, None)))
+    return jax.jit(program)
 
 
 def _controllers(settings: ClosedLoopSettings, env, params, learned_params, policies_loaded,
@@ -188,29 +199,36 @@ def _controllers(settings: ClosedLoopSettings, env, params, learned_params, poli
 
 
 class _Programs:
-    """The compiled rollout program of each (environment, controller kind), built on first use:
-    plants that differ only in their parameters (the learned model and other fitted models) run
-    the same program."""
+    """The compiled rollout program of each (environment, controller kinds), built on first
+    use: plants that differ only in their parameters (the learned model, other fitted models,
+    twins of one frame rate) run the same program."""
 
     def __init__(self):
-        self._programs: dict[tuple[SoftArmReachEnv, str, bool], Callable[..., Any]] = {}
+        self._programs: dict[tuple[Any, ...], Callable[..., Any]] = {}
 
-    def run(self, name: str, env: SoftArmReachEnv, env_params: EnvParams,
-            controllers: Controllers, keys, starts, goals, references=None,
-            deadband: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        program = (env, name, deadband)  # environments compare by identity
+    def run(self, env: SoftArmReachEnv, env_params: EnvParams,
+            controllers: Mapping[str, Controllers], keys, starts, goals, references=None,
+            deadband: Collection[str] = ()) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Every controller of ``controllers`` (by name; a name stands for one structure of
+        controller) on ``env`` with ``env_params``: ``(positions [S, E, T + 1, 3], commands
+        [S, E, T, 3])`` by name; those named in ``deadband`` act as deployed."""
+        names = tuple(controllers)
+        program = (env, names, tuple(name in deadband for name in names))  # envs by identity
         if program not in self._programs:
-            self._programs[program] = rollout_program(env, controllers.make, deadband)
-        params, carries = controllers.params, controllers.carries
+            self._programs[program] = rollout_program(env, tuple(
+                rollouts.Kind(controllers[name].make, name in deadband) for name in names))
+        params = [controllers[name].params for name in names]
+        carries = [controllers[name].carries for name in names]
         # the episodes split over the devices (the CPU's cores), each part in parallel
         split = batch_split(int(np.shape(keys)[0]))
         if split is not None:
             env_params, params = split.put((env_params, params), axis=None)
             carries = split.put(carries, axis=1)  # [S, E, ...]
             keys, starts, goals, references = split.put((keys, starts, goals, references))
-        positions, commands = self._programs[program](env_params, params, carries, keys,
-                                                      *starts, goals, references)
-        return np.asarray(positions), np.asarray(commands)
+        runs = self._programs[program](env_params, params, carries, keys, *starts, goals,
+                                       references)
+        return {name: (np.asarray(positions), np.asarray(commands))
+                for name, (positions, commands) in zip(names, runs, strict=True)}
 
 
 def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: Any,
@@ -226,13 +244,15 @@ def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: An
 
 
 def _twin_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, eval_params: EnvParams,
-              physics: dict[str, Any], key: jax.Array) -> tuple[SoftArmReachEnv, EnvParams]:
+              physics: dict[str, Any], key: jax.Array,
+              built: dict[float, SoftArmReachEnv] | None = None
+              ) -> tuple[SoftArmReachEnv, EnvParams]:
     """A calibrated twin (the simulated arm with ``physics``, SimPhysics values) as a plant
     observed like the learned env: the same goals, safe set and normalization, its starts
     settled at the preload with the arm's rest offset put on the poses the learned env's starts
     settled from."""
     sim = twin_sim_params(physics)
-    env = _sim_env(settings, learned_env, sim.mocap_hz)
+    env = _sim_env(settings, learned_env, float(sim.mocap_hz), built)
     plant = SimPlantParams(sim, eval_params.preload)
     params = make_env_params(
         env, plant, key=key, safe_set=eval_params.safe_set, preload=eval_params.preload,
@@ -248,7 +268,8 @@ def _plants(settings: ClosedLoopSettings, env: SoftArmReachEnv, eval_params: Env
     """Every plant by name: the learned env, the ground-truth plant (where there is one), each
     other fitted model and each calibrated twin, observed like the learned env."""
     plants = {"learned": (env, eval_params)}
-    plant_env = _plant_env(settings, env, eval_params, key)
+    built: dict[float, SoftArmReachEnv] = {}  # the simulated arm's environments by frame rate
+    plant_env = _plant_env(settings, env, eval_params, key, built)
     if plant_env is not None:
         plants["plant"] = plant_env
     for number, (name, dynamics_params) in enumerate(models.items()):
@@ -256,7 +277,7 @@ def _plants(settings: ClosedLoopSettings, env: SoftArmReachEnv, eval_params: Env
                                         jax.random.fold_in(key, number + 1), settings))
     for number, (name, physics) in enumerate(twins.items()):
         plants[name] = _twin_env(settings, env, eval_params, physics,
-                                 jax.random.fold_in(key, len(models) + number + 1))
+                                 jax.random.fold_in(key, len(models) + number + 1), built)
     return plants
 
 
@@ -309,11 +330,9 @@ def _episodes(settings: ClosedLoopSettings, plants, loaded, eval_params: EnvPara
     for plant_name, (plant_env_i, plant_params) in plants.items():
         controllers = _controllers(settings, plant_env_i, plant_params, eval_params, loaded,
                                    episodes)
-        starts = _starts(plant_params, episodes)
-        for controller, batch in controllers.items():
-            positions, commands = programs.run(controller, plant_env_i, plant_params, batch,
-                                               keys, starts, goal_paths,
-                                               deadband=controller in loaded)
+        runs = programs.run(plant_env_i, plant_params, controllers, keys,
+                            _starts(plant_params, episodes), goal_paths, deadband=loaded)
+        for controller, (positions, commands) in runs.items():
             for seed in range(positions.shape[0]):
                 table = episode_metrics(positions[seed], np.asarray(goals), commands[seed],
                                         settings.limits)
@@ -359,13 +378,12 @@ def _consecutive(settings: ClosedLoopSettings, plants, loaded, key, eval_params,
     keys = jax.random.split(rollout_key, episodes)
     rows = []
     for plant_name, (env, params) in plants.items():
-        controllers = _controllers(settings, env, params, eval_params, loaded, episodes)
-        starts = _starts(params, episodes)
-        for controller, batch in controllers.items():
-            if controller in ("preload", "random"):
-                continue
-            positions, _ = programs.run(controller, env, params, batch, keys, starts,
-                                        jnp.asarray(goals), deadband=controller in loaded)
+        controllers = {name: batch for name, batch in _controllers(
+            settings, env, params, eval_params, loaded, episodes).items()
+            if name not in ("preload", "random")}
+        runs = programs.run(env, params, controllers, keys, _starts(params, episodes),
+                            jnp.asarray(goals), deadband=loaded)
+        for controller, (positions, _) in runs.items():
             ends = positions[:, :, per_goal::per_goal]  # pose at the end of each goal's time
             targets = goals[:, per_goal - 1::per_goal]
             distance = np.linalg.norm(ends - targets, axis=-1) * MM_PER_M  # [S, E, goals]

@@ -282,10 +282,9 @@ def _follow(settings: ClosedLoopSettings, tracking: TrackingSettings, plants, lo
         for plant_name, (plant_env, plant_params) in plants.items():
             controllers = _controllers(settings, plant_env, plant_params, eval_params, loaded,
                                        episodes)
-            starts = _starts(plant_params, episodes)
-            for controller, batch in controllers.items():
-                positions, _ = programs.run(controller, plant_env, plant_params, batch, keys,
-                                            starts, goals, stacked)
+            runs = programs.run(plant_env, plant_params, controllers, keys,
+                                _starts(plant_params, episodes), goals, stacked)
+            for controller, (positions, _) in runs.items():
                 for seed in range(positions.shape[0]):
                     table = tracking_metrics(positions[seed], target, control_hz,
                                              float(tracking.settle_seconds))

@@ -97,11 +97,12 @@ def rollout_together(
     periods step the plant once for all of them.
 
     ``kind_params[k]``: kind ``k``'s parameters, leaves ``[S_k, ...]``; ``kind_carries[k]``: its
-    controller carries, leaves ``[S_k, E, ...]``; ``keys [E]``, ``start_carries`` (leaves
-    ``[E, ...]``), ``start_positions [E, 3]`` m, ``goals [E, T, 3]`` m and ``reference``
-    (a tracking env's, leaves ``[E, ...]``; None: the goals) are each episode's, the same for every seed and kind. Returns,
-    per kind, ``positions [S_k, E, T + 1, 3]`` m and ``commands [S_k, E, T, 3]`` kPa: what
-    :func:`rollout` gives for each seed and episode, to float rounding.
+    controller carries, leaves ``[S_k, E, ...]``. Each episode's ``keys [E]``, ``start_carries``
+    (leaves ``[E, ...]``), ``start_positions [E, 3]`` m, ``goals [E, T, 3]`` m and ``reference``
+    (a tracking env's, leaves ``[E, ...]``; None: the goals) are the same for every seed and
+    kind. Inside, the state has a row per seed of each kind (``R = sum S_k``), kinds in order.
+    Returns, per kind, ``positions [S_k, E, T + 1, 3]`` m and ``commands [S_k, E, T, 3]`` kPa:
+    what :func:`rollout` gives for each seed and episode, to float rounding.
     """
     chex.assert_rank(goals, 3)
     seeds = [int(jax.tree.leaves(carry)[0].shape[0]) for carry in kind_carries]
@@ -118,11 +119,11 @@ def rollout_together(
     bounds = np.cumsum([0, *seeds])
     deadband = np.repeat(np.array([kind.deadband for kind in kinds], bool), seeds)  # [R]
 
-    def over_rows(function, shared_axes):
-        """``function`` over every row and episode; ``shared_axes``: the arguments that are
-        each episode's (the same in every row) as 0, the rows' own as 1, ``params`` as None."""
-        each = jax.vmap(function, in_axes=tuple(None if a is None else 0 for a in shared_axes))
-        return jax.vmap(each, in_axes=tuple(0 if a == 1 else None for a in shared_axes))
+    def over_rows(function, axes):
+        """``function`` over every row and episode. ``axes``, per argument: ``"episode"`` (the
+        same in every row, ``[E, ...]``), ``"row"`` (``[R, E, ...]``) or None (``params``)."""
+        each = jax.vmap(function, in_axes=tuple(None if a is None else 0 for a in axes))
+        return jax.vmap(each, in_axes=tuple(0 if a == "row" else None for a in axes))
 
     def act(kind, kind_param, carry, act_keys, obs, state):
         def one_seed(seed_params, seed_carry, seed_obs, seed_state):
@@ -137,8 +138,9 @@ def rollout_together(
         obs_keys, act_keys, step_keys = jnp.moveaxis(
             jax.vmap(lambda k: jax.random.split(k, 3))(period_keys), 1, 0)
         states = states.replace(goal=jnp.broadcast_to(goal, (rows, *goal.shape)))
-        measured = over_rows(env.measure, (0, 1, None))(obs_keys, states.position, params)
-        obs = over_rows(env.observe_measured, (1, 1, None))(measured, states, params)
+        measured = over_rows(env.measure, ("episode", "row", None))(obs_keys, states.position,
+                                                                    params)
+        obs = over_rows(env.observe_measured, ("row", "row", None))(measured, states, params)
         carries, actions = [], []
         for number, kind in enumerate(kinds):
             part = slice(int(bounds[number]), int(bounds[number + 1]))
@@ -149,10 +151,10 @@ def rollout_together(
             actions.append(action)
         action = jnp.concatenate(actions)  # [R, E, 3]
         if deadband.any():
-            held = over_rows(env.deadband_action, (1, 1, 1, 1, None))(
+            held = over_rows(env.deadband_action, ("row",) * 4 + (None,))(
                 action, measured, states.goal, states.last_pressure, params)
             action = jnp.where(deadband[:, None, None], held, action)
-        _, states, _, _, info = over_rows(env.step_env, (0, 1, 1, None))(
+        _, states, _, _, info = over_rows(env.step_env, ("episode", "row", "row", None))(
             step_keys, states, action, params)
         return (states, carries), (states.position, info["pressure"])
 

@@ -193,8 +193,8 @@ def test_experiment_tracking_trains_and_evaluates_both_policy_types(make_cfg):
 
     summary = pd.read_parquet(artifact.file("tracking.parquet"))
     # the reaching policies of the same settings, fed the moving goal, as a baseline
-    assert set(summary["controller"]) == {"ppo_ff", "ppo_rnn", "preload", "mpc",
-                                          "ppo_ff (reaching)", "ppo_rnn (reaching)"}
+    assert set(summary["controller"]) == {"apg", "apg_rnn", "preload", "mpc",
+                                          "apg (reaching)", "apg_rnn (reaching)"}
     assert set(summary["reference"]) == {"circle", "figure_eight"}
     assert set(summary["plant"]) == {"learned", "plant"}
     assert np.isfinite(summary["median_rmse_mm"]).all()
@@ -203,7 +203,7 @@ def test_experiment_tracking_trains_and_evaluates_both_policy_types(make_cfg):
     markdown = artifact.file("report.md").read_text()
     assert "## Tracking" in markdown and "tracking.png" in markdown
     assert artifact.file("figures/tracking.png").stat().st_size > 10_000
-    assert "tracking/plant/ppo_ff/circle" in artifact.manifest["summary"]
+    assert "tracking/plant/apg_rnn/circle" in artifact.manifest["summary"]
 
 
 def test_evaluation_references_over_their_defaults_and_unknown_settings(make_cfg):

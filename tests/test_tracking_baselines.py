@@ -329,7 +329,7 @@ def test_the_cross_model_protocol_reads_each_groups_reaching_policies(make_cfg, 
     _, inputs = keys.evaluate_spec(make_cfg("experiment=tracking", *robot))
     group_b = make_cfg("experiment=tracking", *robot,
                        "robot.files=[Step_control_01.csv,Step_control_03.csv]")
-    assert set(reaching_configs(group_b)) == {"ppo_ff", "ppo_rnn"}
+    assert set(reaching_configs(group_b)) == {"apg", "apg_rnn"}
     for name, variant in reaching_configs(group_b).items():
         assert inputs[f"cross_model/B->A/reaching/train_ppo/{name}"] == keys.key("train_ppo",
                                                                                  variant)

@@ -191,6 +191,7 @@ def test_evaluate_reads_each_groups_policies_and_the_other_groups_model(make_cfg
         "evaluate", make_cfg("evaluation.cross_model=false"))
 
 
+@pytest.mark.slow  # three groups' models and policies, shrunk: runs with `make test-all`
 def test_evaluate_runs_the_cross_model_protocol_on_recorded_runs(make_cfg, sorolex_dir):
     """Four recorded runs, everything shrunk: each group gets its own model and policies, and
     evaluate rolls them out in their own model and in the other group's; the policies of all

@@ -8,7 +8,7 @@ serves single goals and consecutive goals.
 
 :func:`rollout_together` runs several controllers at once on one environment: their episodes
 share each period's plant step, so a program that rolls out every controller holds the plant
-once.
+once; :func:`rollout` is its one episode of one controller.
 """
 
 from __future__ import annotations
@@ -49,27 +49,15 @@ def rollout(
     (:meth:`~pipeline.rl.envs.learned.SoftArmReachEnv.deadband_action`)."""
     chex.assert_shape(start_position, (3,))
     chex.assert_rank(goals, 2)
-    if env.tracking and reference is None:
-        reference = references.goal_table(goals, env.control_hz)
-    state = env.start_state(jax.random.fold_in(key, 1), start_carry, start_position, goals[0],
-                            params, reference)
 
-    def period(carry, inputs):
-        state, controller_carry = carry
-        goal, period_key = inputs
-        obs_key, act_key, step_key = jax.random.split(period_key, 3)
-        state = state.replace(goal=goal)
-        measured = env.measure(obs_key, state.position, params)
-        obs = env.observe_measured(measured, state, params)
-        controller_carry, action = controller(act_key, obs, state, controller_carry)
-        if deadband:
-            action = env.deadband_action(action, measured, goal, state.last_pressure, params)
-        _, state, _, _, info = env.step_env(step_key, state, action, params)
-        return (state, controller_carry), (state.position, info["pressure"])
+    def batch(tree, axes=1):  # leading axes of size 1: one seed (and one episode)
+        return jax.tree.map(lambda leaf: jnp.asarray(leaf)[(None,) * axes], tree)
 
-    keys = jax.random.split(key, goals.shape[0])
-    _, (positions, commands) = jax.lax.scan(period, (state, controller_carry), (goals, keys))
-    return jnp.concatenate([start_position[None], positions]), commands
+    [(positions, commands)] = rollout_together(
+        env, params, (Kind(lambda _params, _env_params: controller, deadband),),
+        [jnp.zeros((1,))], [batch(controller_carry, 2)], batch(key), batch(start_carry),
+        batch(start_position), batch(goals), None if reference is None else batch(reference))
+    return positions[0, 0], commands[0, 0]
 
 
 class Kind(NamedTuple):
@@ -105,7 +93,7 @@ def rollout_together(
     what :func:`rollout` gives for each seed and episode, to float rounding.
     """
     chex.assert_rank(goals, 3)
-    seeds = [int(jax.tree.leaves(carry)[0].shape[0]) for carry in kind_carries]
+    seeds = [int(jax.tree.leaves(param)[0].shape[0]) for param in kind_params]
     rows, steps = sum(seeds), goals.shape[1]
     if env.tracking and reference is None:
         reference = jax.vmap(references.goal_table, in_axes=(0, None))(goals, env.control_hz)

@@ -124,15 +124,18 @@ def fit_model_spec(cfg: Any) -> Spec:
 
 def env_spec(cfg: Any) -> dict[str, Any]:
     """``cfg.env`` as keys see it: without ``env.models`` (where those lie does not matter, their
-    keys are inputs), without ``env.train_max_steps`` where unset and ``env.deadband_m`` where
-    0 (the keys of before), for absolute actions without the incremental step and, to reach,
-    without the tracking task's settings (unused)."""
+    keys are inputs), without ``env.train_max_steps`` where unset, ``env.deadband_m`` where 0
+    and ``env.hold_gain`` where it does not act (the keys of before), for absolute actions
+    without the incremental step and, to reach, without the tracking task's settings
+    (unused)."""
     env = _container(cfg.env)
     env.pop("models", None)
     if env.get("train_max_steps") is None:  # unset: training's horizon is max_steps, as before
         env.pop("train_max_steps", None)
     if not env.get("deadband_m"):  # off: every controller acts as before it existed
         env.pop("deadband_m", None)
+    if not (env.get("hold_gain") and env.get("deadband_m")):  # no hold: the keys as before
+        env.pop("hold_gain", None)
     if Task(env.get("task", Task.reach)) is Task.reach:
         for setting in TRACK_SETTINGS:
             env.pop(setting, None)
@@ -167,7 +170,8 @@ def train_ppo_spec(cfg: Any) -> Spec:
     if "hold_tune" in agent and not AgentConfig.from_any(cfg.agent).hold_tune_timesteps:
         agent.pop("hold_tune")  # no such phase for this policy type: the key as without it
     env = env_spec(cfg)
-    env.pop("deadband_m", None)  # deployment only: training never meets it
+    for setting in ("deadband_m", "hold_gain"):  # deployment only: training never meets them
+        env.pop(setting, None)
     spec: dict[str, Any] = _versioned("train_ppo", {"env": env, "agent": agent,
                                                     "seed": int(cfg.seed)})
     if agent.get("init_policy"):  # a warm start: the starting policy's content decides too
@@ -281,6 +285,8 @@ def control_spec(cfg: Any) -> Spec:
     spec = {"control": control, "robot": robot}
     if deadband := control_deadband_m(cfg):  # off: the key as before it existed
         spec["deadband_m"] = deadband
+        if hold_gain := float(cfg.env.get("hold_gain") or 0.0):
+            spec["hold_gain"] = hold_gain
     return _versioned("control", spec), {stage: policy_key}
 
 

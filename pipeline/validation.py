@@ -28,6 +28,9 @@ from pipeline.schemas import (
     incremental_actions,
 )
 
+# the largest distance from the goal [m] within which the hold may act (env.deadband_m): it is
+# for the last millimetres, the policy reaches
+MAX_HOLD_RADIUS_M = 0.01
 # robot settings that are durations and must be finite and positive [s]
 _ROBOT_DURATIONS = ("watchdog_s", "command_timeout_s", "startup_timeout_s", "flush_every_s",
                     "stop_timeout_s", "time_scale", "control_hz")
@@ -325,10 +328,20 @@ def _check_env(cfg: Any) -> None:
     if not (math.isfinite(bonus) and bonus >= 0):
         raise ConfigError(f"env.hold_bonus_mm={bonus} must be finite and >= 0 (mm of reward per "
                           f"control period at the goal)")
+    gain = float(env.hold_gain)
+    if not (math.isfinite(gain) and 0 <= gain <= 1):
+        raise ConfigError(f"env.hold_gain={gain} must lie in [0, 1] (the share of the measured "
+                          f"error the command corrects per control period within "
+                          f"env.deadband_m; 0: the last command stays)")
     deadband = float(env.deadband_m)
-    if not (math.isfinite(deadband) and 0 <= deadband <= float(env.goal_tolerance_m)):
+    if gain == 0 and not (math.isfinite(deadband) and
+                          0 <= deadband <= float(env.goal_tolerance_m)):
         raise ConfigError(f"env.deadband_m={deadband} must lie in [0, env.goal_tolerance_m="
-                          f"{env.goal_tolerance_m}] m (where the last command stays; 0: off)")
+                          f"{env.goal_tolerance_m}] m where env.hold_gain=0 (where the last "
+                          f"command stays; 0: off)")
+    if not (math.isfinite(deadband) and 0 <= deadband <= MAX_HOLD_RADIUS_M):
+        raise ConfigError(f"env.deadband_m={deadband} must lie in [0, {MAX_HOLD_RADIUS_M}] m "
+                          f"(where the hold takes over from the policy; 0: off)")
     decay = float(env.error_integral_decay)
     if not 0.0 <= decay < 1.0:
         raise ConfigError(f"env.error_integral_decay={decay} must lie in [0, 1) (the accumulated "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import pytest
@@ -19,7 +20,7 @@ from pipeline.control.session import ControlInterrupted
 from pipeline.data.schemas import CMD_COLUMNS
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.keys import key
-from pipeline.rl.envs.learned import EnvState
+from pipeline.rl.envs.learned import EnvState, with_hold_map
 from pipeline.rl.envs.observation import observe
 from pipeline.ros2.gate import CommandGate
 from pipeline.schemas import ControlConfig
@@ -342,7 +343,7 @@ def test_the_arm_keeps_the_last_command_within_the_deadband(policies):
     measured 0.9 mm from the goal sends the last command again, 1.1 mm away the policy's; a
     reference (control.trajectory) moves on, so there it is off."""
     cfg = copy.deepcopy(policies["ppo_ff"])
-    cfg.env.deadband_m = 0.001
+    cfg.env.deadband_m, cfg.env.hold_gain = 0.001, 0.0
     deployment = load_deployment(cfg, ArtifactStore(cfg.paths.artifact_dir))
     assert float(deployment.env_params.deadband_m) == pytest.approx(0.001)
     goal = np.asarray(deployment.env_params.goal_set[0], np.float64)
@@ -355,6 +356,34 @@ def test_the_arm_keeps_the_last_command_within_the_deadband(policies):
     cfg.control.trajectory = "circle"
     assert float(load_deployment(cfg, ArtifactStore(cfg.paths.artifact_dir))
                  .env_params.deadband_m) == 0.0
+
+
+def test_the_arm_is_held_by_integral_action_through_its_models_static_map(policies):
+    """With a hold gain the deployed step, within env.deadband_m of the goal, moves the last
+    command by the gain times the model's hold map applied to the error (the evaluate stage's
+    function, on the session's settings); beyond it, the policy's."""
+    cfg = copy.deepcopy(policies["ppo_ff"])
+    cfg.env.deadband_m, cfg.env.hold_gain = 0.002, 0.5
+    deployment = load_deployment(cfg, ArtifactStore(cfg.paths.artifact_dir))
+    params = deployment.env_params
+    assert float(params.hold_gain) == pytest.approx(0.5)
+    np.testing.assert_allclose(params.hold_map, with_hold_map(deployment.env, params.replace(
+        hold_map=jnp.zeros((3, 3)))).hold_map)  # the model's own
+    goal = np.asarray(params.goal_set[0], np.float64)
+    last = np.array([2.5, 3.0, 1.0])
+    preview = np.zeros((0, 3))
+    error = np.array([-1.5, 0.0, 0.5]) / 1e3  # goal - measured, 1.58 mm
+    _, _, _, pressure = deployment.act(deployment.hidden, True, goal - error, goal, preview,
+                                       last)
+    correction = np.asarray(params.hold_map) @ error
+    assert np.abs(correction).max() > 0.05
+    np.testing.assert_allclose(pressure, last + 0.5 * correction, atol=1e-4)
+    far = goal - np.array([2.5, 0.0, 0.0]) / 1e3
+    policy = deployment.act(deployment.hidden, True, far, goal, preview, last)[3]
+    cfg.env.hold_gain = 0.0
+    cfg.env.deadband_m = 0.0
+    alone = load_deployment(cfg, ArtifactStore(cfg.paths.artifact_dir))
+    np.testing.assert_allclose(policy, alone.act(alone.hidden, True, far, goal, preview, last)[3])
 
 
 def test_control_is_routed_alone_and_never_by_the_chain(make_cfg):

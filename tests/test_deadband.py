@@ -1,5 +1,6 @@
-"""The deadband of deployment (``env.deadband_m``): within it of the goal the last command stays,
-in evaluate's reaching episodes and on the arm, never in training.
+"""The deadband and the hold of deployment (``env.deadband_m``, ``env.hold_gain``): within it of
+the goal the last command stays (gain 0) or moves by integral action through the static map of
+the policy's model, in evaluate's reaching episodes and on the arm, never in training.
 
 Known answers on the linear-lag toy of ``tests/test_robust_env.py`` (five plant steps per
 period, three recorded goals 5 mm from the rest pose).
@@ -14,6 +15,8 @@ import pytest
 
 from pipeline import keys
 from pipeline.evaluation import rollouts
+from pipeline.rl.envs import default_linear_lag_params
+from pipeline.rl.envs.learned import damped_inverse, static_gain, with_hold_map
 from pipeline.schemas import ConfigError
 from pipeline.validation import validate_config
 from tests.test_robust_env import GOALS, toy
@@ -84,20 +87,111 @@ def test_a_rollout_as_deployed_keeps_the_command_that_reached_the_goal(deadband)
         np.testing.assert_array_equal(off_commands, commands)
 
 
-def test_the_deadband_is_deployment_only_in_the_keys(make_cfg):
-    """Training never meets it: the train_ppo key is the same with and without; evaluate and
-    control (goals) run anew with it; at 0 the keys of before (the setting left out)."""
-    base, on = make_cfg("experiment=quick"), make_cfg("experiment=quick", "env.deadband_m=0.001")
-    assert keys.key("train_ppo", on) == keys.key("train_ppo", base)
-    assert "deadband_m" not in keys.evaluate_spec(base)[0]["env"]
-    assert keys.evaluate_spec(on)[0]["env"]["deadband_m"] == 0.001
-    assert keys.key("evaluate", on) != keys.key("evaluate", base)
-    assert keys.key("control", on) != keys.key("control", base)
+def test_the_deadband_and_the_hold_are_deployment_only_in_the_keys(make_cfg):
+    """Training never meets them: the train_ppo key is the same off, with a deadband and with
+    a hold; evaluate and control (goals) run anew with each; off, the keys of before (the
+    settings left out)."""
+    off = make_cfg("experiment=quick", "env.deadband_m=0", "env.hold_gain=0")
+    deadband = make_cfg("experiment=quick", "env.deadband_m=0.001", "env.hold_gain=0")
+    hold = make_cfg("experiment=quick", "env.deadband_m=0.002", "env.hold_gain=0.1")
+    assert len({keys.key("train_ppo", cfg) for cfg in (off, deadband, hold)}) == 1
+    assert len({keys.key("evaluate", cfg) for cfg in (off, deadband, hold)}) == 3
+    assert len({keys.key("control", cfg) for cfg in (off, deadband, hold)}) == 3
+    envs = [keys.evaluate_spec(cfg)[0]["env"] for cfg in (off, deadband, hold)]
+    assert "deadband_m" not in envs[0] and "hold_gain" not in envs[0]
+    assert envs[1]["deadband_m"] == 0.001 and "hold_gain" not in envs[1]
+    assert envs[2]["deadband_m"] == 0.002 and envs[2]["hold_gain"] == 0.1
+    assert keys.control_spec(hold)[0]["hold_gain"] == 0.1
+    assert "hold_gain" not in keys.control_spec(deadband)[0]
+    validate_config(hold)  # beyond the goal tolerance: the hold acts there, it does not freeze
 
 
 @pytest.mark.parametrize("value", ["-0.0005", "0.002"])
 def test_a_deadband_beyond_the_goal_tolerance_is_refused(make_cfg, value):
-    cfg = make_cfg("experiment=quick", f"env.deadband_m={value}")
+    cfg = make_cfg("experiment=quick", f"env.deadband_m={value}", "env.hold_gain=0")
     with pytest.raises(ConfigError, match=r"env.deadband_m=.* must lie in \[0, "
                                           r"env.goal_tolerance_m=0.001\] m"):
         validate_config(cfg)
+
+
+# ---- the hold: integral action through the static map ----------------------------------------
+DIAGONAL_GAIN = jnp.diag(jnp.array([0.002, 0.001, 0.004]))  # m/kPa: valve i moves axis i
+# (GᵀG + λI)⁻¹Gᵀ of it with λ = (0.1 · 0.004)² = 1.6e-7: g / (g² + 1.6e-7) on the diagonal
+DIAGONAL_INVERSE = np.diag([0.002 / 4.16e-6, 0.001 / 1.16e-6, 0.004 / 1.616e-5])  # kPa/m
+
+
+def _diagonal_toy(**overrides):
+    params = default_linear_lag_params()
+    return toy(plant_params=params.replace(gain=DIAGONAL_GAIN), **overrides)
+
+
+def test_the_static_map_of_a_linear_plant_is_its_gain_and_the_hold_map_its_damped_inverse():
+    env, params = _diagonal_toy(deadband_m=0.002, hold_gain=0.5)
+    gain = static_gain(env, params.plant, params.reset_initial_poses[0], params.preload,
+                       params.safe_set)
+    np.testing.assert_allclose(gain, DIAGONAL_GAIN, atol=1e-6)
+    np.testing.assert_allclose(damped_inverse(DIAGONAL_GAIN), DIAGONAL_INVERSE, rtol=1e-5)
+    np.testing.assert_allclose(with_hold_map(env, params).hold_map, DIAGONAL_INVERSE,
+                               rtol=1e-3, atol=0.05)
+    np.testing.assert_array_equal(params.hold_map, np.zeros((3, 3)))  # training: none
+    # the toy arm (two sideways axes and a weak lengthening): its own gain found again
+    env, default = toy(deadband_m=0.002, hold_gain=0.5)
+    np.testing.assert_allclose(
+        static_gain(env, default.plant, default.reset_initial_poses[0], default.preload,
+                    default.safe_set), default.plant.gain, atol=1e-6)
+    # off (either setting 0): no map is made
+    for off in ({"deadband_m": 0.0, "hold_gain": 0.5}, {"deadband_m": 0.001, "hold_gain": 0.0}):
+        env, params = _diagonal_toy(**off)
+        np.testing.assert_array_equal(with_hold_map(env, params).hold_map, np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize("incremental", [False, True])
+def test_within_the_hold_the_command_moves_by_the_gain_times_the_mapped_error(incremental):
+    env, params = _diagonal_toy(deadband_m=0.002, hold_gain=0.5, action_step_kpa=1.0)
+    params = with_hold_map(env, params)
+    env.incremental_actions = incremental
+    goal, last = GOALS[0], jnp.array([1.5, 3.0, 4.25])
+    action = jnp.array([0.9, -0.8, 0.3])
+    near = goal - jnp.array([0.0006, 0.0, -0.0007])  # 0.92 mm away: goal - measured (0.6, 0, -0.7)
+    held = env.deadband_action(action, near, goal, last, params)
+    # 0.5 * (480.77 * 0.0006, 0, 247.52 * -0.0007) kPa = 0.5 * (1.2 / 4.16, 0, -2.8 / 16.16)
+    np.testing.assert_allclose(env.command(held, last, params) - last,
+                               [0.5 * 1.2 / 4.16, 0.0, -0.5 * 2.8 / 16.16], atol=2e-4)
+    far = goal - jnp.array([0.0018, 0.0, -0.0012])  # 2.16 mm away: the policy's action
+    np.testing.assert_array_equal(env.deadband_action(action, far, goal, last, params), action)
+
+
+def test_the_hold_closes_the_last_millimetres_a_policy_stops_short_of():
+    """A controller that commands the steady state 1.5 mm beside the goal and then the same
+    command forever: on its own it ends 1.5 mm away; deployed with the hold (2 mm, gain 0.5) on
+    the linear toy, whose map the hold knows exactly, the error halves every period to below
+    0.05 mm."""
+    env, params = toy(deadband_m=0.002, hold_gain=0.5, goal_tolerance_m=0.001, max_steps=16)
+    params = with_hold_map(env, params)
+    carry = jax.tree.map(lambda leaf: leaf[0], params.reset_carries)
+    offset, gain = carry.offset, params.plant.gain
+    beside = GOALS[1] + jnp.array([0.0015, 0.0, 0.0])
+    goals = jnp.broadcast_to(GOALS[1], (16, 3))
+
+    def short(key, obs, state, periods):
+        seek = jnp.linalg.lstsq(gain, beside - offset)[0]
+        return periods + 1, env.action_for(seek, state.last_pressure, params)
+
+    run = jax.jit(lambda p, deadband: rollouts.rollout(
+        env, p, short, jnp.zeros((), jnp.int32), jax.random.PRNGKey(2), carry,
+        params.reset_positions[0], goals, deadband=deadband), static_argnums=1)
+    alone = 1000 * np.linalg.norm(np.asarray(run(params, False)[0]) - np.asarray(GOALS[1]), axis=1)
+    held = 1000 * np.linalg.norm(np.asarray(run(params, True)[0]) - np.asarray(GOALS[1]), axis=1)
+    assert abs(alone[-1] - 1.5) < 0.05
+    assert held[-1] < 0.05
+    assert np.all(np.diff(held[4:]) <= 1e-3)  # once within the hold, never further away
+
+
+@pytest.mark.parametrize(("overrides", "words"), [
+    (["env.hold_gain=1.5"], r"env.hold_gain=1.5 must lie in \[0, 1\]"),
+    (["env.hold_gain=-0.1"], r"env.hold_gain=-0.1 must lie in \[0, 1\]"),
+    (["env.hold_gain=0.1", "env.deadband_m=0.02"], r"env.deadband_m=0.02 must lie in \[0, 0.01\]"),
+])
+def test_a_hold_out_of_its_range_is_refused(make_cfg, overrides, words):
+    with pytest.raises(ConfigError, match=words):
+        validate_config(make_cfg("experiment=quick", *overrides))

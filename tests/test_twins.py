@@ -48,7 +48,8 @@ def test_a_calibrate_artifacts_twin_is_its_fitted_physics_over_the_defaults(tmp_
 
 def test_a_twin_starts_where_the_learned_env_starts_observed_like_it(make_cfg):
     """The twin plant settles at the preload from the poses the learned env's starts settled
-    from, and keeps the learned env's goals, safe set and observation normalization."""
+    from, and keeps the learned env's goals, safe set, observation normalization and hold map
+    (the policy is held with its model's static map, never the twin's)."""
     from pipeline.evaluation.closed_loop import _twin_env
     from pipeline.stages.evaluate import closed_loop_settings
 
@@ -66,6 +67,7 @@ def test_a_twin_starts_where_the_learned_env_starts_observed_like_it(make_cfg):
     learned = make_env_params(env, model, EnvConfig(reset_bank_size=5), key=jax.random.PRNGKey(0),
                               safe_set=SafeSet.from_limits(LIMITS), preload=2.0, rest_pose=rest,
                               rest_pose_std=0.002, goal_set=goals)
+    learned = learned.replace(hold_map=jnp.arange(9.0).reshape(3, 3))
 
     twin_env, twin = _twin_env(closed_loop_settings(cfg), env, learned, physics,
                                jax.random.PRNGKey(1))
@@ -73,7 +75,8 @@ def test_a_twin_starts_where_the_learned_env_starts_observed_like_it(make_cfg):
     # settled at the preload from those poses: within a tenth of a millimetre of them (the
     # preload hold lets the arm's slow creep move it a little)
     np.testing.assert_allclose(twin.reset_positions, learned.reset_initial_poses, atol=1e-4)
-    for field in ("goal_set", "obs_mean", "obs_scale", "preload", "reset_initial_poses"):
+    for field in ("goal_set", "obs_mean", "obs_scale", "preload", "reset_initial_poses",
+                  "hold_map"):
         np.testing.assert_array_equal(getattr(twin, field), getattr(learned, field))
     # the twin moves: inflating one chamber carries the tip off its rest pose by millimetres
     _, state = twin_env.reset(jax.random.PRNGKey(2), twin)

@@ -10,7 +10,7 @@ Each control period ``k`` (``1 / robot.control_hz`` arm seconds; the settings: :
    a preview, the goals of the next periods: :meth:`GoalSchedule.preview`; following a
    reference, :class:`pipeline.control.trajectory.TrajectorySchedule`, or one whose points
    arrive live, :class:`~pipeline.control.trajectory.LiveTrajectory`), the deterministic action
-   with the recurrent carry (within ``env.deadband_m`` of a goal, the last command again), the
+   with the recurrent carry (within ``env.deadband_m`` of a goal, the hold's command), the
    pressures (the environment's action mapping): one jitted call,
    compiled before the first command (:class:`pipeline.control.policy.Deployment`); a
    non-finite output stops it;

@@ -19,7 +19,7 @@ import numpy as np
 
 from pipeline.evaluation.rollouts import policy_controller
 from pipeline.infra.artifacts import Artifact
-from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
+from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv, with_hold_map
 from pipeline.rl.envs.observation import observe, update_error_integral
 from pipeline.rl.networks import initial_hidden
 
@@ -71,7 +71,7 @@ class Deployment:
 def make_step(network: Any, env: SoftArmReachEnv) -> Any:
     """The jitted control step: observation (the environment's :func:`observe`, with the preview
     where the policy was trained with one), the deterministic action (evaluate's policy
-    controller), within ``env_params.deadband_m`` of the goal the last command again (the
+    controller), within ``env_params.deadband_m`` of the goal the hold's command instead (the
     environment's :meth:`~SoftArmReachEnv.deadband_action`, as evaluate deploys it), the
     pressures (the environment's action mapping). Its carry is ``(recurrent
     state, accumulated error, last goal)``; the accumulated error is zero at the first period
@@ -100,8 +100,10 @@ def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict
            control_hz: float) -> Deployment:
     """Seed ``seed`` of the policy ``stacked`` (parameters with a leading seed axis, as
     :func:`pipeline.rl.policy_io.load_policy` returns them with ``network`` and ``meta``) in the
-    environment it was trained in, its step compiled (one call made). The workspace is the box of
-    ``train_params.goal_set`` [G, 3] m."""
+    environment it was trained in, its step compiled (one call made), with the hold's map of
+    that environment's model where the hold corrects (:func:`with_hold_map`). The workspace is
+    the box of ``train_params.goal_set`` [G, 3] m."""
+    eval_params = with_hold_map(env, eval_params)
     policy_params = jax.tree.map(lambda x: x[seed], stacked)
     goals = np.asarray(train_params.goal_set, np.float64)
     workspace = np.stack([goals.min(axis=0), goals.max(axis=0)])
@@ -114,8 +116,9 @@ def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict
     centre = workspace.mean(axis=0)
     deployment.act(deployment.hidden, True, centre, centre,
                    np.broadcast_to(centre, (deployment.preview, 3)), preload)
-    log.info("control: policy %s seed %d (%s on %s, preview %d, deadband %g mm), workspace %s "
-             "mm", artifact.path, seed, meta["agent"]["name"], meta.get("env_name"),
-             deployment.preview, float(eval_params.deadband_m) * MM_PER_M,
+    log.info("control: policy %s seed %d (%s on %s, preview %d, hold within %g mm, gain %g), "
+             "workspace %s mm", artifact.path, seed, meta["agent"]["name"],
+             meta.get("env_name"), deployment.preview, float(eval_params.deadband_m) * MM_PER_M,
+             float(eval_params.hold_gain),
              np.round(workspace * MM_PER_M, 1).tolist())
     return deployment

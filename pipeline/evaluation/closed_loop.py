@@ -5,7 +5,7 @@ safe actions; ``mpc``: sampling-based MPC on the learned model, :mod:`pipeline.e
 the same held-out goals and start states: on the **learned environment**, on the **plant** (the
 simulated arm for ``robot=sim``, observed through the same normalization the policies were
 trained with) and on a **consecutive-goals** task (several targets in a row, no reset). The
-policies act as deployed: within ``env.deadband_m`` of the goal the last command stays.
+policies act as deployed: within ``env.deadband_m`` of the goal the hold acts.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pipeline.evaluation import mpc, rollouts
 from pipeline.evaluation.metrics import MM_PER_M, episode_metrics, plant_gap, summarize
 from pipeline.infra.devices import batch_split
 from pipeline.rl.envs.factory import observation_options, sim_rest_pose
-from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv, make_env_params
+from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv, make_env_params, with_hold_map
 from pipeline.rl.envs.plants import SimPlantParams, learned_plant, sim_plant
 from pipeline.rl.networks import initial_hidden
 from pipeline.schemas import ConfigError, EnvConfig, EvaluationConfig
@@ -115,7 +115,8 @@ def _plant_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv,
         rest_pose=sim_rest_pose(plant),
         rest_pose_std=jnp.asarray(sim.rest_pose_std_m, jnp.float32),
         goal_set=learned_params.goal_set, obs_mean=learned_params.obs_mean,
-        obs_scale=learned_params.obs_scale, settings=settings.env)
+        obs_scale=learned_params.obs_scale, settings=settings.env,
+        hold_map=learned_params.hold_map)
     return env, params
 
 
@@ -240,7 +241,7 @@ def _model_env(env: SoftArmReachEnv, eval_params: EnvParams, dynamics_params: An
         env, dynamics_params, key=key, safe_set=eval_params.safe_set,
         preload=eval_params.preload, initial_poses=eval_params.reset_initial_poses,
         goal_set=eval_params.goal_set, obs_mean=eval_params.obs_mean,
-        obs_scale=eval_params.obs_scale, settings=settings.env)
+        obs_scale=eval_params.obs_scale, settings=settings.env, hold_map=eval_params.hold_map)
 
 
 def _twin_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, eval_params: EnvParams,
@@ -258,7 +259,7 @@ def _twin_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, eval_p
         env, plant, key=key, safe_set=eval_params.safe_set, preload=eval_params.preload,
         initial_poses=eval_params.reset_initial_poses, goal_set=eval_params.goal_set,
         obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale,
-        settings=settings.env)
+        settings=settings.env, hold_map=eval_params.hold_map)
     return env, params
 
 
@@ -291,6 +292,7 @@ def run_evaluation(settings: ClosedLoopSettings, policies: Mapping[str, Policy],
     SimPhysics values by plant name); return tables and arrays."""
     evaluation = settings.evaluation
     episodes, steps = int(evaluation.num_episodes), int(settings.max_steps)
+    eval_params = with_hold_map(env, eval_params)  # the model's map, for every plant
     key = jax.random.key(int(evaluation.seed))
     goal_key, plant_key, rollout_key, consecutive_key = jax.random.split(key, 4)
 

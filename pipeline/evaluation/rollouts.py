@@ -45,7 +45,7 @@ def rollout(
     environment (``env.tracking``) follows ``reference``, by default the goals themselves
     (:func:`pipeline.arm.references.goal_table`: its preview shows the goals to come). With
     ``deadband`` (reaching, as deployed), a period whose measured position lies within
-    ``params.deadband_m`` of its goal keeps the last command
+    ``params.deadband_m`` of its goal sends the hold's command
     (:meth:`~pipeline.rl.envs.learned.SoftArmReachEnv.deadband_action`)."""
     chex.assert_shape(start_position, (3,))
     chex.assert_rank(goals, 2)

@@ -167,7 +167,8 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
     if not 0 <= seed < num_seeds:
         raise ValueError(f"control.seed={seed}: {artifact.file('policy.msgpack')} holds seeds "
                          f"0..{num_seeds - 1}")
-    # the deadband is how this session deploys the policy, not how it was trained
-    eval_params = eval_params.replace(deadband_m=np.float32(control_deadband_m(cfg)))
+    # the deadband and the hold are how this session deploys the policy, not how it was trained
+    eval_params = eval_params.replace(deadband_m=np.float32(control_deadband_m(cfg)),
+                                      hold_gain=np.float32(cfg.env.get("hold_gain") or 0.0))
     return deploy(artifact, seed, network, stacked, meta, env, train_params, eval_params,
                   control_hz)

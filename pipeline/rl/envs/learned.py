@@ -189,7 +189,11 @@ class EnvParams:
     hold_periods: int32 scalar >= 1, terminate after this many consecutive periods at the goal.
     hold_bonus_mm: mm of reward for every control period that ends at the goal.
     deadband_m: m, deployment only: a control period whose measured position is within it of the
-      goal keeps the last command (:meth:`SoftArmReachEnv.deadband_action`; 0: off).
+      goal does not send the policy's action (:meth:`SoftArmReachEnv.deadband_action`; 0: off).
+    hold_gain: the share of the measured error the command corrects per control period there
+      (0: the last command stays).
+    hold_map: [3 valves, 3 axes] kPa/m, the damped inverse of the static map of the model the
+      policy was trained in (:func:`with_hold_map`; zeros where the hold does not correct).
     obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
     obs_noise_std_m: m, Gaussian noise on the observed position.
     error_scale_m: m, divides ``goal - measured`` in the observation (``include_error``).
@@ -222,6 +226,8 @@ class EnvParams:
     hold_periods: jax.Array
     hold_bonus_mm: jax.Array
     deadband_m: jax.Array
+    hold_gain: jax.Array
+    hold_map: jax.Array
     obs_mean: jax.Array
     obs_scale: jax.Array
     obs_noise_std_m: jax.Array
@@ -474,12 +480,20 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
     def deadband_action(self, action: jax.Array, measured: jax.Array, goal: jax.Array,
                         last_pressure: jax.Array, params: EnvParams) -> jax.Array:
         """``[3]``: the action deployment sends, ``action`` or, where ``measured [3]`` m lies
-        within ``params.deadband_m`` of ``goal [3]`` m, the action that commands ``last_pressure
-        [3]`` kPa again (:meth:`action_for`): a policy that has reached its goal is not let to
-        move off it. Evaluation's reaching episodes and the arm apply it; training does not (its
-        episodes end at the goal)."""
-        within = (params.deadband_m > 0) & (jnp.linalg.norm(goal - measured) <= params.deadband_m)
-        return jnp.where(within, self.action_for(last_pressure, last_pressure, params), action)
+        within ``params.deadband_m`` of ``goal [3]`` m, the hold's: the action that commands
+
+            p = last_pressure + hold_gain * hold_map @ (goal - measured)    [3] kPa
+
+        (:meth:`action_for`; ``hold_map`` the damped inverse of the static map of the policy's
+        model, :func:`with_hold_map`; ``hold_gain`` 0: the last command again, a deadband).
+        Near its goal the policy hands over to integral action: a slow, steady correction that
+        closes the last millimetres and holds them against the arm's creep, where a policy
+        trained to the first arrival dithers or drifts off. Evaluation's reaching episodes and
+        the arm apply it; training does not (its episodes end at the goal)."""
+        error = goal - measured
+        within = (params.deadband_m > 0) & (jnp.linalg.norm(error) <= params.deadband_m)
+        pressure = last_pressure + params.hold_gain * (params.hold_map @ error)
+        return jnp.where(within, self.action_for(pressure, last_pressure, params), action)
 
     @staticmethod
     def pressure_command(action: jax.Array, params: EnvParams) -> jax.Array:
@@ -554,6 +568,7 @@ def make_env_params(
     randomization_params: Randomization | None = None,
     initial_poses: jax.Array | None = None,
     reset_bank_size: int | None = None,
+    hold_map: jax.Array | None = None,
 ) -> EnvParams:
     """Build :class:`EnvParams`: the settings of ``settings`` (:func:`setting_values`), what the
     plant and the data supply, and ``reset_bank_size`` start states settled on the plant.
@@ -570,6 +585,9 @@ def make_env_params(
       initial_poses: [N, 3] m, the poses the bank settles from (``N`` replaces the bank size);
         default: drawn around ``rest_pose``.
       reset_bank_size: start states in the bank; default: ``settings.reset_bank_size``.
+      hold_map: [3, 3] kPa/m, the hold's map (``EnvParams.hold_map``): another plant deployed
+        with the policies of a model passes the model's (:func:`with_hold_map`); default: zeros
+        (training never meets the hold).
     """
     goal_mode = str(settings.goal_mode)
     if goal_mode not in GOAL_MODES:
@@ -606,7 +624,11 @@ def make_env_params(
     if obs_scale is None:
         spread = goal_set.std(axis=0) if goal_set.shape[0] > 1 else jnp.zeros(POSITION_DIM)
         obs_scale = jnp.maximum(spread, 1e-3)
+    if hold_map is None:
+        hold_map = jnp.zeros((NUM_VALVES, POSITION_DIM), jnp.float32)
+    chex.assert_shape(hold_map, (NUM_VALVES, POSITION_DIM))
     return EnvParams(
+        hold_map=jnp.asarray(hold_map, jnp.float32),
         plant=plant_params, safe_set=safe_set, preload=preload, reset_carries=carries,
         reset_positions=positions, reset_initial_poses=poses, goal_set=goal_set,
         goal_from_data=jnp.asarray(goal_mode == "data"),
@@ -614,3 +636,61 @@ def make_env_params(
         randomization=randomization() if randomization_params is None else randomization_params,
         **setting_values(settings))
 
+
+# ---------------------------------------------------------------------------------------------
+# the hold (deployment): integral action through the plant's static map
+# ---------------------------------------------------------------------------------------------
+# the static map: commands drawn uniformly over the valve box (a fixed draw: every deployment
+# of a model gets the same map), each held this long from the arm settled at the preload; the
+# damping of its inverse (a share of the largest singular value: the directions the valves
+# hardly move the arm in are left alone)
+HOLD_MAP_COMMANDS = 256
+HOLD_MAP_SEED = 0
+HOLD_MAP_SECONDS = 5.0
+HOLD_MAP_DAMPING = 0.1
+
+
+def static_gain(env: SoftArmReachEnv, plant_params: Any, pose: jax.Array, preload: jax.Array,
+                safe_set: SafeSet, num: int = HOLD_MAP_COMMANDS,
+                hold_seconds: float = HOLD_MAP_SECONDS) -> jax.Array:
+    """``[3 axes, 3 valves]`` m/kPa: the plant's static map ``G``, the slopes of the affine
+    least-squares fit ``x ≈ c + G p`` of where it rests ``hold_seconds`` after each of ``num``
+    commands ``p`` drawn uniformly over the valve box (``HOLD_MAP_SEED``; projected onto the
+    safe set), held from the plant settled at ``preload`` from ``pose [3]`` m (an ensemble: its
+    ``member``): the slopes of the static response averaged over the box."""
+    carry, _ = env.settle(plant_params, pose, preload)
+    steps = max(1, round(hold_seconds * env.plant.model_hz))
+    pressures = project(jax.random.uniform(jax.random.PRNGKey(HOLD_MAP_SEED), (num, NUM_VALVES),
+                                           minval=safe_set.p_min, maxval=safe_set.p_max),
+                        safe_set)
+
+    def rest(pressure):
+        _, positions = hold(env.plant, plant_params, carry, pressure, steps)
+        return positions[-1]
+
+    rests = jax.jit(jax.vmap(rest))(pressures)
+    features = jnp.concatenate([pressures, jnp.ones((num, 1), pressures.dtype)], axis=1)
+    coefficients, *_ = jnp.linalg.lstsq(features, rests)
+    return coefficients[:NUM_VALVES].T
+
+
+def damped_inverse(gain: jax.Array, damping: float = HOLD_MAP_DAMPING) -> jax.Array:
+    """``[3 valves, 3 axes]``: ``(GᵀG + λI)⁻¹ Gᵀ`` of ``gain`` ``G [3 axes, 3 valves]``, with
+    ``λ = (damping · σ_max(G))²``."""
+    chex.assert_shape(gain, (POSITION_DIM, NUM_VALVES))
+    largest = jnp.linalg.norm(gain, ord=2)
+    regular = gain.T @ gain + (damping * largest) ** 2 * jnp.eye(NUM_VALVES)
+    return jnp.linalg.solve(regular, gain.T)
+
+
+def with_hold_map(env: SoftArmReachEnv, params: EnvParams) -> EnvParams:
+    """``params`` as deployed: where the hold corrects (``deadband_m`` and ``hold_gain`` > 0),
+    with ``hold_map`` the damped inverse (:func:`damped_inverse`) of the static map of its plant
+    (:func:`static_gain`, from its first start pose), else as they are. Evaluate and the arm
+    deploy a policy so, with its model's parameters; every other plant it is evaluated on takes
+    the same map (``make_env_params(hold_map=...)``)."""
+    if not (float(params.deadband_m) > 0 and float(params.hold_gain) > 0):
+        return params
+    gain = static_gain(env, params.plant, params.reset_initial_poses[0], params.preload,
+                       params.safe_set)
+    return params.replace(hold_map=damped_inverse(gain).astype(jnp.float32))

@@ -187,12 +187,14 @@ def control_policy_config(cfg: Any) -> Any:
     return variant
 
 
-def control_deadband_m(cfg: Any) -> float:
-    """The deadband [m] ``stage=control`` deploys its policy with: ``env.deadband_m`` for goals,
-    0 following a reference (``control.trajectory``, ``control.trajectory_topic``), which moves
-    on."""
+def control_hold(cfg: Any) -> tuple[float, float]:
+    """The hold ``stage=control`` deploys its policy with, ``(deadband_m [m], hold_gain)``:
+    ``env.deadband_m`` and ``env.hold_gain`` for goals; ``(0, 0)`` following a reference
+    (``control.trajectory``, ``control.trajectory_topic``), which moves on; the gain 0 where
+    the radius is (nothing to hold within)."""
     following = cfg.control.trajectory is not None or cfg.control.get("trajectory_topic")
-    return 0.0 if following else float(cfg.env.get("deadband_m") or 0.0)
+    deadband = 0.0 if following else float(cfg.env.get("deadband_m") or 0.0)
+    return deadband, float(cfg.env.get("hold_gain") or 0.0) if deadband else 0.0
 
 
 def cross_model_groups(cfg: Any) -> tuple[list[str], list[str]] | None:

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 from pipeline.arm.twins import twin_physics
 from pipeline.chain import (
     IMPORT_KINDS,
-    control_deadband_m,
+    control_hold,
     control_policy_config,
     cross_model_folds,
     ensemble_configs,
@@ -283,10 +283,11 @@ def control_spec(cfg: Any) -> Spec:
         control.pop("arm_seed", None)
     stage, policy_key = control_policy(cfg)
     spec = {"control": control, "robot": robot}
-    if deadband := control_deadband_m(cfg):  # off: the key as before it existed
+    deadband, hold_gain = control_hold(cfg)
+    if deadband:  # off: the key as before it existed
         spec["deadband_m"] = deadband
-        if hold_gain := float(cfg.env.get("hold_gain") or 0.0):
-            spec["hold_gain"] = hold_gain
+    if hold_gain:  # the last command held: the key of the deadband as before
+        spec["hold_gain"] = hold_gain
     return _versioned("control", spec), {stage: policy_key}
 
 

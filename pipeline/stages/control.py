@@ -26,7 +26,7 @@ from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.arm.limits import validate_limits
-from pipeline.chain import control_deadband_m
+from pipeline.chain import control_hold
 from pipeline.control.goals import GoalError, GoalSchedule, goal_schedule
 from pipeline.control.loop import Outcome
 from pipeline.control.policy import MM_PER_M, Deployment, deploy
@@ -168,7 +168,8 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
         raise ValueError(f"control.seed={seed}: {artifact.file('policy.msgpack')} holds seeds "
                          f"0..{num_seeds - 1}")
     # the deadband and the hold are how this session deploys the policy, not how it was trained
-    eval_params = eval_params.replace(deadband_m=np.float32(control_deadband_m(cfg)),
-                                      hold_gain=np.float32(cfg.env.get("hold_gain") or 0.0))
+    deadband, hold_gain = control_hold(cfg)
+    eval_params = eval_params.replace(deadband_m=np.float32(deadband),
+                                      hold_gain=np.float32(hold_gain))
     return deploy(artifact, seed, network, stacked, meta, env, train_params, eval_params,
                   control_hz)

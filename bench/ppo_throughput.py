@@ -40,7 +40,7 @@ SETTINGS = {
     "default": (DEFAULT_MODEL, DatasetConfig().model_hz, AgentConfig().num_envs, False),
     "default, GRU policy": (DEFAULT_MODEL, DatasetConfig().model_hz, AgentConfig().num_envs,
                             True),
-    "paper": (dynamics.DynamicsConfig(hidden=1024, cell="lstm", step_size=False, step_decays=()),
+    "paper": (dynamics.DynamicsConfig(hidden=1024, cell="lstm", pressure_transients=()),
               2.0, 32, False),
 }
 

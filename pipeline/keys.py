@@ -116,8 +116,11 @@ def fit_model_spec(cfg: Any) -> Spec:
     dataset = _container(cfg.dataset)
     protocol = model_protocol(cfg)
     chosen = _MODEL_DATASET_KEYS + (_SPLIT_KEYS if protocol is ModelProtocol.split else ())
+    model = _container(cfg.model)
+    if not model.get("pressure_transients"):  # off: the keys of the models made before it
+        model.pop("pressure_transients", None)
     spec = _versioned("fit_model", {
-        "model": _container(cfg.model),
+        "model": model,
         "dataset": {**{k: dataset[k] for k in chosen}, "protocol": protocol.value}})
     return spec, {"align": artifact_key(*align_spec(cfg))}
 

@@ -83,6 +83,7 @@ def test_experiment_paper_keeps_the_papers_lstm_while_the_default_is_a_gru(make_
     assert paper.model.cell.value == "lstm" and paper.model.hidden == 1024
     assert paper.model.recurrent_dropout == 0.0
     assert not paper.model.step_size and list(paper.model.step_decays) == []
+    assert list(paper.model.pressure_transients) == []
 
 
 def test_the_session_spread_of_a_simulated_arm_is_part_of_its_keys(make_cfg):

@@ -31,7 +31,7 @@ def make_params(config: DynamicsConfig, seed=0) -> DynamicsParams:
     )
 
 
-PLAIN_LSTM = {"cell": "lstm", "step_size": False, "step_decays": ()}  # the paper's inputs
+PLAIN_LSTM = {"cell": "lstm", "pressure_transients": ()}  # the paper's inputs
 CONFIGS = [
     DynamicsConfig(hidden=8, layers=1, head=(), condition_on_initial_pose=True,
                    predict_displacement=True, **PLAIN_LSTM),
@@ -40,7 +40,8 @@ CONFIGS = [
     # a GRU reading every input feature (their state rides in the carry)
     DynamicsConfig(hidden=8, layers=1, cell="gru", condition_on_initial_pose=True,
                    pressure_delta=True, step_size=True, step_decays=(1.0, 5.0),
-                   play_widths_kpa=(0.3, 1.0), step_threshold_kpa=0.5),
+                   play_widths_kpa=(0.3, 1.0), step_threshold_kpa=0.5,
+                   pressure_transients=(1.0, 4.0)),
 ]
 
 
@@ -197,6 +198,7 @@ def test_the_saved_architecture_is_the_model_schema():
     assert set(names) < {f.name for f in dataclasses.fields(ModelConfig)}
     settings = ModelTrainConfig.from_any(ModelConfig(hidden=12, step_decays=[2.0]))
     assert settings.architecture() == DynamicsConfig(hidden=12, step_decays=(2.0,))
-    assert DynamicsConfig().cell == "gru" and DynamicsConfig().step_decays == (1.0, 3.0, 10.0)
+    assert DynamicsConfig().cell == "gru" and DynamicsConfig().step_decays == ()
+    assert DynamicsConfig().pressure_transients == (1.0, 3.0, 10.0)
     with pytest.raises(ValueError, match="cell must be one of"):
         DynamicsConfig(cell="rnn")

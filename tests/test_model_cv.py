@@ -146,6 +146,40 @@ def test_feature_transforms_known_answer():
         jnp.asarray(0.0), jnp.asarray([0.2, 1.0, -3.0]), 0.5), [0.0, 0.5, -2.5])
 
 
+def test_transients_known_answer_continuous_in_the_commands_and_zero_when_held():
+    spec = FeatureSpec(transients=(1.0, 10.0))
+    assert spec.dim == 6
+    pressures = np.zeros((6, 3), np.float32)
+    pressures[2:, 0] = 0.5  # chamber 0 steps by +0.5 kPa at t=2
+    pressures[4:, 1] = -1.0  # chamber 1 by -1 kPa at t=4
+    features = np.asarray(model_features.sequence(spec, jnp.asarray(pressures)))
+    fast, slow = features[:, :3], features[:, 3:]  # tau-major: tau 1, then tau 10
+    np.testing.assert_allclose(fast[:, 0], 0.5 * np.array([0, 0, 1, np.exp(-1), np.exp(-2),
+                                                           np.exp(-3)]), atol=1e-6)
+    np.testing.assert_allclose(slow[:, 1], -np.array([0, 0, 0, 0, 1, np.exp(-0.1)]), atol=1e-6)
+    assert np.all(features[:, 2] == 0)  # chamber 2 never moved
+    # steps superpose: a second step of chamber 0 adds to what is left of the first
+    again = pressures.copy()
+    again[3:, 0] = 1.0
+    twice = np.asarray(model_features.sequence(spec, jnp.asarray(again)))
+    np.testing.assert_allclose(twice[3, 3], 0.5 * np.exp(-0.1) + 0.5, atol=1e-6)
+
+    # linear in the step's size, with no threshold: 0.04 and 0.06 kPa differ by their ratio,
+    # where the step features jump from nothing to a whole command step
+    def after_step(size, features_spec):
+        step = np.full((40, 3), 2.0, np.float32)
+        step[20:, 0] += size
+        return np.asarray(model_features.sequence(features_spec, jnp.asarray(step)))
+
+    small, larger = after_step(0.04, spec), after_step(0.06, spec)
+    np.testing.assert_allclose(larger, 1.5 * small, rtol=1e-4, atol=1e-7)
+    steps = FeatureSpec(step_size=True, decays=(10.0,), step_threshold=0.05)
+    assert np.all(after_step(0.04, steps)[20:] == 0) and after_step(0.06, steps)[20, 3] == 1.0
+    # a held command: the transients fade to nothing, the held step size stays
+    assert np.abs(after_step(1.0, spec)[-1]).max() < 1.0 * np.exp(-19 / 10.0) + 1e-6
+    assert after_step(1.0, steps)[-1, 0] == pytest.approx(1.0)
+
+
 def test_band_coverage_and_ensemble_mean():
     mean, std = np.zeros((4, 3)), np.full((4, 3), 0.5)
     observed = np.array([[0.0, 0.9, 1.1]] * 4)
@@ -211,7 +245,8 @@ def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
 def test_a_model_with_features_round_trips_through_its_file(tmp_path):
     runs = lag_runs((30,))
     config = train_model.ModelTrainConfig(hidden=4, cell="gru", play_widths_kpa=(0.5,),
-                                          step_decays=(2.0,), step_size=True).architecture()
+                                          step_decays=(2.0,), step_size=True,
+                                          pressure_transients=(3.0,)).architecture()
     params = dynamics.DynamicsParams(dynamics.init_network(jax.random.PRNGKey(1), config),
                                      dynamics.fit_normalizer(runs, False), config)
     checkpoints.save_dynamics(tmp_path / "model.msgpack", params)
@@ -219,6 +254,19 @@ def test_a_model_with_features_round_trips_through_its_file(tmp_path):
     assert loaded.config == config
     np.testing.assert_allclose(scoring.predict_run(loaded, runs[0]),
                                scoring.predict_run(params, runs[0]), rtol=1e-6)
+
+
+def test_a_model_saved_before_the_transient_inputs_loads_without_them(tmp_path):
+    config = train_model.ModelTrainConfig(hidden=4, cell="gru", step_decays=(2.0,),
+                                          step_size=True, pressure_transients=()).architecture()
+    params = dynamics.DynamicsParams(dynamics.init_network(jax.random.PRNGKey(1), config),
+                                     dynamics.fit_normalizer(lag_runs((30,)), False), config)
+    state = checkpoints.model_state_dict(params)
+    stored = json.loads(state["config"])
+    del stored["pressure_transients"]  # as files written before the setting was
+    state["config"] = json.dumps(stored)
+    loaded = checkpoints.model_from_state_dict(state)
+    assert loaded.config == config and loaded.config.input_dim == 3 + 3 + 1
 
 
 def test_subsampled_members_never_train_on_their_held_out_run():
@@ -235,3 +283,34 @@ def test_subsampled_members_never_train_on_their_held_out_run():
     assert len({m.train_ids for m in drawn if m.held_out == "a"}) > 1
     with pytest.raises(SystemExit, match="only 6 training runs"):
         subsampled(members, drop=6)
+
+
+def test_model_steps_measures_the_held_first_command_and_the_answers_to_steps():
+    from experiments.model_steps import data_drift, step_answers
+
+    # a run held at its first command for 1.9 s at 10 Hz: too short to measure from 5 s
+    times = np.arange(40) / 10.0
+    pressures = np.full((40, 3), 2.0, np.float32)
+    pressures[20:, 0] = 3.0
+    positions = np.zeros((40, 3), np.float32)
+    positions[:, 0] = 1e-5 * np.arange(40)
+    [(run_id, held_s, moved)] = data_drift([Run("held", times, pressures, positions)])
+    assert run_id == "held" and held_s == pytest.approx(1.9) and np.isnan(moved)  # < 5 s
+    times = np.arange(200) / 10.0
+    pressures = np.full((200, 3), 2.0, np.float32)
+    pressures[170:, 1] = 2.5
+    positions = np.zeros((200, 3), np.float32)
+    positions[:, 2] = 1e-5 * np.arange(200)  # 0.01 mm a step
+    [(_, held_s, moved)] = data_drift([Run("long", times, pressures, positions)])
+    assert held_s == pytest.approx(16.9) and moved == pytest.approx(0.01 * (169 - 50), rel=1e-4)
+
+    config = train_model.ModelTrainConfig(hidden=4, cell="gru",
+                                          pressure_transients=(1.0, 3.0)).architecture()
+    params = dynamics.DynamicsParams(dynamics.init_network(jax.random.PRNGKey(2), config),
+                                     dynamics.fit_normalizer(lag_runs((30,)), False), config)
+    commands = jnp.asarray(np.random.default_rng(0).uniform(1.0, 3.0, (5, 3)), jnp.float32)
+    answers = step_answers(params, np.full(3, 2.0, np.float32), jnp.asarray([0.03, 0.35, 0.2]),
+                           commands, [0.0, 0.5], 10.0)
+    assert set(answers) == {"0", "0.5", "drift"}
+    assert all(v.shape == (5,) and np.all(np.isfinite(v)) for v in answers.values())
+    assert np.all(answers["0"] < answers["0.5"])  # no step: only the model's own drift

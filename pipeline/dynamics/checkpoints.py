@@ -56,7 +56,9 @@ def model_state_dict(params: DynamicsParams) -> dict:
 
 
 def model_from_state_dict(state: dict) -> DynamicsParams:
-    config = DynamicsConfig(**json.loads(state["config"]))
+    values = json.loads(state["config"])
+    values.setdefault("pressure_transients", [])  # a model saved before that input existed
+    config = DynamicsConfig(**values)
     template_network = jax.eval_shape(
         lambda key: dynamics.init_network(key, config), jax.random.PRNGKey(0)
     )

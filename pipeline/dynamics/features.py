@@ -11,14 +11,22 @@ a time (an environment) computes exactly what training computed over whole runs:
   is the number of model steps since the last command step (a step: some chamber changed by more
   than ``step_threshold_kpa``); before any step ``n_t`` is taken as infinite;
 * ``play_widths_kpa`` (half-widths ``r_k``): Prandtl–Ishlinskii play (backlash) operators on
-  each chamber's pressure, ``y_t = max(p_t - r, min(p_t + r, y_{t-1}))`` with ``y_0 = p_0``.
+  each chamber's pressure, ``y_t = max(p_t - r, min(p_t + r, y_{t-1}))`` with ``y_0 = p_0``;
+* ``transients`` (time constants ``tau_k`` in model steps): per chamber the part of the pressure
+  the arm has not yet settled to, ``u_t = exp(-1 / tau_k) u_{t-1} + (p_t - p_{t-1})`` with
+  ``u_0 = 0``: a step of ``d`` kPa gives ``d exp(-n / tau_k)`` after ``n`` steps, and steps
+  superpose. Unlike the step features it is linear and continuous in the commands (a step of
+  0.06 kPa gives 1.5 times what one of 0.04 kPa gives, where the step features jump from nothing
+  to a whole step at the threshold) and zero under a held command: a model fed only these cannot
+  tie its resting pose to the size of the last step.
 
 Time indices: the features of step ``t`` depend on ``p_0 .. p_t`` only. The state starts
 "unstarted" and the first pressure it sees initializes it (the previous pressure and every play
 operator start at ``p_0``, as for an arm resting at its first command).
 
 Feature vector layout (``F = feature_dim``): ``[delta (3), step_size (3), decays (K),
-play (R * 3, width-major)]``, each block present only when switched on.
+play (R * 3, width-major), transients (J * 3, tau-major)]``, each block present only when
+switched on.
 """
 
 from __future__ import annotations
@@ -40,11 +48,13 @@ class FeatureSpec(NamedTuple):
     decays: tuple[float, ...] = ()
     play_widths: tuple[float, ...] = ()
     step_threshold: float = 0.05
+    transients: tuple[float, ...] = ()
 
     @property
     def dim(self) -> int:
         return (NUM_CHAMBERS * (int(self.pressure_delta) + int(self.step_size))
-                + len(self.decays) + NUM_CHAMBERS * len(self.play_widths))
+                + len(self.decays)
+                + NUM_CHAMBERS * (len(self.play_widths) + len(self.transients)))
 
 
 class FeatureState(NamedTuple):
@@ -55,6 +65,7 @@ class FeatureState(NamedTuple):
     steps_since_step: [] model steps since the last command step.
     last_step: [3] kPa, the change at the last command step.
     play: [R, 3] kPa, the play operators' outputs.
+    transient: [J, 3] kPa, the unsettled part of the pressure per time constant.
     """
 
     started: jax.Array
@@ -62,6 +73,7 @@ class FeatureState(NamedTuple):
     steps_since_step: jax.Array
     last_step: jax.Array
     play: jax.Array
+    transient: jax.Array
 
 
 def init_state(spec: FeatureSpec) -> FeatureState:
@@ -73,6 +85,7 @@ def init_state(spec: FeatureSpec) -> FeatureState:
         steps_since_step=jnp.asarray(_NEVER, jnp.float32),
         last_step=zeros,
         play=jnp.zeros((len(spec.play_widths), NUM_CHAMBERS), jnp.float32),
+        transient=jnp.zeros((len(spec.transients), NUM_CHAMBERS), jnp.float32),
     )
 
 
@@ -94,6 +107,8 @@ def step(spec: FeatureSpec, state: FeatureState, pressure: jax.Array
     widths = jnp.asarray(spec.play_widths, jnp.float32).reshape(-1, 1)
     play_previous = jnp.where(started, state.play, jnp.broadcast_to(pressure, state.play.shape))
     play = play_operator(play_previous, pressure[None, :], widths)
+    retention = jnp.exp(-1.0 / jnp.asarray(spec.transients, jnp.float32)).reshape(-1, 1)
+    transient = retention * state.transient + delta[None, :]
     blocks = []
     if spec.pressure_delta:
         blocks.append(delta)
@@ -103,9 +118,11 @@ def step(spec: FeatureSpec, state: FeatureState, pressure: jax.Array
         blocks.append(jnp.exp(-since / jnp.asarray(spec.decays, jnp.float32)))
     if spec.play_widths:
         blocks.append(play.reshape(-1))
+    if spec.transients:
+        blocks.append(transient.reshape(-1))
     features = jnp.concatenate(blocks) if blocks else jnp.zeros((0,), jnp.float32)
     new_state = FeatureState(jnp.ones((), jnp.float32), pressure, since.astype(jnp.float32),
-                             last_step, play)
+                             last_step, play, transient)
     return new_state, features
 
 
@@ -119,8 +136,8 @@ def affine(spec: FeatureSpec, pressure_mean: jax.Array, pressure_std: jax.Array
            ) -> tuple[jax.Array, jax.Array]:
     """``(offset [F], scale [F])``: standardized features are ``(raw - offset) / scale``.
 
-    Pressure changes are divided by the chamber's pressure std, play outputs standardized like
-    the pressure, decays (already in [0, 1]) left as they are.
+    Pressure changes and transients are divided by the chamber's pressure std, play outputs
+    standardized like the pressure, decays (already in [0, 1]) left as they are.
     """
     offsets, scales = [], []
     zeros, ones = jnp.zeros((NUM_CHAMBERS,)), jnp.ones((NUM_CHAMBERS,))
@@ -133,6 +150,9 @@ def affine(spec: FeatureSpec, pressure_mean: jax.Array, pressure_std: jax.Array
     for _ in spec.play_widths:
         offsets.append(pressure_mean * ones)
         scales.append(pressure_std * ones)
+    for _ in spec.transients:
+        offsets.append(zeros)
+        scales.append(pressure_std)
     if not offsets:
         return jnp.zeros((0,)), jnp.ones((0,))
     return jnp.concatenate(offsets), jnp.concatenate(scales)

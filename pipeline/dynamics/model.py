@@ -64,20 +64,22 @@ CELLS = ("lstm", "gru")
 class DynamicsConfig(frozen_twin(ModelArchitecture, "ArchitectureFields")):
     """The architecture (:class:`pipeline.schemas.ModelArchitecture`, its only declaration) as a
     frozen dataclass, lists as tuples: hashable, the static data of :class:`DynamicsParams`, and
-    what a saved model stores. Defaults: the project's recipe (a GRU with the command-step
-    features); the paper's network is ``hidden=1024, cell="lstm", step_size=False,
-    step_decays=()``."""
+    what a saved model stores. Defaults: the project's recipe (a GRU reading the pressures'
+    transients); the paper's network is ``hidden=1024, cell="lstm", pressure_transients=()``."""
 
     def __post_init__(self):
         object.__setattr__(self, "head", tuple(int(width) for width in self.head))
         object.__setattr__(self, "step_decays", tuple(float(v) for v in self.step_decays))
+        object.__setattr__(self, "pressure_transients",
+                           tuple(float(v) for v in self.pressure_transients))
         object.__setattr__(self, "play_widths_kpa",
                            tuple(float(v) for v in self.play_widths_kpa))
         object.__setattr__(self, "cell", str(getattr(self.cell, "value", self.cell)))
         if self.cell not in CELLS:
             raise ValueError(f"cell must be one of {CELLS}, got {self.cell!r}")
-        if any(v <= 0 for v in self.step_decays):
-            raise ValueError(f"step_decays must be positive, got {self.step_decays}")
+        for name in ("step_decays", "pressure_transients"):
+            if any(v <= 0 for v in getattr(self, name)):
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if any(v < 0 for v in self.play_widths_kpa):
             raise ValueError(f"play_widths_kpa must be >= 0, got {self.play_widths_kpa}")
 
@@ -86,7 +88,7 @@ class DynamicsConfig(frozen_twin(ModelArchitecture, "ArchitectureFields")):
         return model_features.FeatureSpec(
             pressure_delta=self.pressure_delta, step_size=self.step_size,
             decays=self.step_decays, play_widths=self.play_widths_kpa,
-            step_threshold=self.step_threshold_kpa)
+            step_threshold=self.step_threshold_kpa, transients=self.pressure_transients)
 
     @property
     def input_dim(self) -> int:

@@ -66,6 +66,8 @@ class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
     def __post_init__(self):
         object.__setattr__(self, "head", tuple(int(width) for width in self.head))
         object.__setattr__(self, "step_decays", tuple(float(v) for v in self.step_decays))
+        object.__setattr__(self, "pressure_transients",
+                           tuple(float(v) for v in self.pressure_transients))
         object.__setattr__(self, "play_widths_kpa",
                            tuple(float(v) for v in self.play_widths_kpa))
         if not 0.0 <= self.recurrent_dropout < 1.0:
@@ -88,7 +90,7 @@ class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
         if isinstance(config, cls):
             return config
         values = dataclass_values(cls, config, "model")
-        for name in ("head", "step_decays", "play_widths_kpa"):
+        for name in ("head", "step_decays", "play_widths_kpa", "pressure_transients"):
             if name in values:
                 values[name] = tuple(values[name])
         return cls(**values)

@@ -78,7 +78,7 @@ class EnvConfig:
     # Measured across models, on the calibrated twin and the simulated arm:
     # docs/results/PPO_RESULTS.md, "The hold: integral action near the goal"
     deadband_m: float = 0.002
-    hold_gain: float = 0.1  # share of the measured error corrected per control period, in [0, 1]
+    hold_gain: float = 0.15  # share of the measured error corrected per control period, in [0, 1]
     goal_mode: GoalMode = GoalMode.data
     goal_perturbation_m: float = 0.01
     # a new goal every this many control periods, drawn as at a reset (goal_mode=perturb: around

@@ -66,7 +66,7 @@ _AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt
 # stage, and through their input keys every artifact downstream, is then made anew, once. Every
 # setting of the composed config is in its stage's spec with its value, defaults included.
 SPEC_VERSIONS = {"collect": 2, "align": 2, "calibrate": 2, "fit_model": 3, "train_ppo": 3,
-                 "evaluate": 3, "control": 2, "adapt": 1}
+                 "evaluate": 4, "control": 2, "adapt": 1}
 
 
 def _container(node: Any) -> Any:
@@ -182,6 +182,17 @@ def train_ppo_spec(cfg: Any) -> Spec:
 
         path = init_policy_file(agent["init_policy"])
         spec["init_policy_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
+    plant, inputs = env_plant_spec(cfg)
+    spec.update(plant)
+    return spec, inputs
+
+
+def env_plant_spec(cfg: Any) -> Spec:
+    """What the environment steps, by env: the robot (``env.name=sim``), or the limits, the
+    control rate, the model and the ensemble's further models (``learned``); nothing for the
+    others."""
+    env_name = EnvName(cfg.env.name)
+    spec: dict[str, Any] = {}
     inputs: dict[str, str] = {}
     if env_name is EnvName.sim:
         spec["robot"] = _container(cfg.robot)
@@ -208,12 +219,14 @@ def evaluation_twins(cfg: Any) -> dict[str, dict[str, Any]]:
 
 
 def evaluate_spec(cfg: Any) -> Spec:
-    """The evaluation settings and env; the policies, the other models (``evaluation.models``)
-    and, for the cross-model protocol, each group's policies and the model they meet."""
+    """The evaluation settings and env, and what the env steps (the baselines act in it whatever
+    the policies); the policies, the other models (``evaluation.models``) and, for the
+    cross-model protocol, each group's policies and the model they meet."""
+    plant, inputs = env_plant_spec(cfg)
     spec = _versioned("evaluate", {"evaluation": _container(cfg.evaluation),
-                                   "env": env_spec(cfg)})
-    inputs = {f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
-              for name, variant in policy_configs(cfg).items()}
+                                   "env": env_spec(cfg), "plant": plant})
+    inputs.update({f"train_ppo/{name}": artifact_key(*train_ppo_spec(variant))
+                   for name, variant in policy_configs(cfg).items()})
     spec["evaluation"].pop("models", None)  # where they lie does not matter, their keys do
     if "task" not in spec["env"]:  # reaching: the tracking evaluation does not run
         for setting in TRACK_EVALUATION_SETTINGS:

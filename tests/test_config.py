@@ -96,3 +96,19 @@ def test_the_session_spread_of_a_simulated_arm_is_part_of_its_keys(make_cfg):
     spread = make_cfg("+robot.physics.session_std={bend_gain:0.01}")
     assert keys.collect_spec(spread)[0]["robot"]["physics"]["session_std"] == {"bend_gain": 0.01}
     assert keys.key("collect", spread) != keys.key("collect", cfg)
+
+
+def test_the_evaluate_key_follows_the_plant_the_baselines_act_in(make_cfg):
+    """Without a policy the baselines' results still depend on the model (or the simulated arm)
+    the environment steps: another model or robot is another evaluation."""
+    from pipeline import keys
+
+    alone = ("evaluation.policies=[]",)
+    learned = make_cfg(*alone)
+    assert keys.evaluate_spec(learned)[1]["fit_model"] == keys.key("fit_model", learned)
+    assert keys.key("evaluate", learned) != keys.key("evaluate", make_cfg(*alone, "model.hidden=8"))
+    assert keys.key("evaluate", learned) != keys.key(
+        "evaluate", make_cfg(*alone, "robot.limits.p_max=6.5"))
+    # with policies, the model was already in their keys: it still is, once
+    spec, inputs = keys.evaluate_spec(make_cfg())
+    assert inputs["fit_model"] == keys.key("fit_model", learned) and "plant" in spec

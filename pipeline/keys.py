@@ -163,7 +163,6 @@ def ensemble_entries(cfg: Any) -> dict[str, str]:
 def train_ppo_spec(cfg: Any) -> Spec:
     """The policies: env, agent, seed and, by env, the robot or the model (and the ensemble's
     further models)."""
-    env_name = EnvName(cfg.env.name)
     agent = _container(cfg.agent)
     for name in _NON_DETERMINING_AGENT_KEYS:
         agent.pop(name, None)

@@ -60,6 +60,18 @@ CELLS = ("lstm", "gru")
 # ---------------------------------------------------------------------------------------------
 # configuration and parameters
 # ---------------------------------------------------------------------------------------------
+# the architecture's settings that are lists of numbers (kPa, model steps), stored as tuples
+FLOAT_LIST_FIELDS = ("step_decays", "pressure_transients", "play_widths_kpa")
+
+
+def freeze_lists(settings: Any) -> None:
+    """Store the list settings of ``settings`` (a frozen dataclass with the architecture's
+    fields) as tuples: ``head`` of ints, :data:`FLOAT_LIST_FIELDS` of floats (hashable)."""
+    object.__setattr__(settings, "head", tuple(int(width) for width in settings.head))
+    for name in FLOAT_LIST_FIELDS:
+        object.__setattr__(settings, name, tuple(float(v) for v in getattr(settings, name)))
+
+
 @dataclass(frozen=True)
 class DynamicsConfig(frozen_twin(ModelArchitecture, "ArchitectureFields")):
     """The architecture (:class:`pipeline.schemas.ModelArchitecture`, its only declaration) as a
@@ -68,12 +80,7 @@ class DynamicsConfig(frozen_twin(ModelArchitecture, "ArchitectureFields")):
     transients); the paper's network is ``hidden=1024, cell="lstm", pressure_transients=()``."""
 
     def __post_init__(self):
-        object.__setattr__(self, "head", tuple(int(width) for width in self.head))
-        object.__setattr__(self, "step_decays", tuple(float(v) for v in self.step_decays))
-        object.__setattr__(self, "pressure_transients",
-                           tuple(float(v) for v in self.pressure_transients))
-        object.__setattr__(self, "play_widths_kpa",
-                           tuple(float(v) for v in self.play_widths_kpa))
+        freeze_lists(self)
         object.__setattr__(self, "cell", str(getattr(self.cell, "value", self.cell)))
         if self.cell not in CELLS:
             raise ValueError(f"cell must be one of {CELLS}, got {self.cell!r}")

@@ -64,12 +64,7 @@ class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
     """
 
     def __post_init__(self):
-        object.__setattr__(self, "head", tuple(int(width) for width in self.head))
-        object.__setattr__(self, "step_decays", tuple(float(v) for v in self.step_decays))
-        object.__setattr__(self, "pressure_transients",
-                           tuple(float(v) for v in self.pressure_transients))
-        object.__setattr__(self, "play_widths_kpa",
-                           tuple(float(v) for v in self.play_widths_kpa))
+        dynamics.freeze_lists(self)
         if not 0.0 <= self.recurrent_dropout < 1.0:
             raise ValueError(f"recurrent_dropout must lie in [0, 1), got {self.recurrent_dropout}")
         if self.input_noise_std < 0 or self.weight_decay < 0:
@@ -89,11 +84,7 @@ class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
         """From this class, another dataclass, a mapping or an OmegaConf node; unknown keys fail."""
         if isinstance(config, cls):
             return config
-        values = dataclass_values(cls, config, "model")
-        for name in ("head", "step_decays", "play_widths_kpa", "pressure_transients"):
-            if name in values:
-                values[name] = tuple(values[name])
-        return cls(**values)
+        return cls(**dataclass_values(cls, config, "model"))
 
     def architecture(self) -> DynamicsConfig:
         """The network part of these settings (the saved model's config)."""

@@ -289,10 +289,13 @@ def model_jobs(cfg: Any, prefix: str = "", result: bool = True) -> list[Job]:
         for member in ensemble_configs(cfg)]
 
 
-def policy_jobs(cfg: Any, key_of, prefix: str = "", result: bool = True) -> list[Job]:
-    """train_ppo for ``cfg``'s agent and each policy type of ``evaluation.policies`` (one job per
-    distinct artifact key, ``key_of(cfg)``; they may run side by side)."""
-    variants = {str(cfg.agent.name): cfg, **policy_configs(cfg),
+def policy_jobs(cfg: Any, key_of, prefix: str = "", result: bool = True,
+                own_agent: bool = True) -> list[Job]:
+    """train_ppo for each policy type of ``evaluation.policies`` and the reaching baseline's
+    (one job per distinct artifact key, ``key_of(cfg)``; they may run side by side), and, with
+    ``own_agent``, first for ``cfg``'s own agent (the whole chain trains it; evaluate reads only
+    the policies it compares)."""
+    variants = {**({str(cfg.agent.name): cfg} if own_agent else {}), **policy_configs(cfg),
                 **{f"{name} (reaching)": variant
                    for name, variant in reaching_configs(cfg).items()}}
     jobs, seen = [], set()
@@ -316,7 +319,7 @@ def cross_model_jobs(cfg: Any, key_of) -> list[Job]:
         jobs += [Job(Stage.collect, train, prefix.rstrip(", "), False),
                  Job(Stage.align, train, prefix.rstrip(", "), False),
                  *model_jobs(train, prefix, result=False),
-                 *policy_jobs(train, key_of, prefix, result=False)]
+                 *policy_jobs(train, key_of, prefix, result=False, own_agent=False)]
     return jobs
 
 
@@ -324,7 +327,8 @@ def plan(cfg: Any, key_of) -> list[Job]:
     """The jobs of a run of ``cfg``, in order. Upstream of the requested stage every config has
     ``force=false`` (``force=true`` recomputes the requested stage only; every stage for
     ``all``); fit_model upstream of a training also fits the ensemble's further seeds; training
-    upstream of evaluate trains every policy type it compares, and the cross-model groups'.
+    upstream of evaluate trains every policy type it compares (the run's own agent only where
+    it is one of them; the whole chain trains it besides), and the cross-model groups'.
     ``key_of(cfg)``: the train_ppo artifact key of a config (policy types that share a key train
     once)."""
     stage = Stage(cfg.stage)
@@ -336,7 +340,7 @@ def plan(cfg: Any, key_of) -> list[Job]:
     for name in stages_to_run(cfg):
         stage_cfg = cfg if name is stage else upstream_cfg
         if name is Stage.train_ppo and stage in (Stage.all, Stage.evaluate):
-            jobs += policy_jobs(stage_cfg, key_of)
+            jobs += policy_jobs(stage_cfg, key_of, own_agent=stage is Stage.all)
             jobs += cross_model_jobs(stage_cfg, key_of)
         elif name is Stage.fit_model and stage is not Stage.fit_model:
             jobs += model_jobs(stage_cfg)

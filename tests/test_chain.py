@@ -39,6 +39,21 @@ def test_a_policy_type_that_is_the_run_s_own_agent_trains_once(make_cfg):
                                                 ("evaluate", "", True)]
 
 
+def test_evaluate_trains_only_the_policies_it_compares(make_cfg, sorolex_dir):
+    # the baselines alone: nothing to train, in the run's own model or in the groups'
+    cfg = make_cfg("stage=evaluate", "experiment=real_arm", f"robot.data_dir={sorolex_dir}",
+                   "evaluation.policies=[]")
+    assert not [job for job in plan(cfg, train_key) if job.stage is Stage.train_ppo]
+    # a policy type other than the run's agent: that one, as the stage's result
+    cfg = make_cfg("stage=evaluate", "agent=ppo_rnn", "evaluation.policies=[apg]")
+    assert summary(plan(cfg, train_key))[3:] == [("train_ppo", "apg", True),
+                                                ("evaluate", "", True)]
+    # the whole chain trains its own agent besides
+    cfg = make_cfg("stage=all", "agent=ppo_rnn", "evaluation.policies=[apg]")
+    assert [job.label for job in plan(cfg, train_key)
+            if job.stage is Stage.train_ppo] == ["ppo_rnn", "apg"]
+
+
 def test_the_recorded_data_plan_fans_out_to_the_ensemble_and_both_groups(make_cfg, sorolex_dir):
     cfg = make_cfg("stage=evaluate", "experiment=real_arm", f"robot.data_dir={sorolex_dir}")
     jobs = plan(cfg, train_key)

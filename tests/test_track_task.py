@@ -22,6 +22,7 @@ from pipeline.rl.envs import (
 )
 from pipeline.schemas import ConfigError, EnvConfig, EvaluationConfig
 from pipeline.stages._environment import config_environment
+from pipeline.stages.evaluate import tracking_settings
 from pipeline.validation import validate_config
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
@@ -220,3 +221,22 @@ def test_evaluation_references_over_their_defaults_and_unknown_settings(make_cfg
                                           r"\['shape'\]"):
         tracking_settings(bad)
 
+
+
+def test_the_recorded_arm_tracks_with_absolute_actions_and_the_mpc_over_the_preview(
+        make_cfg, sorolex_dir):
+    cfg = make_cfg("experiment=real_arm_tracking", f"robot.data_dir={sorolex_dir}")
+    validate_config(cfg)
+    reaching = make_cfg("experiment=real_arm", f"robot.data_dir={sorolex_dir}")
+    # real_arm's recipe but the task and the action mode: the models, ensemble, price and plants
+    assert cfg.env.task.value == "track" and cfg.env.action_mode.value == "absolute"
+    assert reaching.env.action_mode.value == "incremental"
+    for setting in ("ensemble_seeds", "command_change_cost_mm_per_kpa", "randomization"):
+        assert cfg.env[setting] == reaching.env[setting]
+    assert keys.key("fit_model", cfg) == keys.key("fit_model", reaching)
+    assert list(cfg.evaluation.twins) == ["sim_sorolex"] and cfg.evaluation.reaching
+    # the MPC plans over what the policies see ahead: the period's goal and the preview
+    tracking = tracking_settings(cfg)
+    assert tracking.mpc_horizon is None
+    env = SoftArmReachEnv(linear_lag_plant(10.0), 2.0, task="track", preview=int(cfg.env.preview))
+    assert tracking.mpc_settings(cfg.evaluation, env).horizon == 4

@@ -208,8 +208,6 @@ def test_experiment_tracking_trains_and_evaluates_both_policy_types(make_cfg):
 
 
 def test_evaluation_references_over_their_defaults_and_unknown_settings(make_cfg):
-    from pipeline.stages.evaluate import tracking_settings
-
     cfg = make_cfg("experiment=tracking",
                    "+evaluation.references.fast={kind:figure_eight,period_s:10}")
     shapes = tracking_settings(cfg).references
@@ -220,7 +218,6 @@ def test_evaluation_references_over_their_defaults_and_unknown_settings(make_cfg
     with pytest.raises(ConfigError, match=r"evaluation\.references\.odd: unknown setting\(s\) "
                                           r"\['shape'\]"):
         tracking_settings(bad)
-
 
 
 def test_the_recorded_arm_tracks_with_absolute_actions_and_the_mpc_over_the_preview(

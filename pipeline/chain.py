@@ -289,8 +289,8 @@ def model_jobs(cfg: Any, prefix: str = "", result: bool = True) -> list[Job]:
         for member in ensemble_configs(cfg)]
 
 
-def policy_jobs(cfg: Any, key_of, prefix: str = "", result: bool = True,
-                own_agent: bool = True) -> list[Job]:
+def policy_jobs(cfg: Any, key_of, prefix: str = "", result: bool = True, *,
+                own_agent: bool) -> list[Job]:
     """train_ppo for each policy type of ``evaluation.policies`` and the reaching baseline's
     (one job per distinct artifact key, ``key_of(cfg)``; they may run side by side), and, with
     ``own_agent``, first for ``cfg``'s own agent (the whole chain trains it; evaluate reads only

@@ -187,14 +187,17 @@ def control_policy_config(cfg: Any) -> Any:
     return variant
 
 
-def control_hold(cfg: Any) -> tuple[float, float]:
-    """The hold ``stage=control`` deploys its policy with, ``(deadband_m [m], hold_gain)``:
-    ``env.deadband_m`` and ``env.hold_gain`` for goals; ``(0, 0)`` following a reference
-    (``control.trajectory``, ``control.trajectory_topic``), which moves on; the gain 0 where
-    the radius is (nothing to hold within)."""
+def control_hold(cfg: Any) -> tuple[float, float, float]:
+    """The hold ``stage=control`` deploys its policy with, ``(deadband_m [m], hold_gain,
+    hold_backoff)``: ``env.deadband_m``, ``env.hold_gain`` and ``env.hold_backoff`` for goals;
+    ``(0, 0, 1)`` following a reference (``control.trajectory``, ``control.trajectory_topic``),
+    which moves on; the gain 0 where the radius is (nothing to hold within) and the backoff 1
+    where the gain is (nothing to back off)."""
     following = cfg.control.trajectory is not None or cfg.control.get("trajectory_topic")
     deadband = 0.0 if following else float(cfg.env.get("deadband_m") or 0.0)
-    return deadband, float(cfg.env.get("hold_gain") or 0.0) if deadband else 0.0
+    gain = float(cfg.env.get("hold_gain") or 0.0) if deadband else 0.0
+    backoff = float(cfg.env.get("hold_backoff", 1.0)) if gain else 1.0
+    return deadband, gain, backoff
 
 
 def cross_model_groups(cfg: Any) -> tuple[list[str], list[str]] | None:

@@ -127,8 +127,9 @@ def fit_model_spec(cfg: Any) -> Spec:
 
 def env_spec(cfg: Any) -> dict[str, Any]:
     """``cfg.env`` as keys see it: without ``env.models`` (where those lie does not matter, their
-    keys are inputs), without ``env.train_max_steps`` where unset, ``env.deadband_m`` where 0
-    and ``env.hold_gain`` where it does not act (the keys of before), for absolute actions
+    keys are inputs), without ``env.train_max_steps`` where unset, ``env.deadband_m`` where 0,
+    ``env.hold_gain`` where it does not act and ``env.hold_backoff`` where it does not act or
+    is 1 (the keys of before), for absolute actions
     without the incremental step and, to reach, without the tracking task's settings
     (unused)."""
     env = _container(cfg.env)
@@ -139,6 +140,9 @@ def env_spec(cfg: Any) -> dict[str, Any]:
         env.pop("deadband_m", None)
     if not (env.get("hold_gain") and env.get("deadband_m")):  # no hold: the keys as before
         env.pop("hold_gain", None)
+        env.pop("hold_backoff", None)
+    if env.get("hold_backoff") == 1:  # a fixed gain: the hold as before it backed off
+        env.pop("hold_backoff", None)
     if Task(env.get("task", Task.reach)) is Task.reach:
         for setting in TRACK_SETTINGS:
             env.pop(setting, None)
@@ -172,7 +176,8 @@ def train_ppo_spec(cfg: Any) -> Spec:
     if "hold_tune" in agent and not AgentConfig.from_any(cfg.agent).hold_tune_timesteps:
         agent.pop("hold_tune")  # no such phase for this policy type: the key as without it
     env = env_spec(cfg)
-    for setting in ("deadband_m", "hold_gain"):  # deployment only: training never meets them
+    for setting in ("deadband_m", "hold_gain", "hold_backoff"):  # deployment only: training
+        # never meets them
         env.pop(setting, None)
     spec: dict[str, Any] = _versioned("train_ppo", {"env": env, "agent": agent,
                                                     "seed": int(cfg.seed)})
@@ -298,11 +303,13 @@ def control_spec(cfg: Any) -> Spec:
         control.pop("arm_seed", None)
     stage, policy_key = control_policy(cfg)
     spec = {"control": control, "robot": robot}
-    deadband, hold_gain = control_hold(cfg)
+    deadband, hold_gain, hold_backoff = control_hold(cfg)
     if deadband:  # off: the key as before it existed
         spec["deadband_m"] = deadband
     if hold_gain:  # the last command held: the key of the deadband as before
         spec["hold_gain"] = hold_gain
+    if hold_backoff != 1:  # a fixed gain: the key of the hold as before
+        spec["hold_backoff"] = hold_backoff
     return _versioned("control", spec), {stage: policy_key}
 
 

@@ -333,6 +333,10 @@ def _check_env(cfg: Any) -> None:
         raise ConfigError(f"env.hold_gain={gain} must lie in [0, 1] (the share of the measured "
                           f"error the command corrects per control period within "
                           f"env.deadband_m; 0: the last command stays)")
+    backoff = float(env.hold_backoff)
+    if not (math.isfinite(backoff) and 0 < backoff <= 1):
+        raise ConfigError(f"env.hold_backoff={backoff} must lie in (0, 1] (what the hold's gain "
+                          f"is multiplied by after a correction that overshot; 1: a fixed gain)")
     deadband = float(env.deadband_m)
     if gain == 0 and not (math.isfinite(deadband) and
                           0 <= deadband <= float(env.goal_tolerance_m)):

@@ -1,6 +1,7 @@
-"""The deadband and the hold of deployment (``env.deadband_m``, ``env.hold_gain``): within it of
-the goal the last command stays (gain 0) or moves by integral action through the static map of
-the policy's model, in evaluate's reaching episodes and on the arm, never in training.
+"""The deadband and the hold of deployment (``env.deadband_m``, ``env.hold_gain``,
+``env.hold_backoff``): within it of the goal the last command stays (gain 0) or moves by integral
+action through the static map of the policy's model, its gain backed off after each correction
+that overshot, in evaluate's reaching episodes and on the arm, never in training.
 
 Known answers on the linear-lag toy of ``tests/test_robust_env.py`` (five plant steps per
 period, three recorded goals 5 mm from the rest pose).
@@ -22,6 +23,11 @@ from pipeline.validation import validate_config
 from tests.test_robust_env import GOALS, toy
 
 
+def deployed(env, action, measured, goal, last, params):
+    """The action deployment sends in the first period at ``goal`` (the hold's memory fresh)."""
+    return env.deadband_action(env.initial_hold(goal), action, measured, goal, last, params)[1]
+
+
 @pytest.mark.parametrize("incremental", [False, True])
 def test_within_the_deadband_the_action_commands_the_last_pressure_again(incremental):
     env, params = toy(deadband_m=0.001)
@@ -30,17 +36,17 @@ def test_within_the_deadband_the_action_commands_the_last_pressure_again(increme
     action = jnp.array([0.9, -0.8, 0.3])
     near = goal + jnp.array([0.0006, 0.0, -0.0007])  # 0.92 mm away
     far = goal + jnp.array([0.0008, 0.0, -0.0007])  # 1.06 mm away
-    held = env.deadband_action(action, near, goal, last, params)
+    held = deployed(env, action, near, goal, last, params)
     np.testing.assert_allclose(env.command(held, last, params), last, atol=1e-6)
     if incremental:
         np.testing.assert_array_equal(held, jnp.zeros(3))
     else:  # [-1, 1] on [0, 7] kPa: 2 p / 7 - 1
         np.testing.assert_allclose(held, [2 * 1.5 / 7 - 1, 2 * 3.0 / 7 - 1, 2 * 4.25 / 7 - 1],
                                    rtol=1e-6)
-    np.testing.assert_array_equal(env.deadband_action(action, far, goal, last, params), action)
+    np.testing.assert_array_equal(deployed(env, action, far, goal, last, params), action)
     # off (0): the policy's action even exactly at the goal
     _, off = toy(deadband_m=0.0)
-    np.testing.assert_array_equal(env.deadband_action(action, goal, goal, last, off), action)
+    np.testing.assert_array_equal(deployed(env, action, goal, goal, last, off), action)
 
 
 def _seek_then_push(env, params, gain, offset):
@@ -153,12 +159,12 @@ def test_within_the_hold_the_command_moves_by_the_gain_times_the_mapped_error(in
     goal, last = GOALS[0], jnp.array([1.5, 3.0, 4.25])
     action = jnp.array([0.9, -0.8, 0.3])
     near = goal - jnp.array([0.0006, 0.0, -0.0007])  # 0.92 mm away: goal - measured (0.6, 0, -0.7)
-    held = env.deadband_action(action, near, goal, last, params)
+    held = deployed(env, action, near, goal, last, params)
     # 0.5 * (480.77 * 0.0006, 0, 247.52 * -0.0007) kPa = 0.5 * (1.2 / 4.16, 0, -2.8 / 16.16)
     np.testing.assert_allclose(env.command(held, last, params) - last,
                                [0.5 * 1.2 / 4.16, 0.0, -0.5 * 2.8 / 16.16], atol=2e-4)
     far = goal - jnp.array([0.0018, 0.0, -0.0012])  # 2.16 mm away: the policy's action
-    np.testing.assert_array_equal(env.deadband_action(action, far, goal, last, params), action)
+    np.testing.assert_array_equal(deployed(env, action, far, goal, last, params), action)
 
 
 def test_the_hold_closes_the_last_millimetres_a_policy_stops_short_of():
@@ -195,3 +201,99 @@ def test_the_hold_closes_the_last_millimetres_a_policy_stops_short_of():
 def test_a_hold_out_of_its_range_is_refused(make_cfg, overrides, words):
     with pytest.raises(ConfigError, match=words):
         validate_config(make_cfg("experiment=quick", *overrides))
+
+
+# ---- the hold's backoff: its gain halves after each correction that overshot -------------------
+def _memory(env, goal, error_mm, scale=1.0):
+    """The hold's memory after a period at ``goal`` that held with ``goal - measured`` =
+    ``error_mm``."""
+    return env.initial_hold(goal).replace(scale=jnp.float32(scale), held=jnp.array(True),
+                                          error=jnp.array(error_mm, jnp.float32) / 1000)
+
+
+def test_a_correction_that_overshot_halves_the_gain_until_the_goal_changes():
+    """Known answers on the diagonal toy (the exact hold map, gain 0.5, backoff 0.5): the last
+    period held at an error of (0.6, 0, -0.7) mm (0.92 mm); now (-0.9, 0, 0.6) mm, past the goal
+    (their dot product is -0.96 mm²) and further from it (1.08 mm), so the command moves by
+    0.5 · 0.5 · map @ error."""
+    env, params = _diagonal_toy(deadband_m=0.002, hold_gain=0.5, hold_backoff=0.5)
+    params = params.replace(hold_map=jnp.asarray(DIAGONAL_INVERSE, jnp.float32))
+    goal, last, action = GOALS[0], jnp.array([1.5, 3.0, 4.25]), jnp.array([0.9, -0.8, 0.3])
+    memory = _memory(env, goal, [0.6, 0.0, -0.7])
+
+    def scale(memory, error_mm, p=params):
+        measured = goal - jnp.array(error_mm) / 1000
+        return float(env.deadband_action(memory, action, measured, goal, last, p)[0].scale)
+
+    past = goal - jnp.array([-0.0009, 0.0, 0.0006])
+    hold, held = env.deadband_action(memory, action, past, goal, last, params)
+    # 0.25 · (480.77 · -0.0009, 0, 247.52 · 0.0006) kPa = 0.25 · (-1.8 / 4.16, 0, 2.4 / 16.16)
+    np.testing.assert_allclose(env.command(held, last, params) - last,
+                               [0.25 * -1.8 / 4.16, 0.0, 0.25 * 2.4 / 16.16], atol=2e-6)
+    assert float(hold.scale) == 0.5 and bool(hold.held)
+    np.testing.assert_allclose(hold.error, [-0.0009, 0.0, 0.0006], atol=1e-8)
+    # the scale it had is kept, and halved again at the next overshoot (1.08 -> 1.2 mm across)
+    assert scale(hold, [1.2, 0.0, 0.0]) == 0.25
+    # the gain stays where the error did not turn past the goal (+0.96 mm²), where it turned and
+    # shrank (0.92 -> 0.72 mm: converging), where it turned and grew within a quarter of the
+    # radius (0.2 -> 0.4 mm) and where the arm left the radius on its own side (creep)
+    assert scale(memory, [0.9, 0.0, -0.6]) == 1.0
+    assert scale(memory, [-0.6, 0.0, 0.4]) == 1.0
+    assert scale(_memory(env, goal, [0.2, 0.0, 0.0]), [-0.4, 0.0, 0.0]) == 1.0
+    assert scale(_memory(env, goal, [1.5, 0.0, -1.2]), [1.8, 0.0, -1.2]) == 1.0
+    # a swing across the goal out of the radius counts (1.5 -> 2.16 mm), and the policy acts
+    far = goal - jnp.array([0.0018, 0.0, -0.0012])
+    hold, sent = env.deadband_action(_memory(env, goal, [-1.2, 0.0, 0.9]), action, far, goal,
+                                     last, params)
+    assert float(hold.scale) == 0.5 and not bool(hold.held)
+    np.testing.assert_array_equal(sent, action)
+    # a new goal starts afresh, whatever the memory of the last one
+    assert scale(_memory(env, GOALS[1], [0.6, 0.0, -0.7], scale=0.125), [-0.9, 0.0, 0.6]) == 1.0
+    # backoff 1: a fixed gain
+    assert scale(memory, [-0.9, 0.0, 0.6], params.replace(hold_backoff=jnp.float32(1.0))) == 1.0
+
+
+def test_where_the_arm_is_steeper_than_the_map_the_backed_off_hold_settles():
+    """The hold's map says the arm 20 times less steep than it is (a valve near the preload on
+    the recorded arm): at gain 0.5 a fixed hold swings the arm across the goal and out of its
+    2 mm radius, back to a controller that stops 1.5 mm short, over and over; backed off, it
+    settles within 0.05 mm and stays."""
+    env, params = _diagonal_toy(deadband_m=0.002, hold_gain=0.5, goal_tolerance_m=0.001,
+                                max_steps=40, hold_backoff=0.5)
+    params = params.replace(hold_map=20 * jnp.asarray(DIAGONAL_INVERSE, jnp.float32))
+    carry = jax.tree.map(lambda leaf: leaf[0], params.reset_carries)
+    offset, gain = carry.offset, params.plant.gain
+    beside = GOALS[1] + jnp.array([0.0, 0.0, 0.0015])
+    goals = jnp.broadcast_to(GOALS[1], (40, 3))
+
+    def short(key, obs, state, periods):
+        seek = jnp.linalg.lstsq(gain, beside - offset)[0]
+        return periods + 1, env.action_for(seek, state.last_pressure, params)
+
+    run = jax.jit(lambda p: rollouts.rollout(
+        env, p, short, jnp.zeros((), jnp.int32), jax.random.PRNGKey(2), carry,
+        params.reset_positions[0], goals, deadband=True))
+
+    def distance_mm(p):
+        return 1000 * np.linalg.norm(np.asarray(run(p)[0]) - np.asarray(GOALS[1]), axis=1)
+
+    backed_off = distance_mm(params)
+    fixed = distance_mm(params.replace(hold_backoff=jnp.float32(1.0)))
+    assert backed_off[-10:].max() < 0.05
+    assert fixed[-10:].max() > 1.5
+
+
+def test_the_backoff_is_deployment_only_and_checked(make_cfg):
+    base = make_cfg("experiment=quick", "env.deadband_m=0.002", "env.hold_gain=0.1",
+                    "env.hold_backoff=1")
+    backed = make_cfg("experiment=quick", "env.deadband_m=0.002", "env.hold_gain=0.1",
+                      "env.hold_backoff=0.5")
+    assert keys.key("train_ppo", base) == keys.key("train_ppo", backed)
+    assert keys.key("evaluate", base) != keys.key("evaluate", backed)
+    assert "hold_backoff" not in keys.evaluate_spec(base)[0]["env"]  # fixed: the key as before
+    assert keys.control_spec(backed)[0]["hold_backoff"] == 0.5
+    assert "hold_backoff" not in keys.control_spec(base)[0]
+    for value in ("0", "1.5"):
+        with pytest.raises(ConfigError, match=rf"env.hold_backoff={float(value)} must lie in "
+                                              r"\(0, 1\]"):
+            validate_config(make_cfg("experiment=quick", f"env.hold_backoff={value}"))

@@ -38,7 +38,8 @@ class Deployment:
     policy_params: Any
     # the initial carry between periods: ([1, H] recurrent state, a placeholder for feed-forward
     # policies; [3] accumulated error, zeros, used with env.include_error_integral; [3] m the
-    # last period's goal, which the accumulated error is updated with)
+    # last period's goal, which the accumulated error is updated with; the hold's memory,
+    # HoldState)
     hidden: Any
     workspace_m: np.ndarray  # [2, 3] lower and upper corner of the training goals
     train_goals_m: np.ndarray  # [G, 3] the training goals
@@ -74,22 +75,27 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
     controller), within ``env_params.deadband_m`` of the goal the hold's command instead (the
     environment's :meth:`~SoftArmReachEnv.deadband_action`, as evaluate deploys it), the
     pressures (the environment's action mapping). Its carry is ``(recurrent
-    state, accumulated error, last goal)``; the accumulated error is zero at the first period
-    and then updated with each measured pose and the goal of the period that led to it, as the
-    environment's step does (:func:`update_error_integral`)."""
+    state, accumulated error, last goal, hold)``; the accumulated error is zero at the first
+    period and then updated with each measured pose and the goal of the period that led to it,
+    as the environment's step does (:func:`update_error_integral`); the hold's memory
+    (:class:`~pipeline.rl.envs.learned.HoldState`) starts afresh at the first period, as
+    evaluate's episodes do."""
 
     def step(policy_params, env_params, carry, first, measured, goal, preview, last_pressure):
-        hidden, integral, previous_goal = carry
+        hidden, integral, previous_goal, hold = carry
         integral = jnp.where(first, jnp.zeros_like(integral),
                              update_error_integral(integral, measured, previous_goal, env_params))
+        hold = jax.tree.map(lambda fresh, kept: jnp.where(first, fresh, kept),
+                            env.initial_hold(goal), hold)
         obs = observe(measured, goal, last_pressure, env_params, include_error=env.include_error,
                       include_last_action=env.include_last_action,
                       error_integral=integral if env.include_error_integral else None,
                       preview=preview if env.preview else None)
         act = policy_controller(network, policy_params)
         (hidden, _), action = act(None, obs, None, (hidden, first))
-        action = env.deadband_action(action, measured, goal, last_pressure, env_params)
-        return ((hidden, integral, goal), obs, action,
+        hold, action = env.deadband_action(hold, action, measured, goal, last_pressure,
+                                           env_params)
+        return ((hidden, integral, goal, hold), obs, action,
                 env.command(action, last_pressure, env_params))
 
     return jax.jit(step)
@@ -109,16 +115,16 @@ def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict
     workspace = np.stack([goals.min(axis=0), goals.max(axis=0)])
     deployment = Deployment(artifact, seed, env, eval_params, policy_params,
                             (initial_hidden(network, 1), jnp.zeros(3, jnp.float32),
-                             jnp.zeros(3, jnp.float32)),
+                             jnp.zeros(3, jnp.float32), env.initial_hold(jnp.zeros(3))),
                             workspace, goals, control_hz, make_step(network, env))
     # compile before the first command: the first period must not wait for XLA
     preload = np.asarray(eval_params.preload, np.float64)
     centre = workspace.mean(axis=0)
     deployment.act(deployment.hidden, True, centre, centre,
                    np.broadcast_to(centre, (deployment.preview, 3)), preload)
-    log.info("control: policy %s seed %d (%s on %s, preview %d, hold within %g mm, gain %g), "
-             "workspace %s mm", artifact.path, seed, meta["agent"]["name"],
+    log.info("control: policy %s seed %d (%s on %s, preview %d, hold within %g mm, gain %g, "
+             "backoff %g), workspace %s mm", artifact.path, seed, meta["agent"]["name"],
              meta.get("env_name"), deployment.preview, float(eval_params.deadband_m) * MM_PER_M,
-             float(eval_params.hold_gain),
+             float(eval_params.hold_gain), float(eval_params.hold_backoff),
              np.round(workspace * MM_PER_M, 1).tolist())
     return deployment

@@ -103,7 +103,9 @@ def rollout_together(
                                reference)
 
     states = jax.vmap(start)(keys, start_carries, start_positions, goals, reference)  # [E]
-    states = jax.tree.map(lambda leaf: jnp.broadcast_to(leaf, (rows, *leaf.shape)), states)
+    holds = jax.vmap(env.initial_hold)(goals[:, 0])  # [E], the hold's memory (deadband kinds)
+    states, holds = jax.tree.map(lambda leaf: jnp.broadcast_to(leaf, (rows, *leaf.shape)),
+                                 (states, holds))
     bounds = np.cumsum([0, *seeds])
     deadband = np.repeat(np.array([kind.deadband for kind in kinds], bool), seeds)  # [R]
 
@@ -121,7 +123,7 @@ def rollout_together(
         return jax.vmap(one_seed)(kind_param, carry, obs, state)
 
     def period(carry, inputs):
-        states, controller_carries = carry
+        states, holds, controller_carries = carry
         goal, period_keys = inputs  # [E, 3], [E]
         obs_keys, act_keys, step_keys = jnp.moveaxis(
             jax.vmap(lambda k: jax.random.split(k, 3))(period_keys), 1, 0)
@@ -139,16 +141,16 @@ def rollout_together(
             actions.append(action)
         action = jnp.concatenate(actions)  # [R, E, 3]
         if deadband.any():
-            held = over_rows(env.deadband_action, ("row",) * 4 + (None,))(
-                action, measured, states.goal, states.last_pressure, params)
+            holds, held = over_rows(env.deadband_action, ("row",) * 5 + (None,))(
+                holds, action, measured, states.goal, states.last_pressure, params)
             action = jnp.where(deadband[:, None, None], held, action)
         _, states, _, _, info = over_rows(env.step_env, ("episode", "row", "row", None))(
             step_keys, states, action, params)
-        return (states, carries), (states.position, info["pressure"])
+        return (states, holds, carries), (states.position, info["pressure"])
 
     period_keys = jax.vmap(lambda key: jax.random.split(key, steps))(keys)  # [E, T]
     _, (positions, commands) = jax.lax.scan(
-        period, (states, list(kind_carries)),
+        period, (states, holds, list(kind_carries)),
         (jnp.moveaxis(goals, 1, 0), jnp.moveaxis(period_keys, 1, 0)))
     positions = jnp.concatenate(  # [R, E, T + 1, 3]
         [jnp.broadcast_to(start_positions, (rows, *start_positions.shape))[:, :, None],

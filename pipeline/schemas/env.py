@@ -79,6 +79,10 @@ class EnvConfig:
     # docs/results/PPO_RESULTS.md, "The hold: integral action near the goal"
     deadband_m: float = 0.002
     hold_gain: float = 0.15  # share of the measured error corrected per control period, in [0, 1]
+    # after a correction that overshot (the error turned past the goal and grew) the hold's gain
+    # is multiplied by this, until the goal changes: it settles where the arm answers a small
+    # command change far more steeply than the static map says; in (0, 1], 1: a fixed gain
+    hold_backoff: float = 0.5
     goal_mode: GoalMode = GoalMode.data
     goal_perturbation_m: float = 0.01
     # a new goal every this many control periods, drawn as at a reset (goal_mode=perturb: around

@@ -168,8 +168,9 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
         raise ValueError(f"control.seed={seed}: {artifact.file('policy.msgpack')} holds seeds "
                          f"0..{num_seeds - 1}")
     # the deadband and the hold are how this session deploys the policy, not how it was trained
-    deadband, hold_gain = control_hold(cfg)
+    deadband, hold_gain, hold_backoff = control_hold(cfg)
     eval_params = eval_params.replace(deadband_m=np.float32(deadband),
-                                      hold_gain=np.float32(hold_gain))
+                                      hold_gain=np.float32(hold_gain),
+                                      hold_backoff=np.float32(hold_backoff))
     return deploy(artifact, seed, network, stacked, meta, env, train_params, eval_params,
                   control_hz)

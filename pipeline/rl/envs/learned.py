@@ -171,6 +171,25 @@ class EnvState:
 
 
 @struct.dataclass
+class HoldState:
+    """What the hold of deployment remembers between control periods (a pytree; leaves may carry
+    leading batch axes): :meth:`SoftArmReachEnv.deadband_action` reads and returns it,
+    :meth:`SoftArmReachEnv.initial_hold` starts it.
+
+    scale: the share of ``hold_gain`` in force (1 at a new goal; multiplied by
+      ``hold_backoff`` after every period whose correction overshot the goal).
+    error: [3] m, ``goal - measured`` at the last period.
+    held: bool scalar, the last period sent the hold's command.
+    goal: [3] m, the last period's goal (a different goal starts the hold afresh).
+    """
+
+    scale: jax.Array
+    error: jax.Array
+    held: jax.Array
+    goal: jax.Array
+
+
+@struct.dataclass
 class EnvParams:
     """Everything that varies: the plant, limits, resets, goals, noise (a pytree: vmap it).
 
@@ -192,6 +211,8 @@ class EnvParams:
       goal does not send the policy's action (:meth:`SoftArmReachEnv.deadband_action`; 0: off).
     hold_gain: the share of the measured error the command corrects per control period there
       (0: the last command stays).
+    hold_backoff: what the hold's gain is multiplied by after a correction that overshot (the
+      error turned past the goal and grew), until the goal changes (1: a fixed gain).
     hold_map: [3 valves, 3 axes] kPa/m, the damped inverse of the static map of the model the
       policy was trained in (:func:`with_hold_map`; zeros where the hold does not correct).
     obs_mean, obs_scale: [3] m, standardization of positions and goals in the observation.
@@ -227,6 +248,7 @@ class EnvParams:
     hold_bonus_mm: jax.Array
     deadband_m: jax.Array
     hold_gain: jax.Array
+    hold_backoff: jax.Array
     hold_map: jax.Array
     obs_mean: jax.Array
     obs_scale: jax.Array
@@ -477,23 +499,50 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
             return jnp.clip((pressure - last_pressure) / params.action_step_kpa, -1.0, 1.0)
         return self.pressure_to_action(pressure, params)
 
-    def deadband_action(self, action: jax.Array, measured: jax.Array, goal: jax.Array,
-                        last_pressure: jax.Array, params: EnvParams) -> jax.Array:
-        """``[3]``: the action deployment sends, ``action`` or, where ``measured [3]`` m lies
-        within ``params.deadband_m`` of ``goal [3]`` m, the hold's: the action that commands
+    @staticmethod
+    def initial_hold(goal: jax.Array) -> HoldState:
+        """The hold's memory before the first period of an episode with ``goal [3]`` m."""
+        return HoldState(jnp.ones((), jnp.float32), jnp.zeros(POSITION_DIM, jnp.float32),
+                         jnp.zeros((), bool), jnp.asarray(goal, jnp.float32))
 
-            p = last_pressure + hold_gain * hold_map @ (goal - measured)    [3] kPa
+    def deadband_action(self, hold: HoldState, action: jax.Array, measured: jax.Array,
+                        goal: jax.Array, last_pressure: jax.Array, params: EnvParams
+                        ) -> tuple[HoldState, jax.Array]:
+        """``(hold, [3] action)``: the action deployment sends, ``action`` or, where ``measured
+        [3]`` m lies within ``params.deadband_m`` of ``goal [3]`` m, the hold's: the action that
+        commands
+
+            p = last_pressure + scale * hold_gain * hold_map @ (goal - measured)    [3] kPa
 
         (:meth:`action_for`; ``hold_map`` the damped inverse of the static map of the policy's
         model, :func:`with_hold_map`; ``hold_gain`` 0: the last command again, a deadband).
         Near its goal the policy hands over to integral action: a slow, steady correction that
         closes the last millimetres and holds them against the arm's creep, where a policy
         trained to the first arrival dithers or drifts off. Evaluation's reaching episodes and
-        the arm apply it; training does not (its episodes end at the goal)."""
+        the arm apply it; training does not (its episodes end at the goal).
+
+        ``scale`` (``hold``, :class:`HoldState`) adapts the gain to the arm's response where it
+        is steeper than the map's average: after a period that held, an error that turned past
+        the goal (``error · previous error < 0``) and grew, to more than ``HOLD_OVERSHOOT_SHARE``
+        of ``deadband_m``, multiplies it by ``params.hold_backoff``; a new goal sets it back to
+        1. A correction that more than doubles the error across the goal is one whose gain is
+        over twice what the arm can take; an error that shrinks across it, or grows on its own
+        side (creep, drift), says nothing against the gain, nor does a swing within the last
+        tenths of a millimetre (the measurement's noise). Where a tenth of a kPa moves the
+        arm by millimetres (a valve near the preload on the recorded arm), a fixed gain swings
+        the arm across the goal and out of the hold; the backed-off one settles it."""
         error = goal - measured
-        within = (params.deadband_m > 0) & (jnp.linalg.norm(error) <= params.deadband_m)
-        pressure = last_pressure + params.hold_gain * (params.hold_map @ error)
-        return jnp.where(within, self.action_for(pressure, last_pressure, params), action)
+        distance = jnp.linalg.norm(error)
+        within = (params.deadband_m > 0) & (distance <= params.deadband_m)
+        same_goal = jnp.all(goal == hold.goal)
+        overshot = (same_goal & hold.held & (jnp.dot(error, hold.error) < 0)
+                    & (distance > jnp.linalg.norm(hold.error))
+                    & (distance > HOLD_OVERSHOOT_SHARE * params.deadband_m))
+        scale = (jnp.where(same_goal, hold.scale, 1.0)
+                 * jnp.where(overshot, params.hold_backoff, 1.0))
+        pressure = last_pressure + scale * params.hold_gain * (params.hold_map @ error)
+        hold = HoldState(scale, error, within, jnp.asarray(goal, jnp.float32))
+        return hold, jnp.where(within, self.action_for(pressure, last_pressure, params), action)
 
     @staticmethod
     def pressure_command(action: jax.Array, params: EnvParams) -> jax.Array:
@@ -648,6 +697,9 @@ HOLD_MAP_COMMANDS = 256
 HOLD_MAP_SEED = 0
 HOLD_MAP_SECONDS = 5.0
 HOLD_MAP_DAMPING = 0.1
+# a correction overshot where the error turned past the goal and grew, beyond this share of the
+# hold's radius (env.deadband_m)
+HOLD_OVERSHOOT_SHARE = 0.25
 
 
 def static_gain(env: SoftArmReachEnv, plant_params: Any, pose: jax.Array, preload: jax.Array,

@@ -167,6 +167,25 @@ def test_within_the_hold_the_command_moves_by_the_gain_times_the_mapped_error(in
     np.testing.assert_array_equal(deployed(env, action, far, goal, last, params), action)
 
 
+def _stopping_short(env, params, beside, periods):
+    """``distance_mm(params, deadband=True)``: the distances [mm] to ``GOALS[1]``, ``[periods +
+    1]``, of a rollout whose controller commands the steady state at ``beside [3]`` m (the toy's
+    ``position = offset + G @ pressure``) every period, with the hold or without it."""
+    carry = jax.tree.map(lambda leaf: leaf[0], params.reset_carries)
+    offset, gain = carry.offset, params.plant.gain
+    goals = jnp.broadcast_to(GOALS[1], (periods, 3))
+
+    def short(key, obs, state, count):
+        seek = jnp.linalg.lstsq(gain, beside - offset)[0]
+        return count + 1, env.action_for(seek, state.last_pressure, params)
+
+    run = jax.jit(lambda p, deadband: rollouts.rollout(
+        env, p, short, jnp.zeros((), jnp.int32), jax.random.PRNGKey(2), carry,
+        params.reset_positions[0], goals, deadband=deadband), static_argnums=1)
+    return lambda p, deadband=True: 1000 * np.linalg.norm(
+        np.asarray(run(p, deadband)[0]) - np.asarray(GOALS[1]), axis=1)
+
+
 def test_the_hold_closes_the_last_millimetres_a_policy_stops_short_of():
     """A controller that commands the steady state 1.5 mm beside the goal and then the same
     command forever: on its own it ends 1.5 mm away; deployed with the hold (2 mm, gain 0.5) on
@@ -174,20 +193,8 @@ def test_the_hold_closes_the_last_millimetres_a_policy_stops_short_of():
     0.05 mm."""
     env, params = toy(deadband_m=0.002, hold_gain=0.5, goal_tolerance_m=0.001, max_steps=16)
     params = with_hold_map(env, params)
-    carry = jax.tree.map(lambda leaf: leaf[0], params.reset_carries)
-    offset, gain = carry.offset, params.plant.gain
-    beside = GOALS[1] + jnp.array([0.0015, 0.0, 0.0])
-    goals = jnp.broadcast_to(GOALS[1], (16, 3))
-
-    def short(key, obs, state, periods):
-        seek = jnp.linalg.lstsq(gain, beside - offset)[0]
-        return periods + 1, env.action_for(seek, state.last_pressure, params)
-
-    run = jax.jit(lambda p, deadband: rollouts.rollout(
-        env, p, short, jnp.zeros((), jnp.int32), jax.random.PRNGKey(2), carry,
-        params.reset_positions[0], goals, deadband=deadband), static_argnums=1)
-    alone = 1000 * np.linalg.norm(np.asarray(run(params, False)[0]) - np.asarray(GOALS[1]), axis=1)
-    held = 1000 * np.linalg.norm(np.asarray(run(params, True)[0]) - np.asarray(GOALS[1]), axis=1)
+    distance_mm = _stopping_short(env, params, GOALS[1] + jnp.array([0.0015, 0.0, 0.0]), 16)
+    alone, held = distance_mm(params, deadband=False), distance_mm(params)
     assert abs(alone[-1] - 1.5) < 0.05
     assert held[-1] < 0.05
     assert np.all(np.diff(held[4:]) <= 1e-3)  # once within the hold, never further away
@@ -261,22 +268,7 @@ def test_where_the_arm_is_steeper_than_the_map_the_backed_off_hold_settles():
     env, params = _diagonal_toy(deadband_m=0.002, hold_gain=0.5, goal_tolerance_m=0.001,
                                 max_steps=40, hold_backoff=0.5)
     params = params.replace(hold_map=20 * jnp.asarray(DIAGONAL_INVERSE, jnp.float32))
-    carry = jax.tree.map(lambda leaf: leaf[0], params.reset_carries)
-    offset, gain = carry.offset, params.plant.gain
-    beside = GOALS[1] + jnp.array([0.0, 0.0, 0.0015])
-    goals = jnp.broadcast_to(GOALS[1], (40, 3))
-
-    def short(key, obs, state, periods):
-        seek = jnp.linalg.lstsq(gain, beside - offset)[0]
-        return periods + 1, env.action_for(seek, state.last_pressure, params)
-
-    run = jax.jit(lambda p: rollouts.rollout(
-        env, p, short, jnp.zeros((), jnp.int32), jax.random.PRNGKey(2), carry,
-        params.reset_positions[0], goals, deadband=True))
-
-    def distance_mm(p):
-        return 1000 * np.linalg.norm(np.asarray(run(p)[0]) - np.asarray(GOALS[1]), axis=1)
-
+    distance_mm = _stopping_short(env, params, GOALS[1] + jnp.array([0.0, 0.0, 0.0015]), 40)
     backed_off = distance_mm(params)
     fixed = distance_mm(params.replace(hold_backoff=jnp.float32(1.0)))
     assert backed_off[-10:].max() < 0.05

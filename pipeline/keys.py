@@ -56,6 +56,8 @@ _MODEL_DATASET_KEYS = ("model_hz", "model_grid", "window", "stride", "order")
 _SPLIT_KEYS = ("train_fraction", "split_seed")
 # agent fields that do not change the result (display only)
 _NON_DETERMINING_AGENT_KEYS = ("progress",)
+# env settings of deployment only (the hold near the goal): training never meets them
+_DEPLOYMENT_ONLY_ENV = ("deadband_m", "hold_gain", "hold_backoff")
 # agent settings kept out of the key at these values (their default: training as before they
 # existed), so that the artifacts made before them keep their keys
 _AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt())}
@@ -176,8 +178,7 @@ def train_ppo_spec(cfg: Any) -> Spec:
     if "hold_tune" in agent and not AgentConfig.from_any(cfg.agent).hold_tune_timesteps:
         agent.pop("hold_tune")  # no such phase for this policy type: the key as without it
     env = env_spec(cfg)
-    for setting in ("deadband_m", "hold_gain", "hold_backoff"):  # deployment only: training
-        # never meets them
+    for setting in _DEPLOYMENT_ONLY_ENV:
         env.pop(setting, None)
     spec: dict[str, Any] = _versioned("train_ppo", {"env": env, "agent": agent,
                                                     "seed": int(cfg.seed)})

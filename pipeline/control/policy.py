@@ -37,9 +37,9 @@ class Deployment:
     env_params: EnvParams  # the evaluation parameters: the training standardization
     policy_params: Any
     # the initial carry between periods: ([1, H] recurrent state, a placeholder for feed-forward
-    # policies; [3] accumulated error, zeros, used with env.include_error_integral; [3] m the
-    # last period's goal, which the accumulated error is updated with; the hold's memory,
-    # HoldState)
+    # policies; [3] accumulated error, zeros, used with env.include_error_integral; the hold's
+    # memory, HoldState, whose goal is the last period's, which the accumulated error is
+    # updated with)
     hidden: Any
     workspace_m: np.ndarray  # [2, 3] lower and upper corner of the training goals
     train_goals_m: np.ndarray  # [G, 3] the training goals
@@ -75,16 +75,16 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
     controller), within ``env_params.deadband_m`` of the goal the hold's command instead (the
     environment's :meth:`~SoftArmReachEnv.deadband_action`, as evaluate deploys it), the
     pressures (the environment's action mapping). Its carry is ``(recurrent
-    state, accumulated error, last goal, hold)``; the accumulated error is zero at the first
-    period and then updated with each measured pose and the goal of the period that led to it,
-    as the environment's step does (:func:`update_error_integral`); the hold's memory
+    state, accumulated error, hold)``; the accumulated error is zero at the first period and
+    then updated with each measured pose and the goal of the period that led to it (the hold's
+    ``goal``), as the environment's step does (:func:`update_error_integral`); the hold's memory
     (:class:`~pipeline.rl.envs.learned.HoldState`) starts afresh at the first period, as
     evaluate's episodes do."""
 
     def step(policy_params, env_params, carry, first, measured, goal, preview, last_pressure):
-        hidden, integral, previous_goal, hold = carry
+        hidden, integral, hold = carry
         integral = jnp.where(first, jnp.zeros_like(integral),
-                             update_error_integral(integral, measured, previous_goal, env_params))
+                             update_error_integral(integral, measured, hold.goal, env_params))
         hold = jax.tree.map(lambda fresh, kept: jnp.where(first, fresh, kept),
                             env.initial_hold(goal), hold)
         obs = observe(measured, goal, last_pressure, env_params, include_error=env.include_error,
@@ -95,7 +95,7 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
         (hidden, _), action = act(None, obs, None, (hidden, first))
         hold, action = env.deadband_action(hold, action, measured, goal, last_pressure,
                                            env_params)
-        return ((hidden, integral, goal, hold), obs, action,
+        return ((hidden, integral, hold), obs, action,
                 env.command(action, last_pressure, env_params))
 
     return jax.jit(step)
@@ -115,7 +115,7 @@ def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict
     workspace = np.stack([goals.min(axis=0), goals.max(axis=0)])
     deployment = Deployment(artifact, seed, env, eval_params, policy_params,
                             (initial_hidden(network, 1), jnp.zeros(3, jnp.float32),
-                             jnp.zeros(3, jnp.float32), env.initial_hold(jnp.zeros(3))),
+                             env.initial_hold(jnp.zeros(3))),
                             workspace, goals, control_hz, make_step(network, env))
     # compile before the first command: the first period must not wait for XLA
     preload = np.asarray(eval_params.preload, np.float64)

@@ -132,8 +132,8 @@ def env_spec(cfg: Any) -> dict[str, Any]:
     keys are inputs), without ``env.train_max_steps`` where unset, ``env.deadband_m`` where 0,
     ``env.hold_gain`` where it does not act and ``env.hold_backoff`` where it does not act or
     is 1 (the keys of before), for absolute actions
-    without the incremental step and, to reach, without the tracking task's settings
-    (unused)."""
+    without the incremental step, to reach without the tracking task's settings (unused) and to
+    track without ``env.reference_integral_gain`` and its bound where the gain is 0."""
     env = _container(cfg.env)
     env.pop("models", None)
     if env.get("train_max_steps") is None:  # unset: training's horizon is max_steps, as before
@@ -148,6 +148,9 @@ def env_spec(cfg: Any) -> dict[str, Any]:
     if Task(env.get("task", Task.reach)) is Task.reach:
         for setting in TRACK_SETTINGS:
             env.pop(setting, None)
+    elif not env.get("reference_integral_gain"):  # no integral action: the keys of before
+        env.pop("reference_integral_gain", None)
+        env.pop("reference_shift_max_mm", None)
     if not incremental_actions(env):
         env.pop("action_step_kpa", None)
     return env

@@ -328,11 +328,9 @@ def _check_env(cfg: Any) -> None:
     if not (math.isfinite(bonus) and bonus >= 0):
         raise ConfigError(f"env.hold_bonus_mm={bonus} must be finite and >= 0 (mm of reward per "
                           f"control period at the goal)")
-    gain = float(env.hold_gain)
-    if not (math.isfinite(gain) and 0 <= gain <= 1):
-        raise ConfigError(f"env.hold_gain={gain} must lie in [0, 1] (the share of the measured "
-                          f"error the command corrects per control period within "
-                          f"env.deadband_m; 0: the last command stays)")
+    gain = _share("env.hold_gain", env.hold_gain,
+                  "the share of the measured error the command corrects per control period "
+                  "within env.deadband_m; 0: the last command stays")
     backoff = float(env.hold_backoff)
     if not (math.isfinite(backoff) and 0 < backoff <= 1):
         raise ConfigError(f"env.hold_backoff={backoff} must lie in (0, 1] (what the hold's gain "
@@ -399,3 +397,18 @@ def _check_task(env: Any) -> None:
         if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
             raise ConfigError(f"env.{low}={lo}, env.{high}={hi}: expected finite 0 < {low} <= "
                               f"{high}")
+    _share("env.reference_integral_gain", env.reference_integral_gain,
+           "the share of the tracking error the observed reference moves by per control "
+           "period; 0: off")
+    limit = float(env.reference_shift_max_mm)
+    if not (math.isfinite(limit) and limit > 0.0):
+        raise ConfigError(f"env.reference_shift_max_mm={limit} must be a finite number of mm "
+                          f"> 0 (the most the observed reference moves)")
+
+
+def _share(name: str, value: Any, meaning: str) -> float:
+    """``value`` as a float, refused naming ``name`` unless it lies in [0, 1]."""
+    share = float(value)
+    if not (math.isfinite(share) and 0.0 <= share <= 1.0):
+        raise ConfigError(f"{name}={share} must lie in [0, 1] ({meaning})")
+    return share

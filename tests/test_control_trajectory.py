@@ -317,25 +317,47 @@ def test_the_session_key_holds_the_reference_not_its_name(tmp_path):
     assert key("control", by_file) != first  # the file's content, not its name
 
 
-def test_the_accumulated_error_takes_the_goal_of_the_period_that_led_to_the_pose(tmp_path):
-    # as the environment's step: integral_k = 0.5 integral_(k-1) + 0.5 (goal_(k-1) - pose_k) / scale
-    cfg, _, error_scale = tracking_policy(
-        tmp_path, task=(*TRACKING, "env.include_error_integral=true",
-                        "env.error_integral_decay=0.5"))
+def followed_circle(tmp_path, *settings):
+    """A 3 s session of a random tracking policy trained with ``settings`` on a 2 mm circle:
+    ``(observations [K, obs_dim], goals [K, 3] m, poses [K, 3] m, error scale m)`` of its K
+    commanded periods."""
+    cfg, _, error_scale = tracking_policy(tmp_path, task=(*TRACKING, *settings))
     cfg.control.trajectory = {"kind": "circle", "size_mm": 2.0, "period_s": 8.0}
     cfg.control.duration_s, cfg.control.settle_s = 3.0, 0.0
     cfg.control.workspace_margin_mm = 10.0
     periods = pd.read_parquet(control(cfg).file("periods.parquet"))
     commanded = periods[periods["goal_index"] >= 0]
-    integral = commanded.filter(like="obs_").to_numpy()[:, 9:12]
-    goals = commanded[GOAL_COLUMNS].to_numpy()
-    poses = commanded[["x", "y", "z"]].to_numpy()
+    return (commanded.filter(like="obs_").to_numpy(), commanded[GOAL_COLUMNS].to_numpy(),
+            commanded[["x", "y", "z"]].to_numpy(), error_scale)
+
+
+def test_the_accumulated_error_takes_the_goal_of_the_period_that_led_to_the_pose(tmp_path):
+    # as the environment's step: integral_k = 0.5 integral_(k-1) + 0.5 (goal_(k-1) - pose_k) / scale
+    obs, goals, poses, error_scale = followed_circle(
+        tmp_path, "env.include_error_integral=true", "env.error_integral_decay=0.5")
+    integral = obs[:, 9:12]
     expected = [np.zeros(3)]
-    for k in range(1, len(commanded)):
+    for k in range(1, len(goals)):
         expected.append(0.5 * expected[-1] + 0.5 * (goals[k - 1] - poses[k]) / error_scale)
     np.testing.assert_allclose(integral, np.array(expected), rtol=1e-4, atol=1e-4)
     # the current goal would differ: the reference moves 0.8 mm a period
     assert np.abs(goals[1:] - goals[:-1]).max() > 5e-4
+
+
+def test_the_arm_moves_the_observed_reference_as_the_environment_does(tmp_path):
+    # shift_k = shift_(k-1) + 0.5 (goal_(k-1) - pose_k), at most 50 mm; the policy observes the
+    # goal and the preview moved by it
+    obs, goals, poses, error_scale = followed_circle(
+        tmp_path, "env.reference_integral_gain=0.5", "env.reference_shift_max_mm=50")
+    expected = [np.zeros(3)]
+    for k in range(1, len(goals)):
+        expected.append(expected[-1] + 0.5 * (goals[k - 1] - poses[k]))
+    shift = obs[:, 6:9] * error_scale - (goals - poses)  # the observed error, less the true one
+    np.testing.assert_allclose(shift, np.array(expected), atol=2e-6)
+    assert np.abs(shift).max() > 1e-4  # it moved
+    # the first preview point, moved alike: the next period's goal
+    ahead = obs[:, 12:15] * error_scale + poses
+    np.testing.assert_allclose(ahead[:-1] - shift[:-1], goals[1:], atol=2e-6)
 
 
 # ---- a reference that arrives while it is followed (control.trajectory_topic) --------------------

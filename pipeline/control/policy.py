@@ -20,7 +20,7 @@ import numpy as np
 from pipeline.evaluation.rollouts import policy_controller
 from pipeline.infra.artifacts import Artifact
 from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv, with_hold_map
-from pipeline.rl.envs.observation import observe, update_error_integral
+from pipeline.rl.envs.observation import observe, update_error_integral, update_reference_shift
 from pipeline.rl.networks import initial_hidden
 
 log = logging.getLogger(__name__)
@@ -37,8 +37,9 @@ class Deployment:
     env_params: EnvParams  # the evaluation parameters: the training standardization
     policy_params: Any
     # the initial carry between periods: ([1, H] recurrent state, a placeholder for feed-forward
-    # policies; [3] accumulated error, zeros, used with env.include_error_integral; the hold's
-    # memory, HoldState, whose goal is the last period's, which the accumulated error is
+    # policies; [3] accumulated error, zeros, used with env.include_error_integral; [3] m, where
+    # the observed reference is moved, zeros, used to track; the hold's memory, HoldState, whose
+    # goal is the last period's, which the accumulated error and the reference's move are
     # updated with)
     hidden: Any
     workspace_m: np.ndarray  # [2, 3] lower and upper corner of the training goals
@@ -75,27 +76,31 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
     controller), within ``env_params.deadband_m`` of the goal the hold's command instead (the
     environment's :meth:`~SoftArmReachEnv.deadband_action`, as evaluate deploys it), the
     pressures (the environment's action mapping). Its carry is ``(recurrent
-    state, accumulated error, hold)``; the accumulated error is zero at the first period and
-    then updated with each measured pose and the goal of the period that led to it (the hold's
-    ``goal``), as the environment's step does (:func:`update_error_integral`); the hold's memory
-    (:class:`~pipeline.rl.envs.learned.HoldState`) starts afresh at the first period, as
-    evaluate's episodes do."""
+    state, accumulated error, reference shift, hold)``; the accumulated error and, tracking, the
+    shift of the observed reference are zero at the first period and then updated with each
+    measured pose and the goal of the period that led to it (the hold's ``goal``), as the
+    environment's step does (:func:`update_error_integral`, :func:`update_reference_shift`); the
+    hold's memory (:class:`~pipeline.rl.envs.learned.HoldState`) starts afresh at the first
+    period, as evaluate's episodes do."""
 
     def step(policy_params, env_params, carry, first, measured, goal, preview, last_pressure):
-        hidden, integral, hold = carry
+        hidden, integral, shift, hold = carry
         integral = jnp.where(first, jnp.zeros_like(integral),
                              update_error_integral(integral, measured, hold.goal, env_params))
+        shift = jnp.where(first, jnp.zeros_like(shift),
+                          update_reference_shift(shift, measured, hold.goal, env_params))
         hold = jax.tree.map(lambda fresh, kept: jnp.where(first, fresh, kept),
                             env.initial_hold(goal), hold)
         obs = observe(measured, goal, last_pressure, env_params, include_error=env.include_error,
                       include_last_action=env.include_last_action,
                       error_integral=integral if env.include_error_integral else None,
-                      preview=preview if env.preview else None)
+                      preview=preview if env.preview else None,
+                      reference_shift=shift if env.tracking else None)
         act = policy_controller(network, policy_params)
         (hidden, _), action = act(None, obs, None, (hidden, first))
         hold, action = env.deadband_action(hold, action, measured, goal, last_pressure,
                                            env_params)
-        return ((hidden, integral, hold), obs, action,
+        return ((hidden, integral, shift, hold), obs, action,
                 env.command(action, last_pressure, env_params))
 
     return jax.jit(step)
@@ -115,16 +120,17 @@ def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict
     workspace = np.stack([goals.min(axis=0), goals.max(axis=0)])
     deployment = Deployment(artifact, seed, env, eval_params, policy_params,
                             (initial_hidden(network, 1), jnp.zeros(3, jnp.float32),
-                             env.initial_hold(jnp.zeros(3))),
+                             jnp.zeros(3, jnp.float32), env.initial_hold(jnp.zeros(3))),
                             workspace, goals, control_hz, make_step(network, env))
     # compile before the first command: the first period must not wait for XLA
     preload = np.asarray(eval_params.preload, np.float64)
     centre = workspace.mean(axis=0)
     deployment.act(deployment.hidden, True, centre, centre,
                    np.broadcast_to(centre, (deployment.preview, 3)), preload)
-    log.info("control: policy %s seed %d (%s on %s, preview %d, hold within %g mm, gain %g, "
-             "backoff %g), workspace %s mm", artifact.path, seed, meta["agent"]["name"],
-             meta.get("env_name"), deployment.preview, float(eval_params.deadband_m) * MM_PER_M,
-             float(eval_params.hold_gain), float(eval_params.hold_backoff),
-             np.round(workspace * MM_PER_M, 1).tolist())
+    log.info("control: policy %s seed %d (%s on %s, preview %d, reference integral gain %g, "
+             "hold within %g mm, gain %g, backoff %g), workspace %s mm", artifact.path, seed,
+             meta["agent"]["name"], meta.get("env_name"), deployment.preview,
+             float(eval_params.reference_integral_gain) if env.tracking else 0.0,
+             float(eval_params.deadband_m) * MM_PER_M, float(eval_params.hold_gain),
+             float(eval_params.hold_backoff), np.round(workspace * MM_PER_M, 1).tolist())
     return deployment

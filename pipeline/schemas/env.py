@@ -59,6 +59,13 @@ class EnvConfig:
     reference_size_max_mm: float = 6.0
     reference_period_min_s: float = 8.0
     reference_period_max_s: float = 40.0
+    # track: integral action on the tracking error; after each control period the reference the
+    # policy observes (its goal and preview) moves by this share of the measured error (the
+    # reference minus the measured position), in training as on the arm, by at most
+    # reference_shift_max_mm in all (a steady offset between path and reference, as a model
+    # other than the policy's leaves, is taken out over about 1 / gain periods); 0: off
+    reference_integral_gain: float = 0.0
+    reference_shift_max_mm: float = 5.0
     max_steps: int = 40  # control periods per episode (truncation); evaluation's horizon too
     # training episodes only: truncated after this many control periods instead (longer than the
     # evaluation's trains the states long after arrival); null: max_steps
@@ -128,7 +135,8 @@ class EnvConfig:
 
 # the settings of env.task=track (left out of the artifact keys of env.task=reach)
 TRACK_SETTINGS = ("task", "preview", "static_share", "reference_size_min_mm",
-                  "reference_size_max_mm", "reference_period_min_s", "reference_period_max_s")
+                  "reference_size_max_mm", "reference_period_min_s", "reference_period_max_s",
+                  "reference_integral_gain", "reference_shift_max_mm")
 
 
 def no_randomization_overrides() -> list[str]:

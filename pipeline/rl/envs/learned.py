@@ -157,6 +157,9 @@ class EnvState:
     periods_within: int32 scalar, consecutive control periods up to now that ended within the
       goal tolerance (0 at a reset). None like ``perturbation``.
     reference: the episode's reference (``pipeline.arm.references.Reference``); None to reach.
+    reference_shift: [3] m, tracking: where the observed reference is moved to
+      (:func:`observation.update_reference_shift` of the measured positions since the reset;
+      zeros at a reset). None like ``perturbation``.
     """
 
     plant_carry: Any
@@ -168,6 +171,7 @@ class EnvState:
     error_integral: jax.Array | None = None
     periods_within: jax.Array | None = None
     reference: Any = None
+    reference_shift: jax.Array | None = None
 
 
 @struct.dataclass
@@ -225,7 +229,11 @@ class EnvParams:
     action_noise_std_kpa: kPa, Gaussian noise on the commanded pressures (before projection).
     command_change_cost_mm_per_kpa: mm per kPa, the reward's price on the summed change of the
       command.
-    static_share, reference_*: ``task="track"``'s draws (:func:`.task.draw_reference`).
+    static_share, reference_size_*, reference_period_*: ``task="track"``'s draws
+      (:func:`.task.draw_reference`).
+    reference_integral_gain, reference_shift_max_mm: ``task="track"``: the share of the measured
+      error the observed reference moves by per control period, and the most it moves [mm]
+      (:func:`observation.update_reference_shift`; gain 0: never).
     randomization: magnitudes of the per-episode randomization around the plant.
     max_steps: control periods before truncation (gymnax reads it as ``max_steps_in_episode``).
 
@@ -264,6 +272,8 @@ class EnvParams:
     reference_size_max_mm: jax.Array
     reference_period_min_s: jax.Array
     reference_period_max_s: jax.Array
+    reference_integral_gain: jax.Array
+    reference_shift_max_mm: jax.Array
     max_steps: int = struct.field(pytree_node=False)
 
     @property
@@ -374,7 +384,8 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         perturbation = self.draw_perturbation(key, params)
         return EnvState(plant_carry, position + perturbation.rest_offset, goal, params.preload,
                         jnp.zeros((), jnp.int32), perturbation, jnp.zeros(POSITION_DIM),
-                        jnp.zeros((), jnp.int32), reference if self.tracking else None)
+                        jnp.zeros((), jnp.int32), reference if self.tracking else None,
+                        jnp.zeros(POSITION_DIM))
 
     def draw_perturbation(self, key: jax.Array, params: EnvParams) -> Perturbation:
         """One episode's :class:`Perturbation` drawn with ``params.randomization`` (one key per
@@ -417,6 +428,9 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
         measured = self.measure(obs_key, position, params)
         integral = observation.update_error_integral(state.error_integral, measured, state.goal,
                                                      params)
+        shift = state.reference_shift
+        if self.tracking:
+            shift = observation.update_reference_shift(shift, measured, state.goal, params)
         within = distance <= params.goal_tolerance_m
         periods_within = jnp.where(within, state.periods_within + 1, 0)
         terminated = periods_within >= params.hold_periods
@@ -433,7 +447,7 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
             periods_within = jnp.where(redraw, 0, periods_within)
         state = EnvState(carry, position, goal, pressure, state.time + 1,
                          perturbation.replace(received=received), integral, periods_within,
-                         state.reference)
+                         state.reference, shift)
         obs = self.observe_measured(measured, state, params)
         obs, state = self._apply_transition_gradient_policy(obs, state)
         return obs, state, reward, terminated, {"distance_m": distance, "pressure": pressure}
@@ -467,7 +481,8 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
             include_last_action=self.include_last_action,
             error_integral=state.error_integral if self.include_error_integral else None,
             preview=(task.preview(state.reference, state.time, self.control_hz, self.preview)
-                     if self.preview else None))
+                     if self.preview else None),
+            reference_shift=state.reference_shift if self.tracking else None)
 
     def is_terminated(self, state: EnvState, params: EnvParams) -> jax.Array:
         """Whether the goal has been held for ``params.hold_periods`` periods (without a count

@@ -28,10 +28,24 @@ def update_error_integral(integral: jax.Array, measured: jax.Array, goal: jax.Ar
     return decay * integral + (1.0 - decay) * (goal - measured) / params.error_scale_m
 
 
+def update_reference_shift(shift: jax.Array, measured: jax.Array, goal: jax.Array,
+                           params: Any) -> jax.Array:
+    """``[3]`` m: where the reference a tracking policy observes is moved after a control period,
+    ``shift + reference_integral_gain * (goal - measured)``, its length bounded by
+    ``params.reference_shift_max_mm``: integral action on the tracking error (a steady offset
+    between the path and the reference is taken out over about ``1 / gain`` periods); 0 before
+    the first period, and for good with a gain of 0. ``goal`` is the goal of the period that led
+    to ``measured`` (the reference at the time it was measured)."""
+    shift = shift + params.reference_integral_gain * (goal - measured)
+    limit = params.reference_shift_max_mm / 1000.0
+    length = jnp.sqrt(jnp.sum(shift**2) + 1e-24)  # differentiable at 0 (analytic gradients)
+    return shift * jnp.minimum(1.0, limit / length)
+
+
 def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, params: Any, *,
             include_error: bool, include_last_action: bool,
-            error_integral: jax.Array | None = None, preview: jax.Array | None = None
-            ) -> jax.Array:
+            error_integral: jax.Array | None = None, preview: jax.Array | None = None,
+            reference_shift: jax.Array | None = None) -> jax.Array:
     """``[obs_dim]`` float32: standardized measured position, standardized goal (, scaled error)
     (, accumulated error) (, last pressure in ``[-1, 1]``) (, preview).
 
@@ -46,7 +60,12 @@ def observe(measured: jax.Array, goal: jax.Array, last_pressure: jax.Array, para
       error_integral: [3], appended where given (:func:`update_error_integral`).
       preview: [P, 3] m, the goals of the next P control periods (tracking), appended where
         given as ``(preview - measured) / error_scale_m`` [3 P] (in the error's scale).
+      reference_shift: [3] m (tracking, :func:`update_reference_shift`): where given, the goal
+        and the preview are observed moved by it.
     """
+    if reference_shift is not None:
+        goal = goal + reference_shift
+        preview = None if preview is None else preview + reference_shift
     parts = [(measured - params.obs_mean) / params.obs_scale,
              (goal - params.obs_mean) / params.obs_scale]
     if include_error:

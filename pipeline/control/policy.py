@@ -87,8 +87,9 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
         hidden, integral, shift, hold = carry
         integral = jnp.where(first, jnp.zeros_like(integral),
                              update_error_integral(integral, measured, hold.goal, env_params))
-        shift = jnp.where(first, jnp.zeros_like(shift),
-                          update_reference_shift(shift, measured, hold.goal, env_params))
+        if env.tracking:  # as the environment's step: a reaching policy's stays at zero
+            shift = jnp.where(first, jnp.zeros_like(shift),
+                              update_reference_shift(shift, measured, hold.goal, env_params))
         hold = jax.tree.map(lambda fresh, kept: jnp.where(first, fresh, kept),
                             env.initial_hold(goal), hold)
         obs = observe(measured, goal, last_pressure, env_params, include_error=env.include_error,

@@ -136,6 +136,18 @@ def test_tracking_metrics_by_hand():
     np.testing.assert_allclose(table["max_mm"], [2.0, 0.5], rtol=1e-9)
     np.testing.assert_allclose(table["within_1mm"], [0.0, 1.0])
     np.testing.assert_allclose(table["lag_s"], [0.0, 0.0], atol=1e-9)
+    # a constant gap is all steady offset: its length and its signed axes
+    np.testing.assert_allclose(table["offset_mm"], [2.0, 0.5], rtol=1e-9)
+    np.testing.assert_allclose(table[["offset_x_mm", "offset_y_mm", "offset_z_mm"]],
+                               [[0.0, 2.0, 0.0], [0.0, 0.5, 0.0]], atol=1e-9)
+    # half the scored ticks 1 mm below in x, half 3 mm above: offset 1 mm, RMSE sqrt(5) mm
+    swing = reference.copy()
+    swing[0, 5::2, 0] -= 0.001  # the scored ticks 5 .. 20 (after 2.5 s), 8 of each
+    swing[0, 6::2, 0] += 0.003
+    half = tracking_metrics(swing, reference, 2.0, settle_seconds=2.5)
+    assert half["offset_x_mm"][0] == pytest.approx(1.0, abs=1e-9)
+    assert half["offset_mm"][0] == pytest.approx(1.0, abs=1e-9)
+    assert half["rmse_mm"][0] == pytest.approx(np.sqrt(5.0), rel=1e-9)
     # a path one second behind: positions[k] = reference[k - 2]
     long_times = np.arange(61) / 2.0
     circle = np.stack([0.005 * np.cos(2 * np.pi * long_times / 20), np.zeros(61),

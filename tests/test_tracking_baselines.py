@@ -223,7 +223,8 @@ def summary_rows():
             rows.append({"plant": plant, "controller": controller, "reference": "circle",
                          "episodes": 4, "median_rmse_mm": rmse, "median_p95_mm": rmse,
                          "median_max_mm": rmse, "within_1mm": 0.5, "median_lag_s": 0.1,
-                         "seed_rmse_min_mm": rmse, "seed_rmse_max_mm": rmse})
+                         "median_offset_mm": rmse / 2, "seed_rmse_min_mm": rmse,
+                         "seed_rmse_max_mm": rmse})
     return pd.DataFrame(rows)
 
 
@@ -238,6 +239,7 @@ def test_the_tracking_section_shows_every_plant_baseline_and_the_cross_model_row
     assert list(main["controller"]) == ["ppo_ff", "mpc", "preload"] * 2
     assert set(main["plant"]) == {"learned model", "simulated arm"}
     assert "RMSE [mm]" in main.columns and "lag [s]" in main.columns
+    assert list(main["steady offset [mm]"]) == [0.2, 0.3, 2.5] * 2
     assert len(across) == 12 and set(across["plant"]) == {"own model", "other model"}
 
 

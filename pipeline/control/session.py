@@ -151,9 +151,12 @@ def report_session(folder: Path, record: SessionRecord, metrics: pd.DataFrame,
         header.append(f"After the first {schedule.settle_s:g} s: RMSE {row['rmse_mm']:.2f} mm, "
                       f"p95 {row['p95_mm']:.2f} mm, max {row['max_mm']:.2f} mm, lag "
                       f"{row['lag_s']:.2f} s, {100 * row['within_1mm']:.0f} % of the ticks "
-                      f"within 1 mm.")
+                      f"within 1 mm; steady offset {row['offset_mm']:.2f} mm (x, y, z: "
+                      f"{row['offset_x_mm']:.2f}, {row['offset_y_mm']:.2f}, "
+                      f"{row['offset_z_mm']:.2f} mm).")
         section = ("Tracking", "after the settle time: errors in mm, lag in s (positive: the "
-                             "path behind the reference), within_1mm a share of the ticks")
+                             "path behind the reference), within_1mm a share of the ticks, "
+                             "offset the mean of the path less the reference")
     else:
         header.append(f"Median final distance {np.median(metrics['final_distance_mm']):.2f} mm "
                       f"over {len(metrics)} goal(s); workspace (training goals, mm): "

@@ -40,7 +40,8 @@ from pipeline.rl.envs import task
 
 MM_PER_M = 1000.0
 CHECK_HZ = 10.0  # the reference is checked against the reachable set at least this often
-SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s")  # tracking_metrics' columns
+SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s", "offset_mm", "offset_x_mm",
+          "offset_y_mm", "offset_z_mm")  # tracking_metrics' columns
 
 
 @dataclass

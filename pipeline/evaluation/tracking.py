@@ -94,7 +94,10 @@ class TrackingSettings:
 def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: float,
                      settle_seconds: float, max_lag_s: float = MAX_LAG_S) -> pd.DataFrame:
     """One row per episode: ``rmse_mm``, ``p95_mm``, ``max_mm``, ``within_1mm`` (share of the
-    times) and ``lag_s`` over the times ``k / control_hz >= settle_seconds``.
+    times), ``lag_s`` and the steady offset over the times ``k / control_hz >= settle_seconds``:
+    ``offset_x_mm``, ``offset_y_mm``, ``offset_z_mm``, the mean of the path less the reference,
+    and ``offset_mm``, its length (the part of the RMSE a constant correction would take out:
+    ``rmse_mm**2 = offset_mm**2 +`` the mean squared deviation from it).
 
     Args:
       positions: [E, T + 1, 3] m, row k the position after k control periods.
@@ -111,13 +114,17 @@ def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: f
     if first >= positions.shape[1]:
         raise ValueError(f"settle_seconds={settle_seconds} leaves no time of the "
                          f"{positions.shape[1] - 1} control periods to score")
-    error = np.linalg.norm(positions - reference, axis=-1)[:, first:] * MM_PER_M  # [E, T']
+    gap = (positions - reference)[:, first:] * MM_PER_M  # [E, T', 3]
+    error = np.linalg.norm(gap, axis=-1)  # [E, T']
+    offset = gap.mean(axis=1)  # [E, 3]
     return pd.DataFrame({
         "rmse_mm": np.sqrt(np.mean(error ** 2, axis=1)),
         "p95_mm": np.percentile(error, 95, axis=1),
         "max_mm": error.max(axis=1),
         "within_1mm": (error <= WITHIN_MM).mean(axis=1),
         "lag_s": _lags(positions, reference, first, control_hz, max_lag_s),
+        "offset_mm": np.linalg.norm(offset, axis=1),
+        **{f"offset_{axis}_mm": offset[:, number] for number, axis in enumerate("xyz")},
     })
 
 
@@ -297,13 +304,15 @@ def _follow(settings: ClosedLoopSettings, tracking: TrackingSettings, plants, lo
 def summarize_tracking(table: pd.DataFrame, by: Sequence[str] = ("plant", "controller",
                                                                    "reference")
                        ) -> pd.DataFrame:
-    """Per group: episodes, the median RMSE, p95, max and lag over episodes and seeds, the mean
-    share within 1 mm, and the spread over seeds of each seed's median RMSE (min, max)."""
+    """Per group: episodes, the median RMSE, p95, max, lag and steady offset over episodes and
+    seeds, the mean share within 1 mm, and the spread over seeds of each seed's median RMSE (min,
+    max)."""
     by = list(by)
     grouped = table.groupby(by, sort=False)
     out = grouped.agg(episodes=("rmse_mm", "size"), median_rmse_mm=("rmse_mm", "median"),
                       median_p95_mm=("p95_mm", "median"), median_max_mm=("max_mm", "median"),
-                      within_1mm=("within_1mm", "mean"), median_lag_s=("lag_s", "median"))
+                      within_1mm=("within_1mm", "mean"), median_lag_s=("lag_s", "median"),
+                      median_offset_mm=("offset_mm", "median"))
     per_seed = table.groupby([*by, "seed"], sort=False)["rmse_mm"].median()
     spread = per_seed.groupby(level=list(range(len(by))), sort=False).agg(
         seed_rmse_min_mm="min", seed_rmse_max_mm="max")

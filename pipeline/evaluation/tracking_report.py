@@ -26,6 +26,7 @@ TRACKING_COLUMNS = {
     "seed_rmse_min_mm": "seeds' RMSE min [mm]", "seed_rmse_max_mm": "seeds' RMSE max [mm]",
     "median_p95_mm": "p95 [mm]", "median_max_mm": "max error [mm]",
     "within_1mm": "time within 1 mm", "median_lag_s": "lag [s]",
+    "median_offset_mm": "steady offset [mm]",
 }
 
 

@@ -237,12 +237,15 @@ def test_the_recorded_arm_tracks_with_absolute_actions_and_the_mpc_over_the_prev
     cfg = make_cfg("experiment=real_arm_tracking", f"robot.data_dir={sorolex_dir}")
     validate_config(cfg)
     reaching = make_cfg("experiment=real_arm", f"robot.data_dir={sorolex_dir}")
-    # real_arm's models, ensemble, randomization and plants; the task, the action mode, the
-    # trainer (analytic policy gradients, with integral action on the tracking error) and no price
+    # real_arm's models, ensemble, randomization (less its command delay) and plants; the task,
+    # the action mode, the trainer (analytic policy gradients, with integral action on the
+    # tracking error) and no price
     assert cfg.env.task.value == "track" and cfg.env.action_mode.value == "absolute"
     assert reaching.env.action_mode.value == "incremental"
-    for setting in ("ensemble_seeds", "randomization"):
-        assert cfg.env[setting] == reaching.env[setting]
+    assert cfg.env.ensemble_seeds == reaching.env.ensemble_seeds
+    assert cfg.env.randomization.max_delay_s == 0 < reaching.env.randomization.max_delay_s
+    assert ({**cfg.env.randomization, "max_delay_s": None}
+            == {**reaching.env.randomization, "max_delay_s": None})
     assert cfg.agent.trainer.value == "apg" and reaching.agent.trainer.value == "ppo"
     assert cfg.env.reference_integral_gain == 0.2 and cfg.env.command_change_cost_mm_per_kpa == 0
     assert list(cfg.evaluation.policies) == ["apg"] and cfg.control.policy == "apg"

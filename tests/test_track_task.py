@@ -248,7 +248,7 @@ def test_the_recorded_arm_tracks_with_absolute_actions_and_the_mpc_over_the_prev
             == {**reaching.env.randomization, "max_delay_s": None})
     assert cfg.agent.trainer.value == "apg" and reaching.agent.trainer.value == "ppo"
     assert cfg.env.reference_integral_gain == 0.2 and cfg.env.command_change_cost_mm_per_kpa == 0
-    assert list(cfg.evaluation.policies) == ["apg"] and cfg.control.policy == "apg"
+    assert list(cfg.evaluation.policies) == ["apg", "apg_rnn"] and cfg.control.policy == "apg_rnn"
     assert keys.key("fit_model", cfg) == keys.key("fit_model", reaching)
     assert list(cfg.evaluation.twins) == ["sim_sorolex"] and cfg.evaluation.reaching
     # the MPC plans over what the policies see ahead: the period's goal and the preview

@@ -123,9 +123,9 @@ def fold_models(cfg, runs, seeds, cache: Path, latent=None) -> dict:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    if args.report:
-        print(report(args.out))
+    from pipeline.studies import start_study
+
+    if start_study(args, report):
         return
     from pipeline.studies import recorded_runs
 

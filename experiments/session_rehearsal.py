@@ -90,9 +90,9 @@ def plan(runs, contexts_s: list[float], hz: float, seed: int):
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    if args.report:
-        print(report(args.out))
+    from pipeline.studies import start_study
+
+    if start_study(args, report):
         return
     from pipeline.dynamics import cv as model_cv
     from pipeline.dynamics.adaptation import context_steps

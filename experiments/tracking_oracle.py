@@ -156,9 +156,9 @@ def plant_sets(overrides: list[str]) -> dict[str, dict[str, tuple[Any, Any]]]:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    if args.report:
-        print(report(args.out))
+    from pipeline.studies import start_study
+
+    if start_study(args, report):
         return
     import jax
     import jax.numpy as jnp

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,19 @@ def recorded_runs(*overrides: str, rate_hz: float | None = None, grid: str | Non
     rate = float(cfg.dataset.model_hz) if rate_hz is None else float(rate_hz)
     on_grid = str(cfg.dataset.model_grid) if grid is None else grid
     return cfg, load_runs(aligned.file("aligned.parquet"), rate, on_grid)
+
+
+def start_study(args: Any, report: Callable[[str], str]) -> bool:
+    """A study script's start: log at INFO with times; with ``args.report``, print
+    ``report(args.out)`` (the table of its results file) and return True: nothing else to do."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    if getattr(args, "report", False):
+        if not Path(args.out).is_file():
+            raise SystemExit(f"--report: no results file {args.out} (run the study first, or "
+                             "name its file with --out)")
+        print(report(args.out))
+        return True
+    return False
 
 
 def append_jsonl(path: str | Path, row: dict[str, Any]) -> None:

@@ -115,3 +115,18 @@ def test_recorded_runs_come_through_align_and_are_reused(tmp_path):
     _, model_rate = recorded_runs(*overrides)  # the model's rate: dataset.model_hz, 10 Hz
     np.testing.assert_allclose(np.diff(model_rate[0].times_s), 0.1)
     assert len(list((tmp_path / "artifacts" / "align").glob("[!.]*"))) == 1  # reused
+
+
+def test_a_study_reports_its_results_file_or_says_it_has_none(tmp_path, capsys):
+    from argparse import Namespace
+
+    from pipeline.studies import start_study
+
+    out = tmp_path / "rows.jsonl"
+    table = lambda path: f"table of {Path(path).name}"  # noqa: E731
+    assert start_study(Namespace(report=False, out=str(out)), table) is False
+    with pytest.raises(SystemExit, match=r"--report: no results file .*rows\.jsonl"):
+        start_study(Namespace(report=True, out=str(out)), table)
+    out.write_text("{}\n")
+    assert start_study(Namespace(report=True, out=str(out)), table) is True
+    assert capsys.readouterr().out == "table of rows.jsonl\n"

@@ -26,6 +26,7 @@ import argparse
 import functools
 import json
 import logging
+import math
 import shlex
 import sys
 import time
@@ -112,8 +113,8 @@ def jitted_optimal_commands():
     return jax.jit(optimal_commands, static_argnames=("env", "settle", "iterations"))
 
 
-def plant_sets(overrides: list[str]) -> dict[str, dict[str, tuple[Any, Any]]]:
-    """The evaluation's tracking plants by protocol: ``"all runs"`` (the learned env of the
+def plant_sets(overrides: list[str]) -> tuple[Any, dict[str, dict[str, tuple[Any, Any]]]]:
+    """The evaluate stage's config and its tracking plants by protocol: ``"all runs"`` (the learned env of the
     config, its twins and other models) and each cross-model direction (``own``, ``cross``),
     built as ``stage=evaluate`` builds them."""
     import jax
@@ -181,7 +182,8 @@ def main(argv=None) -> None:
         for plant_name, (env, env_params) in protocols[protocol].items():
             control_hz = float(env.control_hz)
             steps = round(float(tracking.seconds) * control_hz)
-            settle = round(float(tracking.settle_seconds) * control_hz)
+            # the first scored row, as tracking_metrics picks it
+            settle = math.ceil(float(tracking.settle_seconds) * control_hz - 1e-9)
             times = jnp.arange(steps + 1, dtype=jnp.float32) / control_hz
             carries, positions = _starts(env_params, episodes)
             shapes = episode_references(tracking, np.asarray(env_params.goal_set), episodes)

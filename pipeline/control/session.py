@@ -41,8 +41,9 @@ from pipeline.control.results import (
     tracking_figures,
     write_control_report,
 )
-from pipeline.control.trajectory import SCORES, ReferenceSchedule
+from pipeline.control.trajectory import ReferenceSchedule
 from pipeline.data.raw import CollectionInterrupted
+from pipeline.evaluation.tracking import SCORES
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.ros2.gate import CommandGate
 from pipeline.ros2.node import StopSignals

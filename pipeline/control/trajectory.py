@@ -35,13 +35,11 @@ from pipeline.arm.references import InvalidReference, Reference, shape_settings
 from pipeline.control.goals import GoalError, GoalSchedule
 from pipeline.control.records import REFERENCE_COLUMNS
 from pipeline.data.schemas import XYZ
-from pipeline.evaluation.tracking import tracking_metrics
+from pipeline.evaluation.tracking import SCORES, tracking_metrics
 from pipeline.rl.envs import task
 
 MM_PER_M = 1000.0
 CHECK_HZ = 10.0  # the reference is checked against the reachable set at least this often
-SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s", "offset_mm", "offset_x_mm",
-          "offset_y_mm", "offset_z_mm")  # tracking_metrics' columns
 
 
 @dataclass

@@ -49,6 +49,9 @@ from pipeline.rl.envs.learned import EnvParams, SoftArmReachEnv
 WITHIN_MM = 1.0  # the tolerance of the time-within share
 MAX_LAG_S = 5.0  # the lag is searched within +- this many seconds
 BASELINES = ("preload", "mpc")  # the tracking evaluation's baselines besides the reaching one
+# tracking_metrics' columns, in its order (stage=control's records and summaries name them)
+SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s", "offset_mm", "offset_x_mm",
+          "offset_y_mm", "offset_z_mm")
 PATH_EPISODES = 8  # the episodes of each controller whose paths the paths table keeps
 
 
@@ -117,7 +120,7 @@ def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: f
     gap = (positions - reference)[:, first:] * MM_PER_M  # [E, T', 3]
     error = np.linalg.norm(gap, axis=-1)  # [E, T']
     offset = gap.mean(axis=1)  # [E, 3]
-    return pd.DataFrame({
+    table = pd.DataFrame({
         "rmse_mm": np.sqrt(np.mean(error ** 2, axis=1)),
         "p95_mm": np.percentile(error, 95, axis=1),
         "max_mm": error.max(axis=1),
@@ -126,6 +129,7 @@ def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: f
         "offset_mm": np.linalg.norm(offset, axis=1),
         **{f"offset_{axis}_mm": offset[:, number] for number, axis in enumerate("xyz")},
     })
+    return table[list(SCORES)]
 
 
 def _lags(positions: np.ndarray, reference: np.ndarray, first: int, control_hz: float,

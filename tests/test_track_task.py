@@ -11,6 +11,7 @@ from omegaconf import OmegaConf
 from pipeline import keys
 from pipeline.arm import references as R
 from pipeline.arm.safety import SafeSet
+from pipeline.chain import cross_model_folds
 from pipeline.evaluation.closed_loop import ClosedLoopSettings
 from pipeline.evaluation.tracking import TrackingSettings, run_tracking, tracking_metrics
 from pipeline.rl.envs import (
@@ -251,6 +252,12 @@ def test_the_recorded_arm_tracks_with_absolute_actions_and_the_mpc_over_the_prev
     assert list(cfg.evaluation.policies) == ["apg", "apg_rnn"] and cfg.control.policy == "apg_rnn"
     assert keys.key("fit_model", cfg) == keys.key("fit_model", reaching)
     assert list(cfg.evaluation.twins) == ["sim_sorolex"] and cfg.evaluation.reaching
+    # the cross-model groups train 8 seeds each (their tracking figures are as stable as at 20),
+    # the deployed policy's training 20, at the same steps
+    assert cfg.agent.num_seeds == 20
+    for train, _ in cross_model_folds(cfg).values():
+        assert train.agent.num_seeds == 8
+        assert train.agent.recurrent_total_timesteps == cfg.agent.recurrent_total_timesteps
     # the MPC plans over what the policies see ahead: the period's goal and the preview
     tracking = tracking_settings(cfg)
     assert tracking.mpc_horizon is None

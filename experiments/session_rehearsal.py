@@ -68,17 +68,12 @@ def plan(runs, contexts_s: list[float], hz: float, seed: int):
         for context_s in contexts_s:
             steps = context_steps(context_s, hz)
             repeats = max(1, round(mean_steps / steps))
-            copies = [run.replace(run_id=f"{run.run_id}~{context_s:g}s~{r}",
-                                  times_s=run.times_s[:steps],
-                                  pressures_kpa=run.pressures_kpa[:steps],
-                                  positions_m=run.positions_m[:steps]) for r in range(repeats)]
+            copies = [run.head(steps, f"{run.run_id}~{context_s:g}s~{r}")
+                      for r in range(repeats)]
             extra += copies
             models[f"rehearsal_{context_s:g}s/{run.run_id}"] = (
                 Member(others + tuple(c.run_id for c in copies), run.run_id, seed), run.run_id)
-        half = len(run) // 2
-        first = run.replace(run_id=f"{run.run_id}~half", times_s=run.times_s[:half],
-                            pressures_kpa=run.pressures_kpa[:half],
-                            positions_m=run.positions_m[:half])
+        first = run.head(len(run) // 2, f"{run.run_id}~half")
         extra.append(first)
         models[f"half/{run.run_id}"] = (Member((*others, first.run_id), run.run_id, seed),
                                         run.run_id)

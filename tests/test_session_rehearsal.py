@@ -39,3 +39,13 @@ def test_plan_trains_each_model_on_what_it_names():
     assert counts["rehearsal_5s/a"] == 181 + 281 + 4 * 31
     assert counts["half/c"] == 81 + 181 + 131
     assert counts["pooled_halves"] == 31 + 81 + 131
+
+
+def test_the_head_of_a_run_is_its_first_steps_under_another_name():
+    run = Run("r", np.arange(5) / 10.0, np.arange(15, dtype=np.float32).reshape(5, 3),
+              np.arange(15, dtype=np.float32).reshape(5, 3) / 100)
+    head = run.head(2, "r~2")
+    assert head.run_id == "r~2" and len(head) == 2
+    np.testing.assert_array_equal(head.times_s, [0.0, 0.1])
+    np.testing.assert_array_equal(head.pressures_kpa, [[0, 1, 2], [3, 4, 5]])
+    np.testing.assert_allclose(head.positions_m, [[0, 0.01, 0.02], [0.03, 0.04, 0.05]])

@@ -46,6 +46,11 @@ class Run:
         """This run with some fields changed (a copy; the shapes are checked again)."""
         return dataclasses.replace(self, **changes)
 
+    def head(self, steps: int, run_id: str) -> Run:
+        """The first ``steps`` grid steps of this run, named ``run_id``."""
+        return Run(run_id, self.times_s[:steps], self.pressures_kpa[:steps],
+                   self.positions_m[:steps])
+
 
 def runs_by_id(runs: Iterable[Run]) -> dict[str, Run]:
     """``{run_id: run}`` (the ids are unique within one aligned table)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -239,6 +240,8 @@ def evaluate_spec(cfg: Any) -> Spec:
     if "task" not in spec["env"]:  # reaching: the tracking evaluation does not run
         for setting in TRACK_EVALUATION_SETTINGS:
             spec["evaluation"].pop(setting, None)
+    for name, entry in (spec["evaluation"].get("references") or {}).items():
+        spec["evaluation"]["references"][name] = _reference_content(entry)
     for entry in cfg.evaluation.models:
         inputs[f"fit_model/{Path(str(entry)).name}"] = Path(str(entry)).name
     # a twin is its physics, wherever they were read from
@@ -317,6 +320,15 @@ def control_spec(cfg: Any) -> Spec:
     return _versioned("control", spec), {stage: policy_key}
 
 
+def _reference_content(entry: Any) -> Any:
+    """A reference's settings as keys see them: a replayed CSV by its content, not its path."""
+    if isinstance(entry, Mapping) and entry.get("file") is not None:
+        path = Path(str(entry["file"]))
+        digest = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+        entry = {**{k: v for k, v in entry.items() if k != "file"}, "file_sha256": digest}
+    return entry
+
+
 def _control_trajectory(cfg: Any, control: dict[str, Any]) -> None:
     """The reference of ``control.trajectory`` as the key sees it, in ``control``: none
     (goals: the key as before), else the shape it names in ``evaluation.references`` or a CSV's
@@ -334,7 +346,10 @@ def _control_trajectory(cfg: Any, control: dict[str, Any]) -> None:
     evaluation = cfg.evaluation
     if isinstance(trajectory, str) and trajectory in (evaluation.references or {}):
         entry = evaluation.references[trajectory]
-        trajectory = {"name": trajectory, **(_container(entry) if entry is not None else {})}
+        trajectory = {"name": trajectory,
+                      **_reference_content(_container(entry) if entry is not None else {})}
+    elif isinstance(trajectory, Mapping):
+        trajectory = _reference_content(trajectory)
     elif isinstance(trajectory, str) and Path(trajectory).is_file():
         trajectory = {"csv_sha256": hashlib.sha256(Path(trajectory).read_bytes()).hexdigest()}
     control["trajectory"] = {"reference": trajectory,

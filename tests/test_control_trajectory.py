@@ -94,6 +94,24 @@ def test_a_named_reference_is_centred_on_the_held_out_goals_median():
     np.testing.assert_allclose(ticks[-1] * 1e3, [30, 353, 200], atol=1e-4)
 
 
+def test_a_replayed_recording_is_followed_from_its_start_and_slowed():
+    # two recordings the policy's goals came from, x = 30 + t mm (and 40 + t), 10 Hz
+    times = np.arange(61) / 10.0
+    walk = CENTRE_MM / 1e3 + np.outer(times, [0.001, 0.0, 0.0])
+    recorded = {"a": (times, walk + np.array([0.010, 0, 0])), "b": (times, walk)}
+    named = {"walk": {"kind": "replay", "run": "b", "slow_down": 2, "start_s": 1}}
+    trajectory = trajectory_of("walk", named, CENTRE_MM, recorded)
+    assert trajectory.source == "walk: the measured path of b from 1 s, 2 times slower"
+    assert trajectory.duration_s == pytest.approx(10.0)  # the 5 s after 1 s, twice as slow
+    ticks = trajectory_schedule(trajectory, 4.0, 0.0, 2.0, 1, ring_m(CENTRE_MM, 1.0), 10.0).ticks_m
+    np.testing.assert_allclose(ticks[[0, 1, 8]] * 1e3, [[31, 353, 200], [31.25, 353, 200],
+                                                        [33, 353, 200]], atol=1e-4)
+    first = trajectory_of({"kind": "replay"}, {}, CENTRE_MM, recorded)  # the first recording
+    assert "the measured path of a from 0 s, 4 times slower" in first.source
+    with pytest.raises(InvalidReference, match=r"^walk: a replayed path needs the recordings"):
+        trajectory_of("walk", named, CENTRE_MM, {})
+
+
 # ---- refusals: one line, before anything moves ---------------------------------------------------
 def write_csv(path, rows) -> str:
     pd.DataFrame(rows, columns=["t", "x", "y", "z"]).to_csv(path, index=False)
@@ -207,6 +225,26 @@ def test_the_simulated_arm_follows_a_circle_with_the_training_preview(tmp_path):
     for figure in ("path_xz.png", "error.png", "pressures.png"):
         assert artifact.file(f"figures/{figure}").stat().st_size > 5_000
     assert not artifact.file("goals.parquet").exists()
+
+
+def test_the_simulated_arm_follows_a_replayed_csv_and_its_key_holds_the_content(tmp_path):
+    cfg, goals, _ = tracking_policy(tmp_path)
+    centre = np.round(np.median(goals, axis=0) * 1e3, 1)
+    rows = [[t, centre[0] + t, centre[1], centre[2]] for t in (0.0, 1.0, 2.0)]
+    csv = write_csv(tmp_path / "walk.csv", rows)
+    cfg.control.trajectory = {"kind": "replay", "file": csv, "slow_down": 2.0}
+    cfg.control.duration_s, cfg.control.settle_s = 3.0, 0.0
+    cfg.control.workspace_margin_mm = 10.0
+    before = key("control", cfg)
+    artifact = control(cfg)
+    periods = pd.read_parquet(artifact.file("periods.parquet"))
+    assert len(periods) == 7  # 6 periods and the last pose
+    # the path at half speed: x = centre + t / 2 mm at tick t = k / 2 s
+    expected = centre + np.outer(periods["period"] / 4.0, [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(periods[REFERENCE_COLUMNS].to_numpy() * 1e3, expected, atol=1e-3)
+    assert "the measured path of" in artifact.manifest["summary"]["trajectory"]
+    write_csv(tmp_path / "walk.csv", [[t, x + 0.5, y, z] for t, x, y, z in rows])
+    assert key("control", cfg) != before  # the file's content, not its name
 
 
 def test_an_interrupted_session_keeps_its_artifact_and_ends_at_the_preload(tmp_path,

@@ -80,12 +80,102 @@ def test_a_csv_without_its_columns(tmp_path):
         R.read_csv(path)
 
 
-def test_replayed_path_resampled_and_slowed():
+def test_replayed_path_slowed():
+    times = np.array([10.0, 10.1, 10.2, 10.3, 10.4])  # a recording's clock
     recorded = np.array([[0.0, 0, 0], [0.001, 0, 0], [0.002, 0, 0], [0.003, 0, 0],
                          [0.004, 0, 0]])
-    replayed = R.replay(recorded, rate_hz=10.0, slow_down=4.0, every=2)
-    np.testing.assert_allclose(replayed.times, [0.0, 0.8, 1.6])
-    np.testing.assert_allclose(mm(replayed, 0.4, 1.2, 5.0)[:, 0], [1.0, 3.0, 4.0], atol=1e-4)
+    replayed = R.replay(times, recorded, slow_down=4.0)
+    np.testing.assert_allclose(replayed.times, [0.0, 0.4, 0.8, 1.2, 1.6], atol=1e-6)
+    np.testing.assert_allclose(mm(replayed, 0.2, 1.2, 5.0)[:, 0], [0.5, 3.0, 4.0], atol=1e-4)
+    with pytest.raises(R.InvalidReference, match=r"slow_down=0.0: expected a finite number > 0"):
+        R.replay(times, recorded, slow_down=0.0)
+
+
+def walk_m(seconds: float, rate_hz: float = 10.0, offset_mm: float = 0.0):
+    """A measured path for the replays: x = offset + t mm (1 mm/s), at ``rate_hz``."""
+    times = np.arange(round(seconds * rate_hz) + 1) / rate_hz
+    points = np.zeros((len(times), 3))
+    points[:, 0] = (offset_mm + times) / 1000.0
+    return times, points
+
+
+def test_replayed_stretches_spread_over_every_recording():
+    paths = {"a": walk_m(10.0), "b": walk_m(5.0, offset_mm=100.0)}
+    settings = R.ReplaySettings(slow_down=2.0, start_s=1.0)
+    # 8 s followed at half speed: 4 s of path; stretches may begin at 1 .. 6 s of a (51 samples)
+    # and 1 .. 1 s of b (1 sample): 52 starts, 4 stretches spread over them: samples 0, 13, 26, 39
+    stretches = R.replay_stretches(paths, settings, seconds=8.0, count=4)
+    begins = [mm(stretch, 0.0)[0, 0] for stretch in stretches]
+    np.testing.assert_allclose(begins, [1.0, 2.3, 3.6, 4.9], atol=1e-4)
+    for stretch, begin in zip(stretches, begins, strict=True):
+        # half the path's speed, over 8 s: 4 mm, then held at its last point
+        np.testing.assert_allclose(mm(stretch, 2.0, 8.0, 9.0)[:, 0] - begin, [1.0, 4.0, 4.0],
+                                   atol=1e-4)
+    # 52 stretches: the last begins in b, at 1 s
+    last = R.replay_stretches(paths, settings, seconds=8.0, count=52)[-1]
+    np.testing.assert_allclose(mm(last, 0.0, 8.0)[:, 0], [101.0, 105.0], atol=1e-4)
+    only_b = R.replay_stretches(paths, R.ReplaySettings(run="b", slow_down=2.0), 8.0, 1)[0]
+    np.testing.assert_allclose(mm(only_b, 0.0)[0, 0], 100.0, atol=1e-4)
+
+
+@pytest.mark.parametrize("settings, seconds, words", [
+    (R.ReplaySettings(run="c"), 8.0, r"run 'c' is not among the recordings \['a', 'b'\]"),
+    (R.ReplaySettings(slow_down=1.0, start_s=4.0), 8.0,
+     r"no recording holds 8 s of path after start_s=4 s \(8 s followed at slow_down=1\); the "
+     r"longest lasts 10.0 s"),
+    (R.ReplaySettings(start_s=-1.0), 8.0, r"start_s=-1.0: expected a finite number >= 0 s"),
+    (R.ReplaySettings(slow_down=float("nan")), 8.0, r"slow_down=nan: expected a finite number"),
+])
+def test_bad_replays_are_refused_by_name(settings, seconds, words):
+    paths = {"a": walk_m(10.0), "b": walk_m(5.0)}
+    with pytest.raises(R.InvalidReference, match=r"^evaluation.references walk: " + words):
+        R.replay_stretches(paths, settings, seconds, 4, "evaluation.references walk")
+
+
+def test_the_rest_of_a_recording_replayed_from_its_start():
+    paths = {"a": walk_m(10.0), "b": walk_m(5.0, offset_mm=100.0)}
+    name, rest = R.replay_rest(paths, R.ReplaySettings(run="b", slow_down=3.0, start_s=2.0))
+    assert name == "b"
+    assert float(rest.times[-1]) == pytest.approx(9.0)  # 3 s of path, 3 times slower
+    np.testing.assert_allclose(mm(rest, 0.0, 4.5, 9.0)[:, 0], [102.0, 103.5, 105.0], atol=1e-4)
+    assert R.replay_rest(paths, R.ReplaySettings())[0] == "a"  # no run: the first
+    with pytest.raises(R.InvalidReference, match=r"b lasts 5.0 s, nothing to replay after "
+                                                 r"start_s=6 s"):
+        R.replay_rest(paths, R.ReplaySettings(run="b", start_s=6.0))
+
+
+def test_a_replayed_csv_and_the_recordings_a_replay_needs(tmp_path):
+    path = tmp_path / "walk.csv"
+    path.write_text("t,x,y,z\n0,30,353,200\n0.5,31,353,200\n1,33,353,200\n")
+    csv = R.ReplaySettings(file=str(path))
+    paths = R.measured_paths(csv, {}, "walk")
+    times, points = paths[str(path)]
+    np.testing.assert_allclose(times, [0, 0.5, 1.0])
+    np.testing.assert_allclose(points[:, 0], [0.030, 0.031, 0.033])
+    recorded = {"a": walk_m(10.0)}
+    assert R.measured_paths(R.ReplaySettings(), recorded, "walk") is recorded
+    with pytest.raises(R.InvalidReference, match=r"walk: a replayed path needs the recordings"):
+        R.measured_paths(R.ReplaySettings(), {}, "walk")
+    path.write_text("t,x,y,z\n0,0.030,0.353,0.200\n1,0.031,0.353,0.200\n")
+    with pytest.raises(R.InvalidReference, match=r"look like metres"):
+        R.measured_paths(csv, {}, "walk")
+
+
+def test_reference_settings_read_shapes_and_replays_and_refuse_what_the_kind_ignores():
+    assert R.reference_settings({"kind": "replay", "run": "a", "slow_down": 2},
+                                "walk") == R.ReplaySettings(run="a", slow_down=2.0)
+    assert R.reference_settings({"period_s": 10}, "fast") == R.ShapeSettings(
+        "circle", None, 5.0, period_s=10.0)
+    with pytest.raises(R.InvalidReference, match=r"^walk: \['size_mm'\] do not apply to kind "
+                                                 r"replay; its settings are \['kind', 'run', "
+                                                 r"'file', 'slow_down', 'start_s'\]$"):
+        R.reference_settings({"kind": "replay", "size_mm": 3}, "walk")
+    with pytest.raises(R.InvalidReference, match=r"^fast: \['slow_down'\] do not apply to kind "
+                                                 r"circle"):
+        R.reference_settings({"slow_down": 3}, "fast")
+    with pytest.raises(R.InvalidReference, match=r"expected one of \('circle', 'ellipse', "
+                                                 r"'figure_eight', 'replay'\)"):
+        R.shape(R.reference_settings({"kind": "spiral"}, "odd"))
 
 
 def test_shapes_and_tables_stack_and_run_under_jit_and_vmap():

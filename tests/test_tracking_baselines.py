@@ -190,6 +190,35 @@ def test_the_tracking_tables_have_a_row_for_every_plant_controller_and_reference
     assert preview.horizon == 2
 
 
+def test_a_replayed_path_is_followed_in_stretches_spread_over_the_recordings():
+    env, params, settings, policies, _ = gru_tracking()
+    # a recording through the goals: 1 mm/s along x from 4 mm short of the rest pose, 10 Hz
+    times = np.arange(81) / 10.0
+    points = np.asarray(REST_POSE) + np.outer(times - 4.0, [0.001, 0.0, 0.0])
+    replay = {"walk": R.ReplaySettings(slow_down=2.0)}
+    tracking = TrackingSettings(replay, 3.0, 1.0, 50.0, recorded={"run_a": (times, points)})
+    results = run_tracking(settings, tracking, policies, env, params)
+    episodes = results["tables"]["tracking_episodes"]
+    assert set(episodes["reference"]) == {"walk"} and np.isfinite(episodes["rmse_mm"]).all()
+    # 3 s followed and one period previewed (0.5 s) at half speed: 1.75 s of path a stretch;
+    # stretches begin at 0 .. 6.2 s (63 samples), the 2 episodes' at samples 0 and 31 (3.1 s)
+    target = results["reference_paths"]["walk"] * 1000.0  # [2, 7, 3] mm at 0, 0.5, .. 3 s
+    start = np.asarray(REST_POSE) * 1000.0 + [-4.0, 0.0, 0.0]
+    for episode, begin_s in enumerate([0.0, 3.1]):
+        expected = start + np.outer(begin_s + np.arange(7) * 0.25, [1.0, 0.0, 0.0])
+        np.testing.assert_allclose(target[episode], expected, atol=1e-3)
+    # every stretch is checked against the goals before anything runs
+    # (the first stretch leaves the goal 4 mm short of the rest pose: 0.75 mm past it at 1.5 s)
+    far = TrackingSettings(replay, 3.0, 1.0, 0.6, recorded={"run_a": (times, points)})
+    with pytest.raises(ConfigError, match=r"evaluation.references walk \(episode 0\) refused: "
+                                          r"its point at t=1.5 s, \[28.8, 353.0, 202.0\] mm, "
+                                          r"lies 0.8 mm"):
+        run_tracking(settings, far, policies, env, params)
+    with pytest.raises(ConfigError, match=r"evaluation.references walk: a replayed path needs "
+                                          r"the recordings the goals come from"):
+        run_tracking(settings, TrackingSettings(replay, 3.0, 1.0, 50.0), policies, env, params)
+
+
 def test_cross_model_tracking_runs_in_the_own_and_the_other_model():
     env, params, settings, policies, reaching = gru_tracking()
     tracking = TrackingSettings({"circle": SHAPES["circle"]}, 3.0, 1.0, 50.0,

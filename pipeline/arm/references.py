@@ -14,7 +14,8 @@ period). It holds either
   followed by linear interpolation and held at its last point after its end.
 
 Parameters are given in mm and s (:class:`ShapeSettings`, :func:`waypoints`, :func:`read_csv`,
-:func:`replay`) and held in m and s. :func:`draw` draws random shapes for training, inside jit;
+:func:`replay`; :class:`ReplaySettings` and :func:`replay_stretches` for stretches of recorded
+paths) and held in m and s; :func:`reference_settings` reads either kind from the config. :func:`draw` draws random shapes for training, inside jit;
 :func:`check_reachable` refuses a reference that leaves a set of reachable positions before
 anything moves.
 """
@@ -39,6 +40,7 @@ from pipeline.schemas import ConfigError, ReferenceConfig
 
 MM_PER_M = 1000.0
 SHAPES = ("circle", "ellipse", "figure_eight")
+REPLAY = "replay"  # the kind of a replayed measured path (:class:`ReplaySettings`)
 # the axes of each plane a shape can lie in (x, y, z: 0, 1, 2 of the mocap frame)
 PLANES = {"xz": (0, 2), "xy": (0, 1), "yz": (1, 2)}
 # the plane of the random draws: the arms' workspace is a surface in x and z of the mocap frame
@@ -135,7 +137,8 @@ def shape(settings: ShapeSettings) -> Reference:
     """The :class:`Reference` of a closed shape; a bad setting raises :class:`InvalidReference`
     naming it."""
     if settings.kind not in SHAPES:
-        raise InvalidReference(f"reference kind {settings.kind!r}: expected one of {SHAPES}")
+        raise InvalidReference(f"reference kind {settings.kind!r}: expected one of "
+                               f"{(*SHAPES, REPLAY)}")
     if settings.plane not in PLANES:
         raise InvalidReference(f"reference plane {settings.plane!r}: expected one of "
                              f"{tuple(PLANES)}")
@@ -245,18 +248,122 @@ def read_csv(path: Path) -> Reference:
     return table(values[:, 0], points_mm / MM_PER_M, f"reference CSV {path}")
 
 
-def replay(positions_m: np.ndarray, rate_hz: float, slow_down: float = 1.0,
-           every: int = 1) -> Reference:
-    """A measured path replayed: ``positions_m [T, 3]`` m recorded at ``rate_hz``, every
-    ``every``-th kept and played ``slow_down`` times slower (the path the arm went through:
-    reachable by construction), from t = 0."""
-    positions_m = np.asarray(positions_m, np.float64)
-    if not (rate_hz > 0 and slow_down > 0 and every >= 1):
-        raise InvalidReference(f"replayed reference: rate_hz={rate_hz}, slow_down={slow_down} "
-                             f"must be > 0 and every={every} >= 1")
-    kept = positions_m[::every]
-    times = np.arange(len(positions_m))[::every] / float(rate_hz) * float(slow_down)
-    return table(times, kept, "replayed reference")
+def replay(times_s: np.ndarray, points_m: np.ndarray, slow_down: float = 1.0,
+           what: str = "replayed reference") -> Reference:
+    """A measured path replayed: ``points_m [T, 3]`` m measured at ``times_s [T]`` s (increasing),
+    played ``slow_down`` times slower from t = 0 (the path the arm went through: reachable by
+    construction)."""
+    if not (math.isfinite(slow_down) and slow_down > 0):
+        raise InvalidReference(f"{what}: slow_down={slow_down}: expected a finite number > 0")
+    times = np.asarray(times_s, np.float64)
+    return table((times - times[:1]) * float(slow_down), points_m, what)
+
+
+@dataclass(frozen=True)
+class ReplaySettings:
+    """Stretches of measured paths, replayed (:func:`replay_stretches`).
+
+    run: the recording to replay, by name; None: every recording given.
+    file: a CSV ``t,x,y,z`` (s, mm) of a measured path, replayed instead of the recordings.
+    slow_down: how many times slower than recorded.
+    start_s: s into each path where its stretches may begin.
+    """
+
+    run: str | None = None
+    file: str | None = None
+    slow_down: float = 4.0
+    start_s: float = 0.0
+
+
+def replay_stretches(paths: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                     settings: ReplaySettings, seconds: float, count: int,
+                     what: str = "replayed reference") -> list[Reference]:
+    """``count`` stretches of the measured ``paths`` (by name: ``(times [T] s, points [T, 3]
+    m)``), each followed for ``seconds`` s, ``seconds / slow_down`` s of the path played
+    ``settings.slow_down`` times slower (:func:`replay`). The stretches begin at samples spread
+    evenly over every sample from ``settings.start_s`` s into each path (``settings.run``: that
+    path only) that leaves a whole stretch before the path's end: ``count`` 1 is the stretch from
+    ``start_s`` on of the first path. A :class:`InvalidReference` naming ``what`` where the run
+    is unknown or no path is long enough."""
+    paths = _replayed(paths, settings, what)
+    span = float(seconds) / float(settings.slow_down)  # s of the path in a stretch
+    begins = []  # (name, sample) of every stretch that fits
+    for name, (times, _) in paths.items():
+        elapsed = np.asarray(times, np.float64) - float(times[0])
+        fits = (elapsed >= settings.start_s - 1e-9) & (elapsed <= elapsed[-1] - span + 1e-9)
+        begins.extend((name, int(sample)) for sample in np.flatnonzero(fits))
+    if not begins:
+        longest = max((float(times[-1] - times[0]) for times, _ in paths.values()), default=0.0)
+        raise InvalidReference(
+            f"{what}: no recording holds {span:g} s of path after start_s={settings.start_s:g} s "
+            f"({seconds:g} s followed at slow_down={settings.slow_down:g}); the longest lasts "
+            f"{longest:.1f} s")
+    stretches = []
+    for index in np.linspace(0, len(begins), count, endpoint=False).astype(int):
+        name, first = begins[index]
+        times, points = (np.asarray(a, np.float64) for a in paths[name])
+        last = min(int(np.searchsorted(times, times[first] + span - 1e-9)), len(times) - 1)
+        stretches.append(replay(times[first:last + 1], points[first:last + 1],
+                                settings.slow_down,
+                                f"{what} ({name} from {times[first] - times[0]:.1f} s)"))
+    return stretches
+
+
+def replay_rest(paths: Mapping[str, tuple[np.ndarray, np.ndarray]], settings: ReplaySettings,
+                what: str = "replayed reference") -> tuple[str, Reference]:
+    """``(name, reference)``: the measured path ``settings.run`` of ``paths`` (by name: ``(times
+    [T] s, points [T, 3] m)``; None: the first) from ``settings.start_s`` s to its end, played
+    ``settings.slow_down`` times slower (:func:`replay`); a :class:`InvalidReference` naming
+    ``what`` where the run is unknown or ends before ``start_s``."""
+    name, (times, points) = next(iter(_replayed(paths, settings, what).items()))
+    times, points = np.asarray(times, np.float64), np.asarray(points, np.float64)
+    kept = times - times[0] >= settings.start_s - 1e-9
+    if kept.sum() < 2:
+        raise InvalidReference(f"{what}: {name} lasts {times[-1] - times[0]:.1f} s, nothing to "
+                               f"replay after start_s={settings.start_s:g} s")
+    return name, replay(times[kept], points[kept], settings.slow_down,
+                        f"{what} ({name} from {settings.start_s:g} s)")
+
+
+def _replayed(paths: Mapping[str, tuple[np.ndarray, np.ndarray]], settings: ReplaySettings,
+              what: str) -> Mapping[str, tuple[np.ndarray, np.ndarray]]:
+    """The paths ``settings`` replays (its run's, or all), its numbers checked."""
+    if not (math.isfinite(settings.slow_down) and settings.slow_down > 0):
+        raise InvalidReference(f"{what}: slow_down={settings.slow_down}: expected a finite "
+                               f"number > 0")
+    if not (math.isfinite(settings.start_s) and settings.start_s >= 0):
+        raise InvalidReference(f"{what}: start_s={settings.start_s}: expected a finite number "
+                               f">= 0 s")
+    if not paths:
+        raise InvalidReference(f"{what}: no measured path to replay")
+    if settings.run is None:
+        return paths
+    if settings.run not in paths:
+        raise InvalidReference(f"{what}: run {settings.run!r} is not among the recordings "
+                               f"{sorted(paths)}")
+    return {settings.run: paths[settings.run]}
+
+
+def measured_paths(settings: ReplaySettings,
+                   recorded: Mapping[str, tuple[np.ndarray, np.ndarray]], what: str
+                   ) -> Mapping[str, tuple[np.ndarray, np.ndarray]]:
+    """The measured paths ``settings`` replays, by name (``(times [T] s, points [T, 3] m)``): its
+    CSV's (:func:`csv_path`), or ``recorded``, the recordings the goals come from; a
+    :class:`InvalidReference` naming ``what`` where there are neither."""
+    if settings.file is not None:
+        return {str(settings.file): csv_path(Path(settings.file))}
+    if not recorded:
+        raise InvalidReference(
+            f"{what}: a replayed path needs the recordings the goals come from (env=learned on "
+            f"recorded or collected runs) or a CSV of one (file: t,x,y,z in s and mm)")
+    return recorded
+
+
+def csv_path(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(times [T] s, points [T, 3] m)`` of a CSV ``t,x,y,z`` (s, mm), checked as
+    :func:`read_csv` checks it."""
+    reference = read_csv(path)
+    return np.asarray(reference.times, np.float64), np.asarray(reference.points, np.float64)
 
 
 def goal_table(goals_m: jax.Array, control_hz: float) -> Reference:
@@ -354,10 +461,17 @@ def check_reachable(reference: Reference, duration_s: float, sample_hz: float,
         f"{tolerance_mm:g} mm); the reachable set ({len(reachable)} positions) spans {extent} mm")
 
 
-def shape_settings(entry: Any, what: str) -> ShapeSettings:
-    """The :class:`ShapeSettings` of a mapping of :class:`ReferenceConfig` fields (those it leaves
-    out at their defaults; ``centre_mm`` may stay None); one :class:`InvalidReference` naming
-    ``what`` for anything else."""
+# the settings of ReferenceConfig that only a replayed path reads, and only a shape
+_REPLAY_FIELDS = tuple(field.name for field in dataclasses.fields(ReplaySettings))
+_SHAPE_FIELDS = tuple(field.name for field in dataclasses.fields(ShapeSettings)
+                      if field.name != "kind")
+
+
+def reference_settings(entry: Any, what: str) -> ShapeSettings | ReplaySettings:
+    """The :class:`ShapeSettings` (``centre_mm`` may stay None) or, for ``kind: replay``, the
+    :class:`ReplaySettings` of a mapping of :class:`ReferenceConfig` fields (those it leaves out
+    at their defaults); one :class:`InvalidReference` naming ``what`` for anything else: an
+    unknown setting, or one that the kind does not read."""
     known = sorted(field.name for field in dataclasses.fields(ReferenceConfig))
     entry = {} if entry is None else entry  # every setting at its default
     if not isinstance(entry, Mapping):
@@ -366,6 +480,15 @@ def shape_settings(entry: Any, what: str) -> ShapeSettings:
     if unknown:
         raise InvalidReference(f"{what}: unknown setting(s) {unknown}; expected some of {known}")
     values = {**dataclasses.asdict(ReferenceConfig()), **entry}
+    kind = str(values.pop("kind"))
+    replayed = kind == REPLAY
+    own, other = (_REPLAY_FIELDS, _SHAPE_FIELDS) if replayed else (_SHAPE_FIELDS, _REPLAY_FIELDS)
+    stray = sorted(name for name in entry if name in other)
+    if stray:
+        raise InvalidReference(f"{what}: {stray} do not apply to kind {kind}; its settings are "
+                               f"{['kind', *own]}")
+    if replayed:
+        return ReplaySettings(**{name: values[name] for name in _REPLAY_FIELDS})
     centre = values.pop("centre_mm")
-    return ShapeSettings(**values, centre_mm=None if centre is None
-                         else tuple(float(v) for v in centre))
+    return ShapeSettings(kind=kind, **{name: values[name] for name in _SHAPE_FIELDS if name != "centre_mm"},
+                         centre_mm=None if centre is None else tuple(float(v) for v in centre))

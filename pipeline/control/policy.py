@@ -10,7 +10,8 @@ compiled.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import jax
@@ -47,6 +48,9 @@ class Deployment:
     control_hz: float
     # (policy_params, env_params, carry, first, measured, goal, preview, last_pressure), jitted
     step: Any
+    # the measured paths of the runs the policy's evaluation goals came from, by run: (times [T]
+    # s, positions [T, 3] m), what a replayed reference replays (empty: none known)
+    recorded: Mapping[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @property
     def preview(self) -> int:
@@ -109,7 +113,8 @@ def make_step(network: Any, env: SoftArmReachEnv) -> Any:
 
 def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict[str, Any],
            env: SoftArmReachEnv, train_params: EnvParams, eval_params: EnvParams,
-           control_hz: float) -> Deployment:
+           control_hz: float,
+           recorded: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Deployment:
     """Seed ``seed`` of the policy ``stacked`` (parameters with a leading seed axis, as
     :func:`pipeline.rl.policy_io.load_policy` returns them with ``network`` and ``meta``) in the
     environment it was trained in, its step compiled (one call made), with the hold's map of
@@ -122,7 +127,8 @@ def deploy(artifact: Artifact, seed: int, network: Any, stacked: Any, meta: dict
     deployment = Deployment(artifact, seed, env, eval_params, policy_params,
                             (initial_hidden(network, 1), jnp.zeros(3, jnp.float32),
                              jnp.zeros(3, jnp.float32), env.initial_hold(jnp.zeros(3))),
-                            workspace, goals, control_hz, make_step(network, env))
+                            workspace, goals, control_hz, make_step(network, env),
+                            dict(recorded or {}))
     # compile before the first command: the first period must not wait for XLA
     preload = np.asarray(eval_params.preload, np.float64)
     centre = workspace.mean(axis=0)

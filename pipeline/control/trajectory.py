@@ -1,11 +1,13 @@
 """Following a reference with ``stage=control`` (``control.trajectory``).
 
 The reference (:mod:`pipeline.arm.references`, the library training and evaluation use) is a
-closed shape, by name of ``evaluation.references`` or given inline with the fields of
-:class:`~pipeline.schemas.ReferenceConfig`, or a timed CSV ``t,x,y,z`` (s, mm; its reader refuses
-times that do not increase, entries that are not finite and coordinates in metres). It is followed
-from ``t = 0``, the first control period's tick, for a duration (:func:`trajectory_schedule`),
-after it was checked against the positions the policy was trained and evaluated on.
+closed shape or a replayed measured path (``kind: replay``: a recording the policy's goals came
+from, or a CSV of one, slowed), by name of ``evaluation.references`` or given inline with the
+fields of :class:`~pipeline.schemas.ReferenceConfig`, or a timed CSV ``t,x,y,z`` (s, mm; its
+reader refuses times that do not increase, entries that are not finite and coordinates in
+metres). It is followed from ``t = 0``, the first control period's tick, for a duration
+(:func:`trajectory_schedule`), after it was checked against the positions the policy was trained
+and evaluated on.
 
 Control period ``k`` (tick ``k / control_hz``) gets what period ``k`` of a training episode that
 started at ``t = 0`` gets (:func:`pipeline.rl.envs.task.goal_path`,
@@ -31,7 +33,12 @@ import numpy as np
 import pandas as pd
 
 from pipeline.arm import references
-from pipeline.arm.references import InvalidReference, Reference, shape_settings
+from pipeline.arm.references import (
+    InvalidReference,
+    Reference,
+    ReplaySettings,
+    reference_settings,
+)
 from pipeline.control.goals import GoalError, GoalSchedule
 from pipeline.control.records import REFERENCE_COLUMNS
 from pipeline.data.schemas import XYZ
@@ -160,11 +167,15 @@ class Trajectory:
     duration_s: float | None
 
 
-def trajectory_of(given: Any, named: Mapping[str, Any], centre_mm: np.ndarray) -> Trajectory:
+def trajectory_of(given: Any, named: Mapping[str, Any], centre_mm: np.ndarray,
+                  recorded: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None
+                  ) -> Trajectory:
     """The reference ``control.trajectory`` names: a key of ``named`` (``evaluation.references``),
     a mapping of :class:`ReferenceConfig` fields, or the path of a CSV (``t,x,y,z``, s and mm);
     a shape without a centre is centred on ``centre_mm [3]`` (the held-out goals' median, as in
-    the evaluation)."""
+    the evaluation); a replayed path (``kind: replay``) is its recording's (``recorded``, by
+    run: ``(times [T] s, positions [T, 3] m)``, the runs the policy's goals came from) or its
+    CSV's measured path from ``start_s`` on, slowed (:func:`references.replay_rest`)."""
     if isinstance(given, str) and (given.lower().endswith(".csv") or Path(given).is_file()):
         path = Path(given)
         if not path.is_file():
@@ -173,15 +184,21 @@ def trajectory_of(given: Any, named: Mapping[str, Any], centre_mm: np.ndarray) -
         reference = references.read_csv(path)
         return Trajectory(reference, f"the CSV {path}", float(np.asarray(reference.times)[-1]))
     if isinstance(given, Mapping):
-        shape, name = shape_settings(given, "control.trajectory"), "control.trajectory"
+        shape, name = reference_settings(given, "control.trajectory"), "control.trajectory"
     elif isinstance(given, str) and given in named:
-        shape = shape_settings(named[given], f"evaluation.references.{given}")
+        shape = reference_settings(named[given], f"evaluation.references.{given}")
         name = given
     else:
         raise InvalidReference(
             f"control.trajectory={given!r}: expected a name of evaluation.references "
             f"{sorted(named)}, a shape such as {{kind: circle, size_mm: 5, period_s: 20}}, or a "
             f"CSV file with columns t,x,y,z (s, mm)")
+    if isinstance(shape, ReplaySettings):
+        paths = references.measured_paths(shape, recorded or {}, name)
+        run, reference = references.replay_rest(paths, shape, name)
+        source = (f"{name}: the measured path of {run} from {shape.start_s:g} s, "
+                  f"{shape.slow_down:g} times slower")
+        return Trajectory(reference, source, float(np.asarray(reference.times)[-1]))
     if shape.centre_mm is None:
         shape = dataclasses.replace(shape, centre_mm=tuple(float(v) for v in centre_mm))
     centre = np.round(np.asarray(shape.centre_mm, np.float64), 1).tolist()

@@ -1,8 +1,9 @@
 """Tracking evaluation: every controller follows the same references on every plant.
 
 For ``env.task=track``: each reference of ``evaluation.references`` (a shape in mm and s,
-:mod:`pipeline.arm.references`; centred on the held-out goals' median where it names no centre,
-checked against the held-out goals before anything runs) is followed for ``tracking_seconds`` by
+:mod:`pipeline.arm.references`, centred on the held-out goals' median where it names no centre;
+or stretches of the measured paths the arm went through, replayed slower; checked against the
+held-out goals before anything runs) is followed for ``tracking_seconds`` by
 every policy (all seeds) and the baselines (``evaluation.tracking_baselines``: the preload; the
 sampling MPC on the learned model, :mod:`pipeline.evaluation.mpc`, scoring its candidates
 against the reference over its horizon, :class:`TrackingSettings`; the reaching policies fed the
@@ -53,14 +54,16 @@ BASELINES = ("preload", "mpc")  # the tracking evaluation's baselines besides th
 SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s", "offset_mm", "offset_x_mm",
           "offset_y_mm", "offset_z_mm")
 PATH_EPISODES = 8  # the episodes of each controller whose paths the paths table keeps
+CHECK_HZ = 2.0  # a replayed stretch is checked against the reachable set this often [1/s]
 
 
 @dataclass(frozen=True)
 class TrackingSettings:
     """The references and timing of the tracking evaluation.
 
-    references: the shapes followed, by name (:class:`~pipeline.arm.references.ShapeSettings`;
-      ``centre_mm`` None: the held-out goals' median).
+    references: the references followed, by name: shapes
+      (:class:`~pipeline.arm.references.ShapeSettings`; ``centre_mm`` None: the held-out goals'
+      median) or replayed measured paths (:class:`~pipeline.arm.references.ReplaySettings`).
     seconds: s, an episode's length.
     settle_seconds: s, the first part of an episode left out of the metrics.
     reachable_tolerance_mm: mm, how far a reference point may lie from the nearest held-out goal.
@@ -83,6 +86,10 @@ class TrackingSettings:
     mpc_horizon: int | None = 1
     mpc_per_period: bool = True
     mpc_std_kpa: float = 0.25
+    # the measured paths a replayed reference without a file replays, by recording: (times [T]
+    # s, positions [T, 3] m), the recordings the held-out goals come from
+    recorded: Mapping[str, tuple[np.ndarray, np.ndarray]] = dataclasses.field(
+        default_factory=dict)
 
     def mpc_settings(self, evaluation: Any, env: SoftArmReachEnv) -> mpc.CEMSettings:
         """The tracking MPC's settings: ``evaluation``'s samples and iterations, this horizon
@@ -155,19 +162,33 @@ def _lags(positions: np.ndarray, reference: np.ndarray, first: int, control_hz: 
     return refined / control_hz
 
 
-def episode_references(settings: TrackingSettings, goal_set: np.ndarray, episodes: int
-                       ) -> dict[str, references.Reference]:
-    """Each named reference ``[episodes]`` (stacked), its phase spread evenly over a lap, each
-    checked against ``goal_set [G, 3]`` m (:func:`pipeline.arm.references.check_reachable`)."""
+def episode_references(settings: TrackingSettings, goal_set: np.ndarray, episodes: int,
+                       horizon_s: float | None = None) -> dict[str, references.Reference]:
+    """Each named reference ``[episodes]`` (stacked), checked against ``goal_set [G, 3]`` m
+    (:func:`pipeline.arm.references.check_reachable`) over ``horizon_s`` s (None: the episode's
+    length): a shape's phase spread evenly over a lap (the first episode checked: the others
+    pass the same points), a replayed path's stretches spread over the recordings
+    (``settings.recorded``) or its CSV (:func:`pipeline.arm.references.replay_stretches`), every
+    one checked."""
+    horizon = float(settings.seconds if horizon_s is None else horizon_s)
     centre = tuple(float(v) for v in np.median(np.asarray(goal_set), axis=0) * MM_PER_M)
     out = {}
-    for name, shape in settings.references.items():
-        if shape.centre_mm is None:
-            shape = dataclasses.replace(shape, centre_mm=centre)
+    for name, given in settings.references.items():
+        what = f"evaluation.references {name}"
+        if isinstance(given, references.ReplaySettings):
+            paths = references.measured_paths(given, settings.recorded, what)
+            stretches = references.replay_stretches(paths, given, horizon, episodes, what)
+            for number, stretch in enumerate(stretches):
+                references.check_reachable(stretch, horizon, CHECK_HZ, goal_set,
+                                           settings.reachable_tolerance_mm,
+                                           f"{what} (episode {number})")
+            out[name] = references.stack(stretches)
+            continue
+        shape = given if given.centre_mm is not None else dataclasses.replace(
+            given, centre_mm=centre)
         first = references.shape(shape)
         references.check_reachable(first, shape.period_s, 64.0 / shape.period_s, goal_set,
-                                   settings.reachable_tolerance_mm,
-                                   f"evaluation.references {name}")
+                                   settings.reachable_tolerance_mm, what)
         out[name] = references.stack([
             references.shape(dataclasses.replace(
                 shape, phase_deg=shape.phase_deg + 360.0 * number / episodes))
@@ -204,7 +225,8 @@ def run_tracking(settings: ClosedLoopSettings, tracking: TrackingSettings,
     if not env.tracking:
         raise ValueError("the tracking evaluation needs a tracking environment (env.task=track)")
     episodes = int(settings.evaluation.num_episodes)
-    shapes = episode_references(tracking, np.asarray(eval_params.goal_set), episodes)
+    shapes = episode_references(tracking, np.asarray(eval_params.goal_set), episodes,
+                                tracking.seconds + env.preview / env.control_hz)
     key = jax.random.fold_in(jax.random.key(int(settings.evaluation.seed)), 7)
     with_baselines = dataclasses.replace(
         settings, mpc=tracking.mpc_settings(settings.evaluation, env),

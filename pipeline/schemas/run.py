@@ -18,9 +18,15 @@ from pipeline.schemas.values import MISSING
 
 @dataclass
 class ReferenceConfig:
-    """A reference shape to follow, in mm and s (``pipeline.arm.references.ShapeSettings``)."""
+    """A reference to follow, in mm and s: a closed shape
+    (``pipeline.arm.references.ShapeSettings``) or a replayed measured path
+    (``kind: replay``, ``pipeline.arm.references.ReplaySettings``)."""
 
-    kind: str = "circle"  # circle | ellipse | figure_eight
+    # circle | ellipse | figure_eight, or replay: a stretch of the path the arm itself went
+    # through, played slow_down times slower: the measured positions of the recordings the
+    # evaluation's goals come from (run: one of them by name; null: episodes spread over all),
+    # or of a CSV t,x,y,z (s, mm; file), from start_s s on
+    kind: str = "circle"
     centre_mm: list[float] | None = None  # [x, y, z] mm; null: the held-out goals' median
     size_mm: float = 5.0  # radius, or semi-axis along the plane's first axis
     size_b_mm: float | None = None  # semi-axis along the second axis; null: size_mm
@@ -28,6 +34,10 @@ class ReferenceConfig:
     phase_deg: float = 0.0  # where the first episode starts (episodes spread over a lap)
     direction: int = 1  # 1: counter-clockwise from the plane's first axis to its second; -1
     plane: str = "xz"  # xz | xy | yz
+    run: str | None = None  # replay: the recording (null: every one)
+    file: str | None = None  # replay: a CSV t,x,y,z (s, mm) of a measured path instead
+    slow_down: float = 4.0  # replay: times slower than recorded
+    start_s: float = 0.0  # replay: s into each recording (the CSV) where its stretches begin
 
 
 def _default_references() -> dict[str, Any]:

@@ -10,7 +10,13 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from pipeline.infra.artifacts import Artifact
-from pipeline.rl.envs.factory import ArmSettings, LearnedInputs, environment, read_learned_inputs
+from pipeline.rl.envs.factory import (
+    ArmSettings,
+    LearnedInputs,
+    environment,
+    measured_paths,
+    read_learned_inputs,
+)
 from pipeline.schemas import EnvConfig, EnvName
 
 
@@ -47,3 +53,13 @@ def config_environment(cfg: Any, model: Artifact | None = None, aligned: Artifac
     if EnvName(cfg.env.name) is EnvName.learned and model is not None and aligned is not None:
         inputs = learned_inputs(cfg, model, aligned, members)
     return environment(env_settings(cfg), arm_settings(cfg), inputs)
+
+
+def recorded_paths(cfg: Any, model: Artifact | None, aligned: Artifact | None
+                   ) -> dict[str, tuple[Any, Any]]:
+    """The measured paths of the runs ``cfg``'s evaluation goals come from, by run (``(times [T]
+    s, positions [T, 3] m)`` at ``dataset.model_hz``; what a replayed reference replays); empty
+    where the environment is not ``env=learned`` on fitted runs."""
+    if EnvName(cfg.env.name) is not EnvName.learned or model is None or aligned is None:
+        return {}
+    return measured_paths(learned_inputs(cfg, model, aligned))

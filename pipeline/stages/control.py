@@ -49,7 +49,7 @@ from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, ar
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.schemas import ControlConfig, RobotKind
 from pipeline.stages._deployed import policy_artifact, training_config
-from pipeline.stages._environment import config_environment
+from pipeline.stages._environment import config_environment, recorded_paths
 from pipeline.validation import validate_config
 
 log = logging.getLogger(__name__)
@@ -134,7 +134,7 @@ def session_schedule(cfg: Any, settings: ControlConfig, deployment: Deployment
     held_out = np.asarray(deployment.env_params.goal_set, np.float64)
     trained = deployment.train_goals_m
     trajectory = trajectory_of(settings.trajectory, named,
-                               np.median(held_out, axis=0) * MM_PER_M)
+                               np.median(held_out, axis=0) * MM_PER_M, deployment.recorded)
     duration = (settings.duration_s if settings.duration_s is not None
                 else trajectory.duration_s if trajectory.duration_s is not None
                 else evaluation.tracking_seconds)
@@ -173,4 +173,4 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
                                       hold_gain=np.float32(hold_gain),
                                       hold_backoff=np.float32(hold_backoff))
     return deploy(artifact, seed, network, stacked, meta, env, train_params, eval_params,
-                  control_hz)
+                  control_hz, recorded_paths(train_cfg, model, aligned))

@@ -45,7 +45,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import chain, keys
-from pipeline.arm.references import shape_settings
+from pipeline.arm.references import ReplaySettings, reference_settings
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, SimArm, run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
@@ -71,7 +71,7 @@ from pipeline.rl.envs.factory import sim_plant_params
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.rl.results import return_curves
 from pipeline.schemas import EnvName, RobotKind, Task
-from pipeline.stages._environment import config_environment, env_settings
+from pipeline.stages._environment import config_environment, env_settings, recorded_paths
 
 log = logging.getLogger(__name__)
 STAGE = "evaluate"
@@ -108,8 +108,9 @@ def evaluate(cfg: Any) -> Artifact:
         results = run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params, models,
                                  twins)
         if Task(cfg.env.task) is Task.track:
-            tracked = run_tracking(closed_loop_settings(cfg), tracking_settings(cfg), loaded, env,
-                                   eval_params, models, twins, _reaching(cfg, reaching))
+            tracking = tracking_settings(cfg, upstream["model"], upstream["aligned"])
+            tracked = run_tracking(closed_loop_settings(cfg), tracking, loaded, env, eval_params,
+                                   models, twins, _reaching(cfg, reaching))
             results["tables"].update(tracked["tables"])
             results["headline"].update(tracked["headline"])
             results["tracking"] = tracked
@@ -144,12 +145,18 @@ def closed_loop_settings(cfg: Any) -> ClosedLoopSettings:
         env=env_settings(cfg), sim=sim)
 
 
-def tracking_settings(cfg: Any) -> TrackingSettings:
-    """The tracking evaluation's settings of ``cfg.evaluation`` (its references as shapes)."""
+def tracking_settings(cfg: Any, model: Artifact | None = None, aligned: Artifact | None = None
+                      ) -> TrackingSettings:
+    """The tracking evaluation's settings of ``cfg.evaluation`` (its references as shapes or
+    replayed paths); a replayed path without a CSV replays the measured paths of the runs
+    ``cfg``'s goals come from, read of ``model`` and ``aligned`` (its fit_model and align
+    artifacts)."""
     evaluation = cfg.evaluation
-    shapes = {str(name): shape_settings(
+    shapes = {str(name): reference_settings(
         OmegaConf.to_container(entry, resolve=True) if entry is not None else None,
         f"evaluation.references.{name}") for name, entry in evaluation.references.items()}
+    replays = any(isinstance(shape, ReplaySettings) and shape.file is None
+                  for shape in shapes.values())
     horizon = evaluation.get("tracking_mpc_horizon")
     return TrackingSettings(shapes, float(evaluation.tracking_seconds),
                             float(evaluation.tracking_settle_seconds),
@@ -157,7 +164,8 @@ def tracking_settings(cfg: Any) -> TrackingSettings:
                             tuple(str(name) for name in evaluation.tracking_baselines),
                             None if horizon is None else int(horizon),
                             bool(evaluation.tracking_mpc_per_period),
-                            float(evaluation.tracking_mpc_std_kpa))
+                            float(evaluation.tracking_mpc_std_kpa),
+                            recorded_paths(cfg, model, aligned) if replays else {})
 
 
 def _reaching(cfg: Any, policies: dict[str, Artifact]) -> Reaching:
@@ -247,7 +255,8 @@ def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> N
         summaries.append(across_models(rows, deployed).assign(**labels))
         if Task(train.env.task) is Task.track:
             tracked.append(cross_model_tracking(
-                settings, tracking_settings(train), policies, env, eval_params, other,
+                settings, tracking_settings(train, fold["model"], fold["aligned"]), policies,
+                env, eval_params, other,
                 _reaching(train, fold["reaching"])).assign(**labels))
     summary = pd.concat(summaries, ignore_index=True)
     results["tables"]["cross_model_episodes"] = pd.concat(episodes, ignore_index=True)

@@ -363,6 +363,7 @@ __all__ = [
     "make_gymnax_env",
     "make_learned_env",
     "make_sim_env",
+    "measured_paths",
     "randomization_params",
     "read_learned_inputs",
     "sim_plant_params",
@@ -417,6 +418,24 @@ def _positions(run_id: str, pos: np.ndarray) -> pd.DataFrame:
     return pd.DataFrame({"run_id": run_id, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
 
 
+def evaluation_run_ids(split: dict[str, Any]) -> list[str]:
+    """The runs whose positions are ``env=learned``'s evaluation goals, by the model's ``split``:
+    each run its fold held out (``cv`` protocol), else the test runs (one run only, none held
+    out: the training runs)."""
+    if split.get("protocol") == "cv":
+        return [fold["held_out"] for fold in split["folds"]]
+    return list(split["test"]) or list(split["train"])
+
+
+def measured_paths(inputs: LearnedInputs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The measured paths of the runs the evaluation goals come from (:func:`evaluation_run_ids`),
+    by run: ``(times [T] s from the run's start, positions [T, 3] m)`` at the model rate."""
+    ids = evaluation_run_ids(inputs.split)
+    return {run.run_id: (np.asarray(run.times_s, np.float64) - float(run.times_s[0]),
+                         np.asarray(run.positions_m, np.float64))
+            for run in inputs.runs if run.run_id in ids}
+
+
 def learned_goals(settings: EnvConfig, inputs: LearnedInputs) -> dict[str, np.ndarray]:
     """The goal sets and rest pose of ``env=learned`` (:func:`data_goals_and_rest_pose`): goals
     along the runs (``env.goal_source``: the model's open-loop predictions or the measured
@@ -443,18 +462,17 @@ def learned_goals(settings: EnvConfig, inputs: LearnedInputs) -> dict[str, np.nd
                             ignore_index=True)
     every = int(settings.goal_every)
     rest = data_goals_and_rest_pose(first_poses, [])  # rest pose from the measured first poses
+    held_out_ids = evaluation_run_ids(split)
     if split.get("protocol") == "cv":
         # training goals along every run (the model trained on all of them); evaluation goals
         # the measured positions of each run as recorded when its fold held it out
-        held_out_ids = [fold["held_out"] for fold in split["folds"]]
         measured = pd.concat([_positions(run.run_id, run.positions_m) for run in runs
                               if run.run_id in held_out_ids], ignore_index=True)
         data = {"train_goals": data_goals_and_rest_pose(at_model_rate, [], every)["train_goals"],
                 "held_out_goals": data_goals_and_rest_pose(measured, held_out_ids,
                                                            every)["held_out_goals"]}
     else:
-        test_ids = list(split["test"]) or list(split["train"])  # one run only: evaluate on it
-        data = data_goals_and_rest_pose(at_model_rate, test_ids, every=every)
+        data = data_goals_and_rest_pose(at_model_rate, held_out_ids, every=every)
         if not split["test"]:
             data["train_goals"] = data["held_out_goals"]
     data["rest_pose"], data["rest_pose_std"] = rest["rest_pose"], rest["rest_pose_std"]

@@ -15,9 +15,9 @@ period). It holds either
 
 Parameters are given in mm and s (:class:`ShapeSettings`, :func:`waypoints`, :func:`read_csv`,
 :func:`replay`; :class:`ReplaySettings` and :func:`replay_stretches` for stretches of recorded
-paths) and held in m and s; :func:`reference_settings` reads either kind from the config. :func:`draw` draws random shapes for training, inside jit;
-:func:`check_reachable` refuses a reference that leaves a set of reachable positions before
-anything moves.
+paths) and held in m and s; :func:`reference_settings` reads either kind from the config.
+:func:`draw` draws random shapes for training, inside jit; :func:`check_reachable` refuses a
+reference that leaves a set of reachable positions before anything moves.
 """
 
 from __future__ import annotations
@@ -490,5 +490,6 @@ def reference_settings(entry: Any, what: str) -> ShapeSettings | ReplaySettings:
     if replayed:
         return ReplaySettings(**{name: values[name] for name in _REPLAY_FIELDS})
     centre = values.pop("centre_mm")
-    return ShapeSettings(kind=kind, **{name: values[name] for name in _SHAPE_FIELDS if name != "centre_mm"},
+    shape = {name: values[name] for name in _SHAPE_FIELDS if name != "centre_mm"}
+    return ShapeSettings(kind=kind, **shape,
                          centre_mm=None if centre is None else tuple(float(v) for v in centre))

@@ -79,6 +79,19 @@ def test_the_default_configs_artifact_keys_ignore_the_tracking_settings(make_cfg
     assert keys.key("fit_model", tracked) == keys.key("fit_model", base)  # same model
 
 
+def test_a_replayed_csv_keys_the_evaluation_by_its_content(make_cfg, tmp_path):
+    path = tmp_path / "walk.csv"
+    path.write_text("t,x,y,z\n0,30,353,200\n1,31,353,200\n")
+    cfg = make_cfg("experiment=tracking",
+                   f"+evaluation.references.walk={{kind:replay,file:{path},slow_down:2}}")
+    spec = keys.evaluate_spec(cfg)[0]["evaluation"]["references"]["walk"]
+    assert "file" not in spec and spec["slow_down"] == 2 and len(spec["file_sha256"]) == 64
+    first = keys.key("evaluate", cfg)
+    path.write_text("t,x,y,z\n0,30,353,200\n1,32,353,200\n")
+    assert keys.key("evaluate", cfg) != first
+    assert keys.key("train_ppo", cfg) == keys.key("train_ppo", make_cfg("experiment=tracking"))
+
+
 def test_each_period_follows_the_reference_at_its_end_with_a_preview():
     env, params = toy("track", preview=2, static_share=0.0, goal_tolerance_m=1.0)
     assert env.obs_dim == 9 + 6

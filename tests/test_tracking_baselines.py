@@ -190,7 +190,7 @@ def test_the_tracking_tables_have_a_row_for_every_plant_controller_and_reference
     assert preview.horizon == 2
 
 
-def test_a_replayed_path_is_followed_in_stretches_spread_over_the_recordings():
+def test_a_replayed_path_is_followed_in_stretches_spread_over_the_recordings(tmp_path):
     env, params, settings, policies, _ = gru_tracking()
     # a recording through the goals: 1 mm/s along x from 4 mm short of the rest pose, 10 Hz
     times = np.arange(81) / 10.0
@@ -207,13 +207,18 @@ def test_a_replayed_path_is_followed_in_stretches_spread_over_the_recordings():
     for episode, begin_s in enumerate([0.0, 3.1]):
         expected = start + np.outer(begin_s + np.arange(7) * 0.25, [1.0, 0.0, 0.0])
         np.testing.assert_allclose(target[episode], expected, atol=1e-3)
-    # every stretch is checked against the goals before anything runs
-    # (the first stretch leaves the goal 4 mm short of the rest pose: 0.75 mm past it at 1.5 s)
-    far = TrackingSettings(replay, 3.0, 1.0, 0.6, recorded={"run_a": (times, points)})
+    # every stretch's points are checked before anything runs: a recording's are what it reached,
+    # a CSV's must lie near the goals or the recordings (here 1 mm a second from 4 mm short of
+    # the rest pose along z, 0.75 mm past the nearest goal 0.75 s into the path)
+    csv = tmp_path / "walk.csv"
+    rows = [(t, 32.0, 353.0, 198.0 + t) for t in np.arange(0, 8.01, 0.25)]
+    csv.write_text("t,x,y,z\n" + "".join(f"{t},{x},{y},{z}\n" for t, x, y, z in rows))
+    replayed_csv = {"walk": R.ReplaySettings(file=str(csv), slow_down=2.0)}
     with pytest.raises(ConfigError, match=r"evaluation.references walk \(episode 0\) refused: "
-                                          r"its point at t=1.5 s, \[28.8, 353.0, 202.0\] mm, "
-                                          r"lies 0.8 mm"):
-        run_tracking(settings, far, policies, env, params)
+                                          r"its point at t=1.5 s, \[32.0, 353.0, 198.8\] mm, "
+                                          r"lies 0.[78] mm"):  # 0.75 in float32
+        run_tracking(settings, TrackingSettings(replayed_csv, 3.0, 1.0, 0.6), policies, env,
+                     params)
     with pytest.raises(ConfigError, match=r"evaluation.references walk: a replayed path needs "
                                           r"the recordings the goals come from"):
         run_tracking(settings, TrackingSettings(replay, 3.0, 1.0, 50.0), policies, env, params)

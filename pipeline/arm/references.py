@@ -442,11 +442,20 @@ def check_reachable(reference: Reference, duration_s: float, sample_hz: float,
     more than ``tolerance_mm`` from every position of ``reachable_m [N, 3]`` m (the goal set, the
     recorded positions): a :class:`InvalidReference` naming the first such point, its time, how far
     it is and the set's extent."""
+    times = np.arange(math.floor(duration_s * sample_hz) + 1) / sample_hz
+    path = np.asarray(positions(reference, jnp.asarray(times)), np.float64)
+    check_points(times, path, reachable_m, tolerance_mm, what)
+
+
+def check_points(times: np.ndarray, path_m: np.ndarray, reachable_m: np.ndarray,
+                 tolerance_mm: float, what: str = "reference") -> None:
+    """Refuse the points ``path_m [K, 3]`` m (at ``times [K]`` s) if one lies more than
+    ``tolerance_mm`` from every position of ``reachable_m [N, 3]`` m, as
+    :func:`check_reachable` does (its message)."""
     reachable = np.asarray(reachable_m, np.float64)
     if reachable.ndim != 2 or reachable.shape[1] != 3 or len(reachable) == 0:
         raise ValueError(f"reachable_m must be [N, 3] with N >= 1, got {reachable.shape}")
-    times = np.arange(math.floor(duration_s * sample_hz) + 1) / sample_hz
-    path = np.asarray(positions(reference, jnp.asarray(times)), np.float64)
+    path = np.asarray(path_m, np.float64)
     nearest = np.array([np.min(np.linalg.norm(reachable - point, axis=1)) for point in path])
     outside = np.flatnonzero(~(nearest * MM_PER_M <= tolerance_mm))
     if len(outside) == 0:

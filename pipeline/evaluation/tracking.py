@@ -54,7 +54,6 @@ BASELINES = ("preload", "mpc")  # the tracking evaluation's baselines besides th
 SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s", "offset_mm", "offset_x_mm",
           "offset_y_mm", "offset_z_mm")
 PATH_EPISODES = 8  # the episodes of each controller whose paths the paths table keeps
-CHECK_HZ = 2.0  # a replayed stretch is checked against the reachable set this often [1/s]
 
 
 @dataclass(frozen=True)
@@ -164,13 +163,20 @@ def _lags(positions: np.ndarray, reference: np.ndarray, first: int, control_hz: 
 
 def episode_references(settings: TrackingSettings, goal_set: np.ndarray, episodes: int,
                        horizon_s: float | None = None) -> dict[str, references.Reference]:
-    """Each named reference ``[episodes]`` (stacked), checked against ``goal_set [G, 3]`` m
-    (:func:`pipeline.arm.references.check_reachable`) over ``horizon_s`` s (None: the episode's
-    length): a shape's phase spread evenly over a lap (the first episode checked: the others
-    pass the same points), a replayed path's stretches spread over the recordings
-    (``settings.recorded``) or its CSV (:func:`pipeline.arm.references.replay_stretches`), every
-    one checked."""
+    """Each named reference ``[episodes]`` (stacked), checked over ``horizon_s`` s (None: the
+    episode's length; :func:`pipeline.arm.references.check_reachable`): a shape's phase spread
+    evenly over a lap, the first episode checked against ``goal_set [G, 3]`` m (the others pass
+    the same points); a replayed path's stretches spread over the recordings
+    (``settings.recorded``) or its CSV (:func:`pipeline.arm.references.replay_stretches`), the
+    points of every one checked against what the recordings reached: the goals and every
+    measured position of ``settings.recorded`` (the goals may keep only every n-th,
+    ``env.goal_every``). A replay's points, not its chords: where the arm moved fast a straight
+    line between two measured positions passes farther from both than the tolerance."""
     horizon = float(settings.seconds if horizon_s is None else horizon_s)
+    # what the recordings reached: the goals and every measured position they were taken from
+    reached = np.concatenate([np.asarray(goal_set, np.float64).reshape(-1, 3),
+                              *(np.asarray(points, np.float64).reshape(-1, 3)
+                                for _, points in settings.recorded.values())])
     centre = tuple(float(v) for v in np.median(np.asarray(goal_set), axis=0) * MM_PER_M)
     out = {}
     for name, given in settings.references.items():
@@ -179,9 +185,9 @@ def episode_references(settings: TrackingSettings, goal_set: np.ndarray, episode
             paths = references.measured_paths(given, settings.recorded, what)
             stretches = references.replay_stretches(paths, given, horizon, episodes, what)
             for number, stretch in enumerate(stretches):
-                references.check_reachable(stretch, horizon, CHECK_HZ, goal_set,
-                                           settings.reachable_tolerance_mm,
-                                           f"{what} (episode {number})")
+                references.check_points(np.asarray(stretch.times), np.asarray(stretch.points),
+                                        reached, settings.reachable_tolerance_mm,
+                                        f"{what} (episode {number})")
             out[name] = references.stack(stretches)
             continue
         shape = given if given.centre_mm is not None else dataclasses.replace(

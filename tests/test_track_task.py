@@ -273,6 +273,9 @@ def test_the_recorded_arm_tracks_with_absolute_actions_and_the_mpc_over_the_prev
         assert train.agent.recurrent_total_timesteps == cfg.agent.recurrent_total_timesteps
     # the MPC plans over what the policies see ahead: the period's goal and the preview
     tracking = tracking_settings(cfg)
+    # the circle, the figure-eight and the paths the arm went through, four times slower
+    assert set(tracking.references) == {"circle", "figure_eight", "walk"}
+    assert tracking.references["walk"] == R.ReplaySettings(slow_down=4.0)
     assert tracking.mpc_horizon is None
     env = SoftArmReachEnv(linear_lag_plant(10.0), 2.0, task="track", preview=int(cfg.env.preview))
     assert tracking.mpc_settings(cfg.evaluation, env).horizon == 4

@@ -242,10 +242,10 @@ def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
     assert not np.allclose(np.asarray(train_params.goal_set), measured)  # model predictions
 
     # what a replayed reference replays: the measured path of every held-out run, from 0 s
-    from pipeline.stages._environment import recorded_paths
+    from pipeline.stages._environment import config_inputs, recorded_paths
     from pipeline.stages.evaluate import tracking_settings
 
-    paths = recorded_paths(cfg, artifact, aligned_artifact)
+    paths = recorded_paths(config_inputs(cfg, artifact, aligned_artifact))
     runs = runs_at_model_rate(aligned, 10.0)
     assert sorted(paths) == ids
     for recording in runs:
@@ -253,7 +253,7 @@ def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
         np.testing.assert_allclose(positions, recording.positions_m, atol=1e-7)
         np.testing.assert_allclose(times, np.arange(len(recording)) / 10.0, atol=1e-6)
     cfg.evaluation.references = {"walk": {"kind": "replay"}}
-    assert sorted(tracking_settings(cfg, artifact, aligned_artifact).recorded) == ids
+    assert sorted(tracking_settings(cfg, paths).recorded) == ids
     assert tracking_settings(cfg).recorded == {}  # no artifacts: nothing read
 
 

@@ -173,10 +173,6 @@ def episode_references(settings: TrackingSettings, goal_set: np.ndarray, episode
     ``env.goal_every``). A replay's points, not its chords: where the arm moved fast a straight
     line between two measured positions passes farther from both than the tolerance."""
     horizon = float(settings.seconds if horizon_s is None else horizon_s)
-    # what the recordings reached: the goals and every measured position they were taken from
-    reached = np.concatenate([np.asarray(goal_set, np.float64).reshape(-1, 3),
-                              *(np.asarray(points, np.float64).reshape(-1, 3)
-                                for _, points in settings.recorded.values())])
     centre = tuple(float(v) for v in np.median(np.asarray(goal_set), axis=0) * MM_PER_M)
     out = {}
     for name, given in settings.references.items():
@@ -184,6 +180,9 @@ def episode_references(settings: TrackingSettings, goal_set: np.ndarray, episode
         if isinstance(given, references.ReplaySettings):
             paths = references.measured_paths(given, settings.recorded, what)
             stretches = references.replay_stretches(paths, given, horizon, episodes, what)
+            # what the recordings reached: the goals and every measured position of them
+            reached = np.concatenate([np.asarray(goal_set, np.float64).reshape(-1, 3), *(
+                np.asarray(points, np.float64) for _, points in settings.recorded.values())])
             for number, stretch in enumerate(stretches):
                 references.check_points(np.asarray(stretch.times), np.asarray(stretch.points),
                                         reached, settings.reachable_tolerance_mm,

@@ -45,21 +45,31 @@ def learned_inputs(cfg: Any, model: Artifact, aligned: Artifact,
         [member.file("model.msgpack") for member in members])
 
 
+def config_inputs(cfg: Any, model: Artifact | None = None, aligned: Artifact | None = None,
+                  members: Sequence[Artifact] = ()) -> LearnedInputs | None:
+    """What ``cfg``'s ``env=learned`` is built from, read of ``model``, ``aligned`` and
+    ``members`` (:func:`learned_inputs`); None for the other environments, which need none."""
+    if EnvName(cfg.env.name) is EnvName.learned and model is not None and aligned is not None:
+        return learned_inputs(cfg, model, aligned, members)
+    return None
+
+
 def config_environment(cfg: Any, model: Artifact | None = None, aligned: Artifact | None = None,
                        members: Sequence[Artifact] = ()) -> tuple[Any, Any, Any]:
     """``(env, train_params, eval_params)`` of ``cfg``'s environment; ``env=learned`` reads
     ``model``, ``aligned`` and ``members`` (the others need none)."""
-    inputs = None
-    if EnvName(cfg.env.name) is EnvName.learned and model is not None and aligned is not None:
-        inputs = learned_inputs(cfg, model, aligned, members)
+    return environment_of(cfg, config_inputs(cfg, model, aligned, members))
+
+
+def environment_of(cfg: Any, inputs: LearnedInputs | None) -> tuple[Any, Any, Any]:
+    """``(env, train_params, eval_params)`` of ``cfg``'s environment from ``inputs``
+    (:func:`config_inputs`, read once where the caller needs them too)."""
     return environment(env_settings(cfg), arm_settings(cfg), inputs)
 
 
-def recorded_paths(cfg: Any, model: Artifact | None, aligned: Artifact | None
-                   ) -> dict[str, tuple[Any, Any]]:
-    """The measured paths of the runs ``cfg``'s evaluation goals come from, by run (``(times [T]
-    s, positions [T, 3] m)`` at ``dataset.model_hz``; what a replayed reference replays); empty
-    where the environment is not ``env=learned`` on fitted runs."""
-    if EnvName(cfg.env.name) is not EnvName.learned or model is None or aligned is None:
-        return {}
-    return measured_paths(learned_inputs(cfg, model, aligned))
+def recorded_paths(inputs: LearnedInputs | None) -> dict[str, tuple[Any, Any]]:
+    """The measured paths of the runs whose positions are the evaluation goals, by run (``(times
+    [T] s, positions [T, 3] m)`` at ``dataset.model_hz``; what a replayed reference replays), of
+    ``inputs`` (:func:`config_inputs`); empty without them (not ``env=learned`` on fitted
+    runs)."""
+    return {} if inputs is None else measured_paths(inputs)

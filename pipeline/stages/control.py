@@ -49,7 +49,7 @@ from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, ar
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.schemas import ControlConfig, RobotKind
 from pipeline.stages._deployed import policy_artifact, training_config
-from pipeline.stages._environment import config_environment, recorded_paths
+from pipeline.stages._environment import config_inputs, environment_of, recorded_paths
 from pipeline.validation import validate_config
 
 log = logging.getLogger(__name__)
@@ -158,7 +158,8 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
         log.warning("control: the policy was trained with limits %s, robot.limits are %s: its "
                     "actions map onto the trained range, the gate then projects onto robot.limits",
                     trained_limits, robot_limits)
-    env, train_params, eval_params = config_environment(train_cfg, model, aligned)
+    inputs = config_inputs(train_cfg, model, aligned)
+    env, train_params, eval_params = environment_of(train_cfg, inputs)
     network, stacked, meta = load_policy(artifact.file("policy.msgpack"))
     num_seeds = int(meta.get("num_seeds", 1))
     evaluation = artifact.file("evaluation.parquet")
@@ -173,4 +174,4 @@ def load_deployment(cfg: Any, store: ArtifactStore) -> Deployment:
                                       hold_gain=np.float32(hold_gain),
                                       hold_backoff=np.float32(hold_backoff))
     return deploy(artifact, seed, network, stacked, meta, env, train_params, eval_params,
-                  control_hz, recorded_paths(train_cfg, model, aligned))
+                  control_hz, recorded_paths(inputs))

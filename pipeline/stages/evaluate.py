@@ -38,6 +38,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from pipeline import chain, keys
-from pipeline.arm.references import ReplaySettings, reference_settings
+from pipeline.arm.references import reference_settings
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, SimArm, run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
@@ -71,7 +72,12 @@ from pipeline.rl.envs.factory import sim_plant_params
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.rl.results import return_curves
 from pipeline.schemas import EnvName, RobotKind, Task
-from pipeline.stages._environment import config_environment, env_settings, recorded_paths
+from pipeline.stages._environment import (
+    config_inputs,
+    env_settings,
+    environment_of,
+    recorded_paths,
+)
 
 log = logging.getLogger(__name__)
 STAGE = "evaluate"
@@ -99,7 +105,8 @@ def evaluate(cfg: Any) -> Artifact:
 
     def build(writer):
         started = time.perf_counter()
-        env, _, eval_params = config_environment(cfg, upstream["model"], upstream["aligned"])
+        inputs = config_inputs(cfg, upstream["model"], upstream["aligned"])
+        env, _, eval_params = environment_of(cfg, inputs)
         models = {name: load_dynamics(artifact.file("model.msgpack"))
                   for name, artifact in other_models.items()}
         twins = {f"twin {name}": physics
@@ -108,7 +115,7 @@ def evaluate(cfg: Any) -> Artifact:
         results = run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params, models,
                                  twins)
         if Task(cfg.env.task) is Task.track:
-            tracking = tracking_settings(cfg, upstream["model"], upstream["aligned"])
+            tracking = tracking_settings(cfg, recorded_paths(inputs))
             tracked = run_tracking(closed_loop_settings(cfg), tracking, loaded, env, eval_params,
                                    models, twins, _reaching(cfg, reaching))
             results["tables"].update(tracked["tables"])
@@ -145,18 +152,15 @@ def closed_loop_settings(cfg: Any) -> ClosedLoopSettings:
         env=env_settings(cfg), sim=sim)
 
 
-def tracking_settings(cfg: Any, model: Artifact | None = None, aligned: Artifact | None = None
+def tracking_settings(cfg: Any, recorded: Mapping[str, tuple[Any, Any]] | None = None
                       ) -> TrackingSettings:
     """The tracking evaluation's settings of ``cfg.evaluation`` (its references as shapes or
-    replayed paths); a replayed path without a CSV replays the measured paths of the runs
-    ``cfg``'s goals come from, read of ``model`` and ``aligned`` (its fit_model and align
-    artifacts)."""
+    replayed paths); a replayed path without a CSV replays ``recorded``, the measured paths of
+    the runs ``cfg``'s goals come from (:func:`~pipeline.stages._environment.recorded_paths`)."""
     evaluation = cfg.evaluation
     shapes = {str(name): reference_settings(
         OmegaConf.to_container(entry, resolve=True) if entry is not None else None,
         f"evaluation.references.{name}") for name, entry in evaluation.references.items()}
-    replays = any(isinstance(shape, ReplaySettings) and shape.file is None
-                  for shape in shapes.values())
     horizon = evaluation.get("tracking_mpc_horizon")
     return TrackingSettings(shapes, float(evaluation.tracking_seconds),
                             float(evaluation.tracking_settle_seconds),
@@ -165,7 +169,7 @@ def tracking_settings(cfg: Any, model: Artifact | None = None, aligned: Artifact
                             None if horizon is None else int(horizon),
                             bool(evaluation.tracking_mpc_per_period),
                             float(evaluation.tracking_mpc_std_kpa),
-                            recorded_paths(cfg, model, aligned) if replays else {})
+                            dict(recorded or {}))
 
 
 def _reaching(cfg: Any, policies: dict[str, Artifact]) -> Reaching:
@@ -244,7 +248,8 @@ def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> N
     episodes, summaries, tracked = [], [], []
     for direction, fold in folds.items():
         train = fold["cfg"]
-        env, _, eval_params = config_environment(train, fold["model"], fold["aligned"])
+        inputs = config_inputs(train, fold["model"], fold["aligned"])
+        env, _, eval_params = environment_of(train, inputs)
         other = load_dynamics(fold["other"].file("model.msgpack"))
         settings, policies = closed_loop_settings(train), _load_policies(fold["policies"])
         rows = cross_model_episodes(settings, policies, env, eval_params, other)
@@ -255,8 +260,8 @@ def _cross_model(folds: dict[str, dict[str, Any]], results: dict[str, Any]) -> N
         summaries.append(across_models(rows, deployed).assign(**labels))
         if Task(train.env.task) is Task.track:
             tracked.append(cross_model_tracking(
-                settings, tracking_settings(train, fold["model"], fold["aligned"]), policies,
-                env, eval_params, other,
+                settings, tracking_settings(train, recorded_paths(inputs)), policies, env,
+                eval_params, other,
                 _reaching(train, fold["reaching"])).assign(**labels))
     summary = pd.concat(summaries, ignore_index=True)
     results["tables"]["cross_model_episodes"] = pd.concat(episodes, ignore_index=True)

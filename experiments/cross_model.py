@@ -301,9 +301,9 @@ def twin_tuned(overrides: list[str], evaluated: dict[str, Any], other: Any, twin
     twin): its per-episode table, the controller named ``<agent>+twin``.
 
     The twin is trained in as the training group's model is: observed with the same
-    normalization, started from its training rest poses, the training goals, the training
-    randomization of the plant (gain, offset, delay, rest offset, drift); its physics the
-    twin's nominal ones (the evaluation's twin)."""
+    normalization, started where its physics rest it (as the evaluation's twin), the training
+    goals, the training randomization of the plant (gain, offset, delay, rest offset, drift);
+    its physics the twin's nominal ones (the evaluation's twin)."""
     import dataclasses
 
     import jax
@@ -312,6 +312,7 @@ def twin_tuned(overrides: list[str], evaluated: dict[str, Any], other: Any, twin
     from pipeline.config import compose
     from pipeline.dynamics.checkpoints import load_dynamics
     from pipeline.evaluation.closed_loop import Policy, _sim_env, run_evaluation
+    from pipeline.rl.envs.factory import sim_rest_pose
     from pipeline.rl.envs.learned import make_env_params
     from pipeline.rl.envs.plants import SimPlantParams
     from pipeline.rl.policy_io import load_policy
@@ -334,13 +335,11 @@ def twin_tuned(overrides: list[str], evaluated: dict[str, Any], other: Any, twin
               "obs_mean": train_params.obs_mean, "obs_scale": train_params.obs_scale,
               "settings": settings.env}
     tune_key, check_key = jax.random.split(jax.random.key(int(cfg.seed)))
-    tune_params = make_env_params(twin_env, plant, key=tune_key,
-                                  initial_poses=train_params.reset_initial_poses,
-                                  goal_set=train_params.goal_set,
+    tune_params = make_env_params(twin_env, plant, key=tune_key, rest_pose=sim_rest_pose(plant),
+                                  reset_bank_size=1, goal_set=train_params.goal_set,
                                   randomization_params=train_params.randomization, **shared)
-    check_params = make_env_params(twin_env, plant, key=check_key,
-                                   initial_poses=eval_params.reset_initial_poses,
-                                   goal_set=eval_params.goal_set, **shared)
+    check_params = make_env_params(twin_env, plant, key=check_key, rest_pose=sim_rest_pose(plant),
+                                   reset_bank_size=1, goal_set=eval_params.goal_set, **shared)
     network, params, _ = load_policy(evaluated["train_ppo"].file("policy.msgpack"))
     spec = evaluated["train_ppo"].manifest["spec"]["agent"]
     tuning = AgentConfig.from_any({

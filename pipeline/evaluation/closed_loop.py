@@ -249,15 +249,20 @@ def _twin_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, eval_p
               built: dict[float, SoftArmReachEnv] | None = None
               ) -> tuple[SoftArmReachEnv, EnvParams]:
     """A calibrated twin (the simulated arm with ``physics``, SimPhysics values) as a plant
-    observed like the learned env: the same goals, safe set and normalization, its starts
-    settled at the preload with the arm's rest offset put on the poses the learned env's starts
-    settled from."""
+    observed like the learned env: the same goals, safe set and normalization; every start
+    settled at the preload where the twin's physics rest it (their base position, which the
+    calibration fitted over whole runs): a twin is one arm.
+
+    Not at the learned env's start poses: those are the recordings' first poses, taken before
+    the arm has come to rest (over the preload hold that opens each of the paper's runs it
+    rises 1.1-1.6 mm and moves up to 2.7 mm sideways, to within 0.5 mm of where the calibrated
+    twin rests); a twin put there rests that far from the arm."""
     sim = twin_sim_params(physics)
     env = _sim_env(settings, learned_env, float(sim.mocap_hz), built)
     plant = SimPlantParams(sim, eval_params.preload)
     params = make_env_params(
         env, plant, key=key, safe_set=eval_params.safe_set, preload=eval_params.preload,
-        initial_poses=eval_params.reset_initial_poses, goal_set=eval_params.goal_set,
+        rest_pose=sim_rest_pose(plant), reset_bank_size=1, goal_set=eval_params.goal_set,
         obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale,
         settings=settings.env, hold_map=eval_params.hold_map)
     return env, params

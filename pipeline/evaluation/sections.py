@@ -131,9 +131,9 @@ def _summary_section(facts: ReportFacts, model: ArtifactRecord | None, summary: 
     if twins:
         section.add(f"**Calibrated twins** ({', '.join(t.removeprefix('twin ') for t in twins)}): "
                     "the simulated arm with physics fitted to the arm (`evaluation.twins`), "
-                    "observed like the learned model, started from the same rest poses: a plant "
-                    "built from other equations than the learned model, so it does not share the "
-                    "model's errors.")
+                    "observed like the learned model, every episode started where its physics "
+                    "rest it at the preload: a plant built from other equations than the learned "
+                    "model, so it does not share the model's errors.")
     wide = summary.pivot_table(index="controller", columns="plant",
                                values="median_final_mm").reset_index()
     wide.columns.name = None

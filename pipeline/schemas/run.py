@@ -66,8 +66,8 @@ class EvaluationConfig:
     models: list[str] = field(default_factory=list)
     # calibrated twins to evaluate every controller on: the simulated arm with the physics of a
     # simulated robot config (by name, e.g. sim_sorolex: calibrated to the paper's runs) or of a
-    # calibrate artifact (key or folder); observed like the training env, same goals, settled
-    # at the preload from the same rest poses
+    # calibrate artifact (key or folder); observed like the training env, same goals, started
+    # where its physics rest it at the preload (one arm, one rest pose)
     twins: list[str] = field(default_factory=list)
     # The cross-model protocol, for recorded data: the recordings split into two disjoint groups
     # (A: cross_model_group_a, by name; empty: every other of the sorted names; B: the rest),

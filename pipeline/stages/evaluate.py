@@ -10,7 +10,7 @@ nothing; ``random``: random safe actions; ``mpc``: sampling-based MPC on the lea
   spread; the model never saw its equations), with the policies observing it through the same
   normalization they were trained with;
 - on **calibrated twins** (``evaluation.twins``: the simulated arm with the physics of a simulated
-  robot config or of a calibrate artifact, started from the learned env's rest poses);
+  robot config or of a calibrate artifact, started where its physics rest it at the preload);
 - a **consecutive-goals** task: ``num_consecutive_goals`` targets one after another, no reset;
 - for ``env.task=track``, **tracking** (:mod:`pipeline.evaluation.tracking`): every policy, the
   baselines of ``evaluation.tracking_baselines`` (the preload; sampling MPC on the learned model

@@ -224,7 +224,7 @@ def data_goals_and_rest_pose(aligned: pd.DataFrame, test_run_ids: list[str], eve
     Returns ``train_goals [G, 3]`` (positions of the training runs, every ``every``-th row),
     ``held_out_goals [H, 3]`` (positions of ``test_run_ids``), ``rest_pose [3]`` and
     ``rest_pose_std [3]`` (mean and spread of the first pose of every run: the runs start at the
-    preload).
+    preload, the arm not yet at rest: the learned model goes on from there as the arm did).
     """
     xyz = ["x", "y", "z"]
     held_out = aligned["run_id"].isin(test_run_ids)

@@ -113,10 +113,11 @@ def jitted_optimal_commands():
     return jax.jit(optimal_commands, static_argnames=("env", "settle", "iterations"))
 
 
-def plant_sets(overrides: list[str]) -> tuple[Any, dict[str, dict[str, tuple[Any, Any]]]]:
-    """The evaluate stage's config and its tracking plants by protocol: ``"all runs"`` (the learned env of the
-    config, its twins and other models) and each cross-model direction (``own``, ``cross``),
-    built as ``stage=evaluate`` builds them."""
+def plant_sets(overrides: list[str]) -> tuple[Any, dict[str, tuple[Any, Any]]]:
+    """The evaluate stage's config and, by protocol, its tracking settings (with the measured
+    paths a replayed reference follows: those of the protocol's own runs) and its plants:
+    ``"all runs"`` (the learned env of the config, its twins and other models) and each
+    cross-model direction (``own``, ``cross``), built as ``stage=evaluate`` builds them."""
     import jax
 
     from pipeline import chain, keys
@@ -126,8 +127,8 @@ def plant_sets(overrides: list[str]) -> tuple[Any, dict[str, dict[str, tuple[Any
     from pipeline.evaluation.closed_loop import _plants
     from pipeline.evaluation.cross_model import CROSS
     from pipeline.infra.artifacts import ArtifactStore
-    from pipeline.stages._environment import config_environment
-    from pipeline.stages.evaluate import closed_loop_settings
+    from pipeline.stages._environment import config_inputs, environment_of, recorded_paths
+    from pipeline.stages.evaluate import closed_loop_settings, tracking_settings
 
     cfg = compose("stage=evaluate", *overrides)
     store = ArtifactStore(cfg.paths.artifact_dir)
@@ -138,20 +139,22 @@ def plant_sets(overrides: list[str]) -> tuple[Any, dict[str, dict[str, tuple[Any
 
     def tracking_plants(config, models, twins):
         settings = closed_loop_settings(config)
-        env, _, eval_params = config_environment(config, *fitted(config))
+        inputs = config_inputs(config, *fitted(config))
+        env, _, eval_params = environment_of(config, inputs)
         key = jax.random.fold_in(jax.random.key(int(config.evaluation.seed)), 7)
         if not twins:
             settings = settings.only_in_models()
-        return _plants(settings, env, eval_params, jax.random.fold_in(key, 1), models, twins)
+        return (tracking_settings(config, recorded_paths(inputs)),
+                _plants(settings, env, eval_params, jax.random.fold_in(key, 1), models, twins))
 
     twins = {f"twin {name}": twin_physics(str(name), cfg.paths.artifact_dir)
              for name in cfg.evaluation.twins}
     out = {"all runs": tracking_plants(cfg, {}, twins)}
     for direction, (train, test) in chain.cross_model_folds(cfg).items():
         other = load_dynamics(fitted(test)[0].file("model.msgpack"))
-        plants = tracking_plants(train, {CROSS: other}, {})
-        out[direction] = {("own" if name == "learned" else name): plant
-                          for name, plant in plants.items()}
+        tracking, plants = tracking_plants(train, {CROSS: other}, {})
+        out[direction] = (tracking, {("own" if name == "learned" else name): plant
+                                     for name, plant in plants.items()})
     return cfg, out
 
 
@@ -167,11 +170,9 @@ def main(argv=None) -> None:
     from pipeline.arm import references
     from pipeline.evaluation.closed_loop import _starts
     from pipeline.evaluation.tracking import episode_references, tracking_metrics
-    from pipeline.stages.evaluate import tracking_settings
     from pipeline.studies import append_jsonl
 
     cfg, protocols = plant_sets(args.overrides)
-    tracking = tracking_settings(cfg)
     episodes = int(cfg.evaluation.num_episodes)
     rows = []
     chosen = args.protocols.split(",") if args.protocols else list(protocols)
@@ -179,7 +180,8 @@ def main(argv=None) -> None:
     if unknown:
         raise SystemExit(f"--protocols: unknown {unknown}; this config has {list(protocols)}")
     for protocol in chosen:
-        for plant_name, (env, env_params) in protocols[protocol].items():
+        tracking, plants = protocols[protocol]
+        for plant_name, (env, env_params) in plants.items():
             control_hz = float(env.control_hz)
             steps = round(float(tracking.seconds) * control_hz)
             # the first scored row, as tracking_metrics picks it

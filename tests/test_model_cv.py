@@ -256,6 +256,16 @@ def test_fit_model_cv_writes_fold_metrics_and_feeds_held_out_goals(make_cfg):
     assert sorted(tracking_settings(cfg, paths).recorded) == ids
     assert tracking_settings(cfg).recorded == {}  # no artifacts: nothing read
 
+    # the tracking oracle's protocols replay the same paths
+    from experiments.tracking_oracle import plant_sets
+
+    _, protocols = plant_sets([f"paths.output_dir={cfg.paths.output_dir}", "experiment=quick",
+                               "dataset.protocol=cv", "model.hidden=8", "model.num_steps=20",
+                               "model.checkpoint_every=10", "dataset.window=16",
+                               "+evaluation.references.walk={kind:replay}"])
+    tracking, plants = protocols["all runs"]
+    assert sorted(tracking.recorded) == ids and "learned" in plants
+
 
 def test_a_model_with_features_round_trips_through_its_file(tmp_path):
     runs = lag_runs((30,))

@@ -255,7 +255,7 @@ def _twin_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, eval_p
 
     Not at the learned env's start poses: those are the recordings' first poses, taken before
     the arm has come to rest (over the preload hold that opens each of the paper's runs it
-    rises 1.1-1.6 mm and moves up to 2.7 mm sideways, to within 0.5 mm of where the calibrated
+    rises 1.1-1.6 mm and moves up to 2.7 mm sideways, to within 0.6 mm of where the calibrated
     twin rests); a twin put there rests that far from the arm."""
     sim = twin_sim_params(physics)
     env = _sim_env(settings, learned_env, float(sim.mocap_hz), built)

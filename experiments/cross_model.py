@@ -311,9 +311,7 @@ def twin_tuned(overrides: list[str], evaluated: dict[str, Any], other: Any, twin
     from pipeline.arm.twins import twin_physics, twin_sim_params
     from pipeline.config import compose
     from pipeline.dynamics.checkpoints import load_dynamics
-    from pipeline.evaluation.closed_loop import Policy, _sim_env, run_evaluation
-    from pipeline.rl.envs.factory import sim_rest_pose
-    from pipeline.rl.envs.learned import make_env_params
+    from pipeline.evaluation.closed_loop import Policy, _sim_env, run_evaluation, twin_env_params
     from pipeline.rl.envs.plants import SimPlantParams
     from pipeline.rl.policy_io import load_policy
     from pipeline.rl.ppo import train_seeds
@@ -331,15 +329,13 @@ def twin_tuned(overrides: list[str], evaluated: dict[str, Any], other: Any, twin
     sim = twin_sim_params(physics)
     twin_env = _sim_env(settings, env, sim.mocap_hz)
     plant = SimPlantParams(sim, eval_params.preload)
-    shared = {"safe_set": eval_params.safe_set, "preload": eval_params.preload,
-              "obs_mean": train_params.obs_mean, "obs_scale": train_params.obs_scale,
-              "settings": settings.env}
+    shared = {"safe_set": eval_params.safe_set, "obs_mean": train_params.obs_mean,
+              "obs_scale": train_params.obs_scale, "settings": settings.env}
     tune_key, check_key = jax.random.split(jax.random.key(int(cfg.seed)))
-    tune_params = make_env_params(twin_env, plant, key=tune_key, rest_pose=sim_rest_pose(plant),
-                                  reset_bank_size=1, goal_set=train_params.goal_set,
+    tune_params = twin_env_params(twin_env, plant, key=tune_key, goal_set=train_params.goal_set,
                                   randomization_params=train_params.randomization, **shared)
-    check_params = make_env_params(twin_env, plant, key=check_key, rest_pose=sim_rest_pose(plant),
-                                   reset_bank_size=1, goal_set=eval_params.goal_set, **shared)
+    check_params = twin_env_params(twin_env, plant, key=check_key,
+                                   goal_set=eval_params.goal_set, **shared)
     network, params, _ = load_policy(evaluated["train_ppo"].file("policy.msgpack"))
     spec = evaluated["train_ppo"].manifest["spec"]["agent"]
     tuning = AgentConfig.from_any({

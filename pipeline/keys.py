@@ -8,7 +8,6 @@ importing the stage that made them, and sweeps share upstream artifacts.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
@@ -27,7 +26,7 @@ from pipeline.chain import (
     policy_configs,
     reaching_configs,
 )
-from pipeline.data.importers import list_recordings, recording_digest
+from pipeline.data.importers import file_digest, list_recordings, recording_digest
 from pipeline.infra.artifacts import MANIFEST, artifact_key
 from pipeline.schemas import (
     TRACK_EVALUATION_SETTINGS,
@@ -190,7 +189,7 @@ def train_ppo_spec(cfg: Any) -> Spec:
         from pipeline.rl.policy_io import init_policy_file  # JAX only where a policy is read
 
         path = init_policy_file(agent["init_policy"])
-        spec["init_policy_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
+        spec["init_policy_sha256"] = file_digest(path)
     plant, inputs = env_plant_spec(cfg)
     spec.update(plant)
     return spec, inputs
@@ -302,8 +301,7 @@ def control_spec(cfg: Any) -> Spec:
     for setting in _CONTROL_OPERATIONAL:
         control.pop(setting, None)
     if cfg.control.goals_csv:
-        control["goals_csv_sha256"] = hashlib.sha256(
-            Path(str(cfg.control.goals_csv)).read_bytes()).hexdigest()
+        control["goals_csv_sha256"] = file_digest(Path(str(cfg.control.goals_csv)))
     _control_trajectory(cfg, control)
     robot = _session_robot(cfg)
     if RobotKind(cfg.robot.kind) is RobotKind.ros2:
@@ -324,7 +322,7 @@ def _reference_content(entry: Any) -> Any:
     """A reference's settings as keys see them: a replayed CSV by its content, not its path."""
     if isinstance(entry, Mapping) and entry.get("file") is not None:
         path = Path(str(entry["file"]))
-        digest = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+        digest = file_digest(path) if path.is_file() else None
         entry = {**{k: v for k, v in entry.items() if k != "file"}, "file_sha256": digest}
     return entry
 
@@ -351,7 +349,7 @@ def _control_trajectory(cfg: Any, control: dict[str, Any]) -> None:
     elif isinstance(trajectory, Mapping):
         trajectory = _reference_content(trajectory)
     elif isinstance(trajectory, str) and Path(trajectory).is_file():
-        trajectory = {"csv_sha256": hashlib.sha256(Path(trajectory).read_bytes()).hexdigest()}
+        trajectory = {"csv_sha256": file_digest(Path(trajectory))}
     control["trajectory"] = {"reference": trajectory,
                              "tracking_seconds": evaluation.tracking_seconds,
                              "tracking_settle_seconds": evaluation.tracking_settle_seconds}

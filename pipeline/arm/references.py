@@ -41,6 +41,7 @@ from pipeline.schemas import ConfigError, ReferenceConfig
 MM_PER_M = 1000.0
 SHAPES = ("circle", "ellipse", "figure_eight")
 REPLAY = "replay"  # the kind of a replayed measured path (:class:`ReplaySettings`)
+_CHUNK = 256  # points measured against the reachable set at once (check_points: memory)
 # the axes of each plane a shape can lie in (x, y, z: 0, 1, 2 of the mocap frame)
 PLANES = {"xz": (0, 2), "xy": (0, 1), "yz": (1, 2)}
 # the plane of the random draws: the arms' workspace is a surface in x and z of the mocap frame
@@ -253,10 +254,14 @@ def replay(times_s: np.ndarray, points_m: np.ndarray, slow_down: float = 1.0,
     """A measured path replayed: ``points_m [T, 3]`` m measured at ``times_s [T]`` s (increasing),
     played ``slow_down`` times slower from t = 0 (the path the arm went through: reachable by
     construction)."""
-    if not (math.isfinite(slow_down) and slow_down > 0):
-        raise InvalidReference(f"{what}: slow_down={slow_down}: expected a finite number > 0")
+    _check_slow_down(slow_down, what)
     times = np.asarray(times_s, np.float64)
     return table((times - times[:1]) * float(slow_down), points_m, what)
+
+
+def _check_slow_down(slow_down: float, what: str) -> None:
+    if not (math.isfinite(slow_down) and slow_down > 0):
+        raise InvalidReference(f"{what}: slow_down={slow_down}: expected a finite number > 0")
 
 
 @dataclass(frozen=True)
@@ -328,9 +333,7 @@ def replay_rest(paths: Mapping[str, tuple[np.ndarray, np.ndarray]], settings: Re
 def _replayed(paths: Mapping[str, tuple[np.ndarray, np.ndarray]], settings: ReplaySettings,
               what: str) -> Mapping[str, tuple[np.ndarray, np.ndarray]]:
     """The paths ``settings`` replays (its run's, or all), its numbers checked."""
-    if not (math.isfinite(settings.slow_down) and settings.slow_down > 0):
-        raise InvalidReference(f"{what}: slow_down={settings.slow_down}: expected a finite "
-                               f"number > 0")
+    _check_slow_down(settings.slow_down, what)
     if not (math.isfinite(settings.start_s) and settings.start_s >= 0):
         raise InvalidReference(f"{what}: start_s={settings.start_s}: expected a finite number "
                                f">= 0 s")
@@ -455,8 +458,17 @@ def check_points(times: np.ndarray, path_m: np.ndarray, reachable_m: np.ndarray,
     reachable = np.asarray(reachable_m, np.float64)
     if reachable.ndim != 2 or reachable.shape[1] != 3 or len(reachable) == 0:
         raise ValueError(f"reachable_m must be [N, 3] with N >= 1, got {reachable.shape}")
-    path = np.asarray(path_m, np.float64)
-    nearest = np.array([np.min(np.linalg.norm(reachable - point, axis=1)) for point in path])
+    path = np.asarray(path_m, np.float64).reshape(-1, 3)
+    # [K] m, the distance of each point to its nearest reachable position: |p - r|^2 = |p|^2 +
+    # |r|^2 - 2 p.r, a product for all pairs of _CHUNK points, about the set's mean (mm apart
+    # within cm: float64 keeps far below a micrometre)
+    mean = reachable.mean(axis=0)
+    centred, points = reachable - mean, path - mean
+    norms = (centred ** 2).sum(axis=1)
+    squared = np.concatenate([np.empty(0)] + [
+        ((chunk ** 2).sum(axis=1)[:, None] + norms[None] - 2.0 * chunk @ centred.T).min(axis=1)
+        for chunk in np.split(points, range(_CHUNK, len(points), _CHUNK))])
+    nearest = np.sqrt(np.maximum(squared, 0.0))
     outside = np.flatnonzero(~(nearest * MM_PER_M <= tolerance_mm))
     if len(outside) == 0:
         return

@@ -260,12 +260,18 @@ def _twin_env(settings: ClosedLoopSettings, learned_env: SoftArmReachEnv, eval_p
     sim = twin_sim_params(physics)
     env = _sim_env(settings, learned_env, float(sim.mocap_hz), built)
     plant = SimPlantParams(sim, eval_params.preload)
-    params = make_env_params(
-        env, plant, key=key, safe_set=eval_params.safe_set, preload=eval_params.preload,
-        rest_pose=sim_rest_pose(plant), reset_bank_size=1, goal_set=eval_params.goal_set,
+    params = twin_env_params(
+        env, plant, key=key, safe_set=eval_params.safe_set, goal_set=eval_params.goal_set,
         obs_mean=eval_params.obs_mean, obs_scale=eval_params.obs_scale,
         settings=settings.env, hold_map=eval_params.hold_map)
     return env, params
+
+
+def twin_env_params(env: SoftArmReachEnv, plant: SimPlantParams, **given: Any) -> EnvParams:
+    """The :class:`EnvParams` of a twin plant (:func:`make_env_params` with ``given``): one
+    start, settled at the preload where the twin's physics rest it (see :func:`_twin_env`)."""
+    return make_env_params(env, plant, preload=plant.preload, rest_pose=sim_rest_pose(plant),
+                           reset_bank_size=1, **given)
 
 
 def _plants(settings: ClosedLoopSettings, env: SoftArmReachEnv, eval_params: EnvParams,

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import pytest
 
 from pipeline.arm.references import InvalidReference
+from pipeline.arm.safety import SafeSet
 from pipeline.control.goals import GoalSchedule
 from pipeline.control.records import GOAL_COLUMNS, REFERENCE_COLUMNS
 from pipeline.control.trajectory import (
@@ -293,6 +295,14 @@ def test_missing_periods_are_interpolated_for_the_metrics():
     # a session interrupted before the settle time: nothing to score, the row is kept
     short = trajectory_metrics(rows, 2.0, 3.0)
     assert np.isnan(short["rmse_mm"][0]) and short["periods"][0] == 4
+    # the commands sent: periods 0, 1 and 3 (none at the last tick); period 2's is the one held
+    sent = rows.copy()
+    sent[CMD_COLUMNS] = [[2.0, 2.0, 2.0], [7.0, 2.0, 2.0], [2.0, 2.0, 2.0], [np.nan] * 3]
+    safe = SafeSet.from_limits(SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0, preload=2.0))
+    limited = trajectory_metrics(sent, 2.0, 0.0, safe)
+    # periods 0 .. 3: 2 kPa, 7 kPa on valve 0, held (7 kPa), 2 kPa: half on a limit
+    assert limited["at_limits"][0] == pytest.approx(0.5)
+    assert limited["rmse_mm"][0] == pytest.approx(1.0) and np.isnan(metrics["at_limits"][0])
 
 
 def test_a_reaching_policy_follows_the_moving_goal_and_trajectories_go_alone(tmp_path):

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.arm.limits import assert_safe, validate_limits
-from pipeline.arm.safety import SafeSet, project
+from pipeline.arm.safety import SafeSet, on_boundary, project
 
 LIMITS = SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0, preload=2.0)
 SAFE = SafeSet.from_limits(LIMITS)
@@ -58,6 +58,23 @@ def test_projection_is_the_nearest_safe_point(command, other):
     if q.sum() > LIMITS.sum_max:
         q *= LIMITS.sum_max / q.sum()
     assert np.linalg.norm(x - p) <= np.linalg.norm(x - q) + 1e-3 * (1 + np.abs(x).max())
+
+
+def test_on_boundary_by_hand():
+    commands = np.array([
+        [2.0, 2.0, 2.0],  # inside
+        [0.0, 3.0, 3.0],  # a valve at p_min
+        [7.0, 1.0, 1.0],  # a valve at p_max
+        [13 / 3, 13 / 3, 13 / 3],  # the sum at sum_max, no valve at a bound
+        [4.0, 4.0, 4.98],  # the sum 0.02 kPa inside: not on it
+        [4.0, 4.0, 4.995],  # the sum within the 0.01 kPa tolerance
+        [np.nan, 2.0, 2.0],  # no command
+    ])
+    np.testing.assert_array_equal(on_boundary(commands, SAFE),
+                                  [False, True, True, True, False, True, False])
+    # what the projection returns for a command asking for more lies on the boundary
+    assert on_boundary(np.asarray(project_jit(jnp.array([10.0, 10.0, 10.0]), SAFE)), SAFE)
+    assert on_boundary(commands.reshape(7, 1, 3), SAFE).shape == (7, 1)
 
 
 def test_projection_maps_nan_and_infinity_into_the_set():

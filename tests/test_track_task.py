@@ -171,6 +171,24 @@ def test_tracking_metrics_by_hand():
     assert lagged["lag_s"][0] == pytest.approx(1.0, abs=1e-6)
     chord = 2 * 5.0 * np.sin(np.pi * 1.0 / 20)  # mm: the circle's chord over 1 s of a 20 s lap
     assert lagged["rmse_mm"][0] == pytest.approx(chord, rel=1e-6)
+    assert np.isnan(lagged["at_limits"][0])  # no commands given
+
+
+def test_tracking_metrics_share_of_commands_on_the_limits():
+    times = np.arange(11) / 2.0  # 5 s at 2 Hz: ticks 0 .. 10, commands of periods 0 .. 9
+    path = np.zeros((1, 11, 3))
+    commands = np.full((1, 10, 3), 2.0)
+    commands[0, 3] = [5.0, 4.0, 4.0]  # the sum at 13 kPa
+    commands[0, 6] = [7.0, 2.0, 2.0]  # a valve at p_max
+    commands[0, 8:] = [0.0, 3.0, 3.0]  # a valve at p_min (periods 8, 9)
+    safe = SafeSet(p_min=np.zeros(3), p_max=np.full(3, 7.0), sum_max=np.asarray(13.0))
+    table = tracking_metrics(path, path + times[None, :, None] * 0.0, 2.0, settle_seconds=2.0,
+                             commands=commands, safe=safe)
+    # scored ticks 4 .. 10: the commands of periods 3 .. 9, 4 of the 7 on a limit
+    assert table["at_limits"][0] == pytest.approx(4 / 7)
+    with pytest.raises(ValueError, match=r"commands must be \[E, T, n_valves\]"):
+        tracking_metrics(path, path, 2.0, settle_seconds=2.0, commands=commands[:, :5],
+                         safe=safe)
 
 
 @pytest.mark.slow  # among the longest of the suite: runs with `make test-all`

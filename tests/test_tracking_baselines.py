@@ -258,7 +258,7 @@ def summary_rows():
                          "episodes": 4, "median_rmse_mm": rmse, "median_p95_mm": rmse,
                          "median_max_mm": rmse, "within_1mm": 0.5, "median_lag_s": 0.1,
                          "median_offset_mm": rmse / 2, "seed_rmse_min_mm": rmse,
-                         "seed_rmse_max_mm": rmse})
+                         "seed_rmse_max_mm": rmse, "at_limits": rmse / 10})
     return pd.DataFrame(rows)
 
 
@@ -274,6 +274,7 @@ def test_the_tracking_section_shows_every_plant_baseline_and_the_cross_model_row
     assert set(main["plant"]) == {"learned model", "simulated arm"}
     assert "RMSE [mm]" in main.columns and "lag [s]" in main.columns
     assert list(main["steady offset [mm]"]) == [0.2, 0.3, 2.5] * 2
+    np.testing.assert_allclose(main["time at the limits"], [0.04, 0.06, 0.5] * 2)
     assert len(across) == 12 and set(across["plant"]) == {"own model", "other model"}
 
 

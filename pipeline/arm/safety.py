@@ -61,6 +61,18 @@ def _float32_inside(value: float, upward: bool) -> np.float32:
     return rounded
 
 
+def on_boundary(pressures: Any, safe: SafeSet, tolerance_kpa: float = 0.01) -> np.ndarray:
+    """``[...]`` bool: whether each command ``pressures [..., n_valves]`` kPa lies on the safe
+    set's boundary, a valve within ``tolerance_kpa`` of ``p_min`` or ``p_max`` or the valves' sum
+    within it of ``sum_max``: the arm gets all that its rating allows in some direction (the
+    projection puts a command that asks for more there). NaN (no command) is not on it."""
+    pressures = np.asarray(pressures, np.float64)
+    p_min, p_max = np.asarray(safe.p_min, np.float64), np.asarray(safe.p_max, np.float64)
+    on_box = ((pressures <= p_min + tolerance_kpa) | (pressures >= p_max - tolerance_kpa)).any(-1)
+    on_sum = pressures.sum(-1) >= float(safe.sum_max) - tolerance_kpa
+    return on_box | on_sum
+
+
 def project(pressures: chex.Array, safe: SafeSet) -> chex.Array:
     """Euclidean projection of ``pressures [..., n_valves]`` onto the safe set.
 

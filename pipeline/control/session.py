@@ -154,10 +154,13 @@ def report_session(folder: Path, record: SessionRecord, metrics: pd.DataFrame,
                       f"{row['lag_s']:.2f} s, {100 * row['within_1mm']:.0f} % of the ticks "
                       f"within 1 mm; steady offset {row['offset_mm']:.2f} mm (x, y, z: "
                       f"{row['offset_x_mm']:.2f}, {row['offset_y_mm']:.2f}, "
-                      f"{row['offset_z_mm']:.2f} mm).")
+                      f"{row['offset_z_mm']:.2f} mm); the command on the limits of "
+                      f"robot.limits {100 * row['at_limits']:.0f} % of the periods.")
         section = ("Tracking", "after the settle time: errors in mm, lag in s (positive: the "
                              "path behind the reference), within_1mm a share of the ticks, "
-                             "offset the mean of the path less the reference")
+                             "offset the mean of the path less the reference, at_limits the "
+                             "share of the periods whose command lay on the limits (a valve "
+                             "at p_min or p_max, or the sum at sum_max)")
     else:
         header.append(f"Median final distance {np.median(metrics['final_distance_mm']):.2f} mm "
                       f"over {len(metrics)} goal(s); workspace (training goals, mm): "

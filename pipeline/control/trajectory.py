@@ -39,9 +39,10 @@ from pipeline.arm.references import (
     ReplaySettings,
     reference_settings,
 )
+from pipeline.arm.safety import SafeSet
 from pipeline.control.goals import GoalError, GoalSchedule
 from pipeline.control.records import REFERENCE_COLUMNS
-from pipeline.data.schemas import XYZ
+from pipeline.data.schemas import CMD_COLUMNS, XYZ
 from pipeline.evaluation.tracking import SCORES, tracking_metrics
 from pipeline.rl.envs import task
 
@@ -239,14 +240,15 @@ def trajectory_schedule(trajectory: Trajectory, duration_s: float, settle_s: flo
                               float(settle_s), previews_m=previews, ticks_m=ticks)
 
 
-def trajectory_metrics(periods: pd.DataFrame, control_hz: float, settle_s: float
-                       ) -> pd.DataFrame:
+def trajectory_metrics(periods: pd.DataFrame, control_hz: float, settle_s: float,
+                       safe: SafeSet | None = None) -> pd.DataFrame:
     """One row: :func:`~pipeline.evaluation.tracking.tracking_metrics` of the session's records
-    (the pose at each tick against ``ref_x, ref_y, ref_z``) from the first period recorded (a
-    live reference: the first with a point) and after ``settle_s`` more, with the periods scored
-    and ``interpolated`` (periods skipped after a stall have no row: their pose and reference
-    are interpolated between the neighbouring ticks). A session that ended before the settle
-    time (interrupted) scores NaN."""
+    (the pose at each tick against ``ref_x, ref_y, ref_z``; with ``safe``, the limits the
+    commands ``p_cmd_<j>`` were sent within, the share of them on those limits) from the first
+    period recorded (a live reference: the first with a point) and after ``settle_s`` more, with
+    the periods scored and ``interpolated`` (periods skipped after a stall have no row: their
+    pose and reference are interpolated between the neighbouring ticks, their command is the
+    one held). A session that ended before the settle time (interrupted) scores NaN."""
     table = periods.sort_values("period").drop_duplicates("period", keep="last")
     table = table[table["period"] >= 0].set_index("period")
     ticks = np.arange(int(table.index.min()), int(table.index.max()) + 1)
@@ -255,9 +257,13 @@ def trajectory_metrics(periods: pd.DataFrame, control_hz: float, settle_s: float
     grid = grid.interpolate(limit_direction="both")
     positions = grid[XYZ].to_numpy(np.float64)[None]
     reference = grid[REFERENCE_COLUMNS].to_numpy(np.float64)[None]
+    commands = None
+    if safe is not None:  # the command of each period but the last tick's (none is sent there)
+        commands = table[CMD_COLUMNS].reindex(ticks).ffill().to_numpy(np.float64)[None, :-1]
     if len(ticks) <= math.ceil(settle_s * control_hz - 1e-9):  # stopped before it settled
         metrics = pd.DataFrame({name: [np.nan] for name in SCORES})
     else:
-        metrics = tracking_metrics(positions, reference, control_hz, settle_s)
+        metrics = tracking_metrics(positions, reference, control_hz, settle_s,
+                                   commands=commands, safe=safe)
     return metrics.assign(settle_s=float(settle_s), periods=len(ticks) - 1,
                           interpolated=interpolated)

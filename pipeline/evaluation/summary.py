@@ -228,7 +228,7 @@ def closing_summary(stage: str, results: dict[str, Any], run: RunFacts,
         tracking = pd.read_parquet(control.path / "tracking.parquet")
         lines += ["", f"Following the reference (robot={robot}), after the settle time [mm, s]:",
                   *text_table(tracking[[c for c in ("rmse_mm", "p95_mm", "max_mm", "lag_s",
-                                                    "within_1mm", "offset_mm")
+                                                    "within_1mm", "offset_mm", "at_limits")
                                         if c in tracking]])]
     last = next((results[s] for s in reversed(list(results)) if hasattr(results[s], "path")),
                 None)

@@ -16,7 +16,9 @@ plant, other fitted models and twins (the plants of
 Metrics per episode (:func:`tracking_metrics`), over the times after the first
 ``tracking_settle_seconds`` (the arm starts at rest, away from the reference): the RMSE, the 95th
 percentile and the largest error (mm), the fraction of times within 1 mm and the lag, the time
-shift (s) that best aligns the path with the reference (positive: the path runs behind).
+shift (s) that best aligns the path with the reference (positive: the path runs behind), and
+the share of the commands on the limits of the safe set (the reference asks for all the rating
+allows there).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.arm import references
+from pipeline.arm.safety import SafeSet, on_boundary
 from pipeline.evaluation import mpc
 from pipeline.evaluation.closed_loop import (
     ClosedLoopSettings,
@@ -52,7 +55,7 @@ MAX_LAG_S = 5.0  # the lag is searched within +- this many seconds
 BASELINES = ("preload", "mpc")  # the tracking evaluation's baselines besides the reaching one
 # tracking_metrics' columns, in its order (stage=control's records and summaries name them)
 SCORES = ("rmse_mm", "p95_mm", "max_mm", "within_1mm", "lag_s", "offset_mm", "offset_x_mm",
-          "offset_y_mm", "offset_z_mm")
+          "offset_y_mm", "offset_z_mm", "at_limits")
 PATH_EPISODES = 8  # the episodes of each controller whose paths the paths table keeps
 
 
@@ -101,12 +104,17 @@ class TrackingSettings:
 
 
 def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: float,
-                     settle_seconds: float, max_lag_s: float = MAX_LAG_S) -> pd.DataFrame:
+                     settle_seconds: float, max_lag_s: float = MAX_LAG_S,
+                     commands: np.ndarray | None = None, safe: SafeSet | None = None
+                     ) -> pd.DataFrame:
     """One row per episode: ``rmse_mm``, ``p95_mm``, ``max_mm``, ``within_1mm`` (share of the
     times), ``lag_s`` and the steady offset over the times ``k / control_hz >= settle_seconds``:
     ``offset_x_mm``, ``offset_y_mm``, ``offset_z_mm``, the mean of the path less the reference,
     and ``offset_mm``, its length (the part of the RMSE a constant correction would take out:
-    ``rmse_mm**2 = offset_mm**2 +`` the mean squared deviation from it).
+    ``rmse_mm**2 = offset_mm**2 +`` the mean squared deviation from it); and ``at_limits``, the
+    share of the commands that moved the arm to those times (of the periods ending at them) lying
+    on the safe set's boundary (:func:`pipeline.arm.safety.on_boundary`: the reference asks for
+    all the arm's rating allows), NaN without ``commands``.
 
     Args:
       positions: [E, T + 1, 3] m, row k the position after k control periods.
@@ -114,6 +122,8 @@ def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: f
       max_lag_s: the lag is the shift ``s`` (whole periods, refined by a parabola through the
         best and its neighbours) within ``+- max_lag_s`` minimizing the RMSE between
         ``positions[k]`` and ``reference[k - s]`` (positive: the path behind the reference).
+      commands: [E, T, n_valves] kPa, row k the command of period k (from tick k to k + 1), as
+        the plant got it before its own gain or delay; with ``safe``, the limits they lie in.
     """
     positions, reference = np.asarray(positions, np.float64), np.asarray(reference, np.float64)
     if positions.shape != reference.shape or positions.ndim != 3:
@@ -134,7 +144,15 @@ def tracking_metrics(positions: np.ndarray, reference: np.ndarray, control_hz: f
         "lag_s": _lags(positions, reference, first, control_hz, max_lag_s),
         "offset_mm": np.linalg.norm(offset, axis=1),
         **{f"offset_{axis}_mm": offset[:, number] for number, axis in enumerate("xyz")},
+        "at_limits": np.nan,
     })
+    if commands is not None:
+        commands = np.asarray(commands, np.float64)
+        if commands.shape[:2] != (positions.shape[0], positions.shape[1] - 1) or safe is None:
+            raise ValueError(f"commands must be [E, T, n_valves] beside positions "
+                             f"{positions.shape} and come with their safe set, got "
+                             f"{commands.shape}")
+        table["at_limits"] = on_boundary(commands[:, max(first - 1, 0):], safe).mean(axis=1)
     return table[list(SCORES)]
 
 
@@ -322,10 +340,12 @@ def _follow(settings: ClosedLoopSettings, tracking: TrackingSettings, plants, lo
                                        episodes)
             runs = programs.run(plant_env, plant_params, controllers, keys,
                                 _starts(plant_params, episodes), goals, stacked)
-            for controller, (positions, _) in runs.items():
+            for controller, (positions, commands) in runs.items():
                 for seed in range(positions.shape[0]):
                     table = tracking_metrics(positions[seed], target, control_hz,
-                                             float(tracking.settle_seconds))
+                                             float(tracking.settle_seconds),
+                                             commands=commands[seed],
+                                             safe=plant_params.safe_set)
                     rows.append(table.assign(plant=plant_name, controller=controller,
                                              reference=name, seed=seed,
                                              episode=np.arange(episodes)))
@@ -336,14 +356,15 @@ def summarize_tracking(table: pd.DataFrame, by: Sequence[str] = ("plant", "contr
                                                                    "reference")
                        ) -> pd.DataFrame:
     """Per group: episodes, the median RMSE, p95, max, lag and steady offset over episodes and
-    seeds, the mean share within 1 mm, and the spread over seeds of each seed's median RMSE (min,
-    max)."""
+    seeds, the mean shares within 1 mm and at the limits, and the spread over seeds of each
+    seed's median RMSE (min, max)."""
     by = list(by)
     grouped = table.groupby(by, sort=False)
     out = grouped.agg(episodes=("rmse_mm", "size"), median_rmse_mm=("rmse_mm", "median"),
                       median_p95_mm=("p95_mm", "median"), median_max_mm=("max_mm", "median"),
                       within_1mm=("within_1mm", "mean"), median_lag_s=("lag_s", "median"),
-                      median_offset_mm=("offset_mm", "median"))
+                      median_offset_mm=("offset_mm", "median"),
+                      at_limits=("at_limits", "mean"))
     per_seed = table.groupby([*by, "seed"], sort=False)["rmse_mm"].median()
     spread = per_seed.groupby(level=list(range(len(by))), sort=False).agg(
         seed_rmse_min_mm="min", seed_rmse_max_mm="max")

@@ -26,7 +26,7 @@ TRACKING_COLUMNS = {
     "seed_rmse_min_mm": "seeds' RMSE min [mm]", "seed_rmse_max_mm": "seeds' RMSE max [mm]",
     "median_p95_mm": "p95 [mm]", "median_max_mm": "max error [mm]",
     "within_1mm": "time within 1 mm", "median_lag_s": "lag [s]",
-    "median_offset_mm": "steady offset [mm]",
+    "median_offset_mm": "steady offset [mm]", "at_limits": "time at the limits",
 }
 
 
@@ -123,8 +123,11 @@ def tracking_section(summary: pd.DataFrame, figure: Figure | None, order: Sequen
         "Every controller follows the same references from the same starts (each episode's "
         f"phase its own), scored{after}: the median over seeds and episodes of each episode's "
         "RMSE, 95th percentile and largest error, the share of the time within 1 mm and the lag "
-        "(the time shift that best aligns the path with the reference; positive: behind it); "
-        "the seeds' RMSE: the least and largest of the seeds' medians. Baselines: the preload "
+        "(the time shift that best aligns the path with the reference; positive: behind it), "
+        "and the share of the periods whose command lay on the limits of the safe set (a valve "
+        "at its least or greatest pressure or the sum at its greatest: there the reference asks "
+        "for all the rating allows); the seeds' RMSE: the least and largest of the seeds' "
+        "medians. Baselines: the preload "
         "(do nothing), sampling MPC (mpc) on the learned model scored against the reference "
         "over its horizon, and the reaching policies fed the moving goal (reaching).",
         Table(frame[list(TRACKING_COLUMNS)].rename(columns=TRACKING_COLUMNS))])

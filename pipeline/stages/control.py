@@ -26,6 +26,7 @@ from omegaconf import OmegaConf
 
 from pipeline import keys
 from pipeline.arm.limits import validate_limits
+from pipeline.arm.safety import SafeSet
 from pipeline.chain import control_hold
 from pipeline.control.goals import GoalError, GoalSchedule, goal_schedule
 from pipeline.control.loop import Outcome
@@ -87,7 +88,8 @@ def control(cfg: Any) -> Artifact:
         record = run_session(robot, settings, deployment, schedule, recovery, spec)
         record.recorder.write(writer.file("periods.parquet"), record.periods)
         if isinstance(schedule, ReferenceSchedule):
-            metrics = trajectory_metrics(record.periods, deployment.control_hz, schedule.settle_s)
+            metrics = trajectory_metrics(record.periods, deployment.control_hz, schedule.settle_s,
+                                         SafeSet.from_limits(robot.limits, robot.n_valves))
             metrics.to_parquet(writer.file("tracking.parquet"), index=False)
         else:
             metrics = goal_metrics(record.periods, 1.0 / deployment.control_hz)

@@ -152,6 +152,7 @@ def test_default_randomization_draws_the_nominal_plant():
     assert np.all(np.asarray(perturbation.delay) == 0)
     assert np.all(np.asarray(perturbation.rest_offset) == 0.0)
     assert np.all(np.asarray(perturbation.drift) == 0.0)
+    assert np.all(np.asarray(perturbation.saturation) == 0.0)
 
 
 # ---- randomization: known answers -------------------------------------------------------------
@@ -229,6 +230,41 @@ def test_rest_offset_and_drift_shift_the_position():
     after = hold_command(env, params, shifted, PRELOAD, periods=4)
     np.testing.assert_allclose(after.position - nominal.position, rest + drift * 4 / 2.0,
                                atol=1e-7)  # 4 periods at 2 Hz: 2 s; float32 at 0.35 m: 3e-8
+
+
+def test_saturating_chambers_get_the_command_pulled_toward_the_preload():
+    env, params = toy()
+    gain_matrix = default_linear_lag_params().gain
+    state = settled_state(env, params)
+    command = jnp.array([5.0, 1.0, 3.0])
+    saturated = state.replace(perturbation=state.perturbation.replace(saturation=jnp.float32(0.5)))
+    after = hold_command(env, params, saturated, command, periods=12)
+    # 2 + tanh(0.5 (p - 2)) / 0.5: 2 + tanh(1.5) / 0.5, 2 - tanh(0.5) / 0.5, 2 + tanh(0.5) / 0.5
+    received = np.array([3.810296, 1.075766, 2.924234])
+    np.testing.assert_allclose(after.perturbation.received, received, atol=1e-5)
+    np.testing.assert_allclose(after.position, state.position + gain_matrix @ (received - 2.0),
+                               atol=1e-6)
+    np.testing.assert_allclose(after.last_pressure, command, atol=1e-6)  # what the policy sent
+    # none (0): the command as sent (bit for bit: test_default_env_is_bit_for_bit_...)
+    nominal = hold_command(env, params, state, command, periods=1)
+    np.testing.assert_allclose(nominal.perturbation.received, command, atol=1e-6)
+
+
+def test_saturation_is_drawn_uniformly_up_to_its_bound():
+    env, params = toy(randomization_params=randomization(saturation_max_per_kpa=1.5))
+    _, state = jax.vmap(env.reset_env, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 4000), params)
+    drawn = np.asarray(state.perturbation.saturation)
+    assert drawn.min() >= 0.0 and drawn.max() <= 1.5
+    np.testing.assert_allclose(drawn.mean(), 0.75, atol=0.03)  # U(0, 1.5): std 0.43 / sqrt(4000)
+    np.testing.assert_allclose(np.histogram(drawn, bins=3, range=(0, 1.5))[0] / 4000, 1 / 3,
+                               atol=0.03)
+    # the randomization's other draws are as without it
+    _, plain = jax.vmap(env.reset_env, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 4000), toy()[1])
+    np.testing.assert_array_equal(state.position, plain.position)
+    with pytest.raises(ValueError, match="saturation_max_per_kpa must be finite and >= 0"):
+        randomization(saturation_max_per_kpa=-0.1)
 
 
 def test_randomization_draws_have_their_magnitudes():

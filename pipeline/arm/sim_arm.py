@@ -246,16 +246,22 @@ class SimState:
     rest_offset: chex.Array  # [3] m, this session's rest-pose offset
 
 
-def chamber_strain(params: SimParams, pressure: chex.Array) -> chex.Array:
-    """``f(p) = c + tanh(a (p - c)) / a`` per chamber (kPa): linear for ``a = 0``, saturating
-    away from ``c`` otherwise (slope 1 at ``c``)."""
-    a = params.saturation
+def saturating(pressure: chex.Array, a: chex.Array, centre: chex.Array) -> chex.Array:
+    """``c + tanh(a (p - c)) / a`` of ``pressure`` p (kPa) about ``centre`` c (kPa), ``a`` in
+    1/kPa: the identity for ``a = 0``, saturating away from ``c`` otherwise (slope 1 at ``c``;
+    the result lies between ``c`` and ``p``)."""
     small = a < 1e-6
     safe_a = jnp.where(small, 1.0, a)
-    shifted = pressure - params.saturation_center
+    shifted = pressure - centre
     # tanh(a x) / a ~ x - a^2 x^3 / 3 for small a (keeps the gradient in a finite at 0)
-    return params.saturation_center + jnp.where(
-        small, shifted - a**2 * shifted**3 / 3.0, jnp.tanh(safe_a * shifted) / safe_a)
+    return centre + jnp.where(small, shifted - a**2 * shifted**3 / 3.0,
+                              jnp.tanh(safe_a * shifted) / safe_a)
+
+
+def chamber_strain(params: SimParams, pressure: chex.Array) -> chex.Array:
+    """``f(p) = c + tanh(a (p - c)) / a`` per chamber (kPa, :func:`saturating`): linear for
+    ``a = 0``, saturating away from ``c`` otherwise (slope 1 at ``c``)."""
+    return saturating(pressure, params.saturation, params.saturation_center)
 
 
 def _targets(params: SimParams, effective: chex.Array) -> chex.Array:

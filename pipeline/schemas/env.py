@@ -27,6 +27,9 @@ class RandomizationConfig:
     max_delay_s: float = 0.0
     rest_offset_std_m: float = 0.0  # N(0, std) per axis added to the plant's position [m]
     drift_std_m_per_s: float = 0.0  # that offset grows by N(0, std) per axis and second [m/s]
+    # the chambers saturate about the preload: each valve's pressure p (after gain and offset)
+    # reaches the plant as preload + tanh(a (p - preload)) / a, a ~ U(0, max) per episode [1/kPa]
+    saturation_max_per_kpa: float = 0.0
 
 
 @dataclass

@@ -128,7 +128,8 @@ def randomization_params(spread: RandomizationConfig, env: SoftArmReachEnv) -> R
     return randomization(gain_std=float(spread.gain_std),
                          offset_std_kpa=float(spread.offset_std_kpa), max_delay_steps=delay,
                          rest_offset_std_m=float(spread.rest_offset_std_m),
-                         drift_std_m_per_s=float(spread.drift_std_m_per_s))
+                         drift_std_m_per_s=float(spread.drift_std_m_per_s),
+                         saturation_max_per_kpa=float(spread.saturation_max_per_kpa))
 
 
 def observation_options(settings: EnvConfig) -> dict[str, Any]:

@@ -45,7 +45,9 @@ the action is held while the plant advances ``plant.model_hz / control_hz`` of i
   ``EnvParams.randomization``, all zero by default: the nominal plant), drawn once per episode at
   reset into ``EnvState.perturbation`` (:class:`Perturbation`): each valve receives
   ``gain * command + offset`` (gain ``1 + N(0, gain_std)``, offset ``N(0, offset_std)`` kPa), then
-  projected onto the safe set; the previous received command is held for the first
+  projected onto the safe set and, where the chambers saturate (``a ~ U(0, saturation_max)``
+  1/kPa), pulled toward the preload as ``preload + tanh(a (p - preload)) / a``; the previous
+  received command is held for the first
   ``delay ~ U{0 .. max_delay_steps}`` plant steps of every control period; the plant's position is
   shifted by ``rest_offset + drift * seconds since the reset`` (``N(0, std)`` m and m/s per axis).
   The policy observes (and ``last_pressure`` holds) the command it sent, not what the plant got.
@@ -68,6 +70,7 @@ from flax import struct
 from gymnax.environments import environment, spaces
 
 from pipeline.arm.safety import SafeSet, project
+from pipeline.arm.sim_arm import saturating
 from pipeline.rl.envs import observation, task
 from pipeline.rl.envs.plants import NUM_VALVES, POSITION_DIM, Plant, hold
 from pipeline.rl.envs.task import check_task
@@ -82,6 +85,9 @@ _PERTURBATION_STREAM = 1
 # they were without redraws
 _REDRAW_STREAM = 2
 _REFERENCE_STREAM = 3  # and a tracking episode's reference at its reset
+# the chambers' saturation of an episode from fold_in(perturbation key, _SATURATION_STREAM): the
+# randomization's other draws stay as they were without it
+_SATURATION_STREAM = 4
 
 
 @struct.dataclass
@@ -94,6 +100,8 @@ class Randomization:
       plant steps at the start of each control period (at most ``steps_per_action``: one period).
     rest_offset_std: [3] m, std of the offset added to the plant's position (rest pose error).
     drift_std: [3] m/s, std of the rate at which that offset grows along the episode.
+    saturation_max: scalar 1/kPa, the chambers saturate about the preload by ``U(0,
+      saturation_max)`` (:class:`Perturbation` ``saturation``).
     """
 
     gain_std: jax.Array
@@ -101,14 +109,19 @@ class Randomization:
     max_delay_steps: jax.Array
     rest_offset_std: jax.Array
     drift_std: jax.Array
+    saturation_max: jax.Array
 
 
 def randomization(gain_std: float | jax.Array = 0.0, offset_std_kpa: float | jax.Array = 0.0,
                   max_delay_steps: int = 0, rest_offset_std_m: float | jax.Array = 0.0,
-                  drift_std_m_per_s: float | jax.Array = 0.0) -> Randomization:
+                  drift_std_m_per_s: float | jax.Array = 0.0,
+                  saturation_max_per_kpa: float = 0.0) -> Randomization:
     """:class:`Randomization` from scalars or per-valve / per-axis ``[3]`` values (default: none)."""
     if int(max_delay_steps) < 0:
         raise ValueError(f"max_delay_steps must be >= 0, got {max_delay_steps}")
+    if not (np.isfinite(saturation_max_per_kpa) and saturation_max_per_kpa >= 0):
+        raise ValueError(f"randomization saturation_max_per_kpa must be finite and >= 0, got "
+                         f"{saturation_max_per_kpa}")
     values = {"gain_std": gain_std, "offset_std": offset_std_kpa,
               "rest_offset_std": rest_offset_std_m, "drift_std": drift_std_m_per_s}
     for name, value in values.items():
@@ -116,7 +129,8 @@ def randomization(gain_std: float | jax.Array = 0.0, offset_std_kpa: float | jax
             raise ValueError(f"randomization {name} must be >= 0, got {value}")
     vector = lambda value: jnp.broadcast_to(jnp.asarray(value, jnp.float32), (3,))  # noqa: E731
     return Randomization(**{name: vector(value) for name, value in values.items()},
-                         max_delay_steps=jnp.asarray(int(max_delay_steps), jnp.int32))
+                         max_delay_steps=jnp.asarray(int(max_delay_steps), jnp.int32),
+                         saturation_max=jnp.asarray(float(saturation_max_per_kpa), jnp.float32))
 
 
 @struct.dataclass
@@ -130,6 +144,10 @@ class Perturbation:
     drift: [3] m/s, the position offset grows by ``drift * seconds since the reset``.
     received: [3] kPa, the pressure the plant received last (held during the delay; the preload
       at reset, which the start states settled at).
+    saturation: scalar 1/kPa, each valve's pressure (after gain and offset) reaches the plant as
+      ``preload + tanh(a (p - preload)) / a`` (``a = saturation``; 0: as it is): chambers that
+      answer less the farther their pressure lies from the preload
+      (:func:`pipeline.arm.sim_arm.saturating`).
     """
 
     gain: jax.Array
@@ -138,6 +156,7 @@ class Perturbation:
     rest_offset: jax.Array
     drift: jax.Array
     received: jax.Array
+    saturation: jax.Array
 
 
 @struct.dataclass
@@ -399,7 +418,9 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
             delay=jax.random.randint(delay_key, (), 0, max_delay + 1),
             rest_offset=spread.rest_offset_std * jax.random.normal(rest_key, (POSITION_DIM,)),
             drift=spread.drift_std * jax.random.normal(drift_key, (POSITION_DIM,)),
-            received=params.preload)
+            received=params.preload,
+            saturation=spread.saturation_max * jax.random.uniform(
+                jax.random.fold_in(key, _SATURATION_STREAM), ()))
 
     def step_env(self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
                  ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
@@ -417,6 +438,9 @@ class SoftArmReachEnv(environment.Environment[EnvState, EnvParams]):
             action_noise_key, (NUM_VALVES,))
         perturbation = state.perturbation
         received = project(perturbation.gain * pressure + perturbation.offset, params.safe_set)
+        received = jnp.where(perturbation.saturation > 0,  # none: the command exactly
+                             saturating(received, perturbation.saturation, params.preload),
+                             received)  # between the preload and it: still in the safe set
         pressure = project(pressure, params.safe_set)
         carry, positions = self._hold_delayed(params.plant, state.plant_carry,
                                               perturbation.received, received,

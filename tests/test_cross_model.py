@@ -8,7 +8,8 @@ from pipeline.chain import policy_configs
 from pipeline.schemas import AgentConfig, ConfigError, RandomizationConfig, budget_overrides
 
 RANDOMIZED = {"gain_std": 0.05, "offset_std_kpa": 0.1, "max_delay_s": 0.25,
-              "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5}
+              "rest_offset_std_m": 0.001, "drift_std_m_per_s": 2.0e-5,
+              "saturation_max_per_kpa": 0.0}  # real_arm's chambers do not saturate in training
 PRICE = 10.0  # experiment=real_arm's env.command_change_cost_mm_per_kpa
 
 

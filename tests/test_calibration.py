@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
@@ -17,9 +19,9 @@ from pipeline.arm import sim_arm
 from pipeline.arm.twins import load_physics
 from pipeline.chain import stages_to_run
 from pipeline.data.runs import Run
-from pipeline.data.schemas import read_table
+from pipeline.data.schemas import DataError, read_table
 from pipeline.dynamics.calibration_report import PARAMETERS, fold_weights
-from pipeline.schemas import SimPhysics, Stage
+from pipeline.schemas import ConfigError, SimPhysics, Stage
 
 INIT = calib.sim_physics_values(SimPhysics())
 INIT.pop("substeps")
@@ -132,6 +134,8 @@ def test_calibrate_stage_writes_its_artifact_and_reuses_it(make_cfg):
     physics = json.loads(artifact.file("physics.json").read_text())["physics"]
     # every SimPhysics field but the spread between sessions, which is not fitted
     assert set(SimPhysics.__dataclass_fields__) - {"session_std"} == set(physics)
+    # the integrator steps of the physics (what a twin of them integrates with), not the fit's
+    assert physics["substeps"] == cfg.calibration.init.substeps != cfg.calibration.substeps
     metrics = __import__("pandas").read_parquet(artifact.file("metrics.parquet"))
     assert set(metrics["model"]) == {"sim_calibrated", "sim_calibrated_first_pose",
                                      "sim_default", "sim_default_first_pose", "mean_position",
@@ -151,6 +155,41 @@ def test_calibrate_stage_writes_its_artifact_and_reuses_it(make_cfg):
     assert twin_cfg.robot.twin.physics.pressure_tau_s == pytest.approx(
         physics["pressure_tau_s"])
     assert load_physics(str(artifact.path), "/nonexistent") == physics
+
+
+def test_run_after_keeps_the_steps_from_a_time_into_the_run():
+    run_ = Run("r", np.array([10.0, 10.5, 11.0, 11.5]),
+               np.arange(12, dtype=np.float32).reshape(4, 3),
+               np.arange(12, dtype=np.float32).reshape(4, 3) * 1e-3)
+    later = run_.after(1.0)
+    np.testing.assert_array_equal(later.times_s, [11.0, 11.5])
+    np.testing.assert_array_equal(later.pressures_kpa[0], [6.0, 7.0, 8.0])
+    assert later.run_id == "r" and len(run_.after(0.0)) == 4
+    with pytest.raises(ValueError, match=r"run 'r' lasts 1.5 s: nothing of it is left from 1.5 s"):
+        run_.after(1.5)
+
+
+def test_calibrate_stage_starts_each_run_later(make_cfg):
+    whole = run(make_cfg(*TINY))["calibrate"]
+    later = run(make_cfg(*TINY, "calibration.start_s=2"))["calibrate"]
+    assert later.key != whole.key
+    steps = {}
+    for name, artifact in (("whole", whole), ("later", later)):
+        metrics = pd.read_parquet(artifact.file("metrics.parquet"))
+        steps[name] = metrics.groupby("run_id")["steps"].first()
+    # 2 s fewer of every run at dataset.model_hz=10, scored and fitted
+    assert ((steps["whole"] - steps["later"]) == 20).all()
+
+
+def test_calibrate_stage_refuses_a_start_outside_the_runs(make_cfg):
+    with pytest.raises(ConfigError, match=r"calibration.start_s=-1"):
+        run(make_cfg(*TINY, "calibration.start_s=-1"))
+    cfg = make_cfg(*TINY, "calibration.start_s=1000")
+    with pytest.raises(DataError, match=r"aligned.parquet: calibration.start_s=1000: run 'sim-000' "
+                                        r"lasts .* s: nothing of it is left from 1000 s on"):
+        run(cfg)
+    written = Path(cfg.paths.artifact_dir) / "calibrate"  # nothing but a lock file
+    assert not [p for p in written.glob("*") if not p.name.startswith(".")]
 
 
 def test_physics_from_names_what_it_could_not_find(make_cfg):

@@ -13,6 +13,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 import pandas as pd
 
@@ -25,7 +26,7 @@ from pipeline.dynamics.scoring import (
     baseline_mean_position,
     position_errors_mm,
 )
-from pipeline.schemas import SimPhysics
+from pipeline.schemas import CalibrationConfig, SimPhysics
 
 ALL_RUNS = "all"  # the fold trained on every run
 
@@ -54,6 +55,53 @@ def fold_weights(num_runs: int, leave_one_run_out: bool) -> tuple[list[str | int
     folds: list[str | int] = list(range(num_runs)) if leave_one_run_out and num_runs > 1 else []
     weights = [np.arange(num_runs) != f for f in folds] + [np.ones(num_runs, bool)]
     return [*folds, ALL_RUNS], np.stack(weights).astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class Fit:
+    """A calibration of some runs: every fold's fitted physics and rest offsets."""
+
+    template: sim_arm.SimParams  # noise free, at the calibration rate
+    param: calib.Parameterization
+    init: dict[str, Any]  # SimPhysics values the fit started from (no substeps, no spread)
+    result: calib.FitResult
+    folds: list[str | int]
+    weights: np.ndarray  # [folds, R]
+    substeps: int  # the integrator steps the fitted physics name (``init``'s, not the fit's)
+
+    def physics(self) -> dict[str, Any]:
+        """SimPhysics values of the fit on all runs (:func:`fitted_physics`)."""
+        return fitted_physics(self.init, self.result, self.substeps)
+
+
+def fit_runs(runs: list[Run], settings: CalibrationConfig) -> Fit:
+    """Fit the simulated arm to ``runs`` (a regular grid at ``settings.rate_hz`` each, each
+    started settled at its first command) with the calibration ``settings``
+    (or the config group composed to it): every leave-one-run-out fold with
+    ``settings.leave_one_run_out``, and the fit on all runs (last)."""
+    init = calib.sim_physics_values(settings.init)
+    substeps = int(init.pop("substeps"))
+    init.pop("session_std", None)  # one physics for every run: the spread is not fitted
+    template = sim_arm.SimParams.noise_free(init, float(settings.rate_hz), int(settings.substeps))
+    param = calib.Parameterization.create(list(settings.fitted), init)
+    folds, weights = fold_weights(len(runs), bool(settings.leave_one_run_out))
+    result = calib.calibrate(
+        template, param, init, calib.RunBatch.from_runs(runs), weights,
+        num_steps=int(settings.num_steps), learning_rate=float(settings.learning_rate),
+        num_restarts=int(settings.num_restarts), restart_std=float(settings.restart_std),
+        key=jax.random.key(int(settings.seed)))
+    return Fit(template, param, init, result, folds, weights, substeps)
+
+
+def scored(fit: Fit, runs: list[Run], model_runs: list[Run], substeps: int, rate_hz: float,
+           stride: int) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
+    """Every fold of ``fit`` driven open loop through ``runs`` (the fitted runs, or others of
+    the same ids, e.g. a later stretch of each, started settled at its first command):
+    :func:`predictions` and their :func:`evaluation_table` on ``model_runs``."""
+    batch = calib.RunBatch.from_runs(runs)
+    predicted = predictions(fit.template, fit.param, fit.result, batch, fit.weights, substeps,
+                            rate_hz)
+    return predicted, evaluation_table(fit.folds, runs, model_runs, predicted, stride)
 
 
 def predictions(template: sim_arm.SimParams, param: calib.Parameterization,

@@ -59,6 +59,9 @@ class CalibrationConfig:
     restart_std: float = 0.5  # logit-space spread of the other starts
     seed: int = 0
     leave_one_run_out: bool = True  # also fit every fold (score the held-out runs)
+    # s into each run where its fit and scores begin, settled at the command in force there
+    # (each of the paper's runs opens with its preload held 17 s while the arm still settles)
+    start_s: float = 0.0
     fitted: list[str] = field(default_factory=lambda: [
         "chamber_angles_deg", "chamber_gains", "segment_length_m", "tip_offset_m",
         "pressure_tau_s", "bend_gain", "elong_gain", "natural_freq_hz", "damping_ratio",

@@ -1,9 +1,11 @@
 """Stage ``calibrate``: the simulated arm's physics fitted to the aligned runs.
 
 The aligned runs (any robot: the paper's CSVs, PlotJuggler exports, rosbags, a ROS 2 collection,
-or the simulated arm itself) are resampled to ``calibration.rate_hz`` and each is driven open loop
-through the simulator with its own pressure commands from the settled preload; the physics
-(``calibration.fitted``, bounded, see :mod:`pipeline.arm.calibration`) and one rest offset per
+or the simulated arm itself) are resampled to ``calibration.rate_hz``, each from
+``calibration.start_s`` s on (e.g. after an opening hold over which the arm still settles), and
+each is driven open loop through the simulator with its own pressure commands, started settled at
+the first of them; the physics (``calibration.fitted``, bounded, see
+:mod:`pipeline.arm.calibration`) and one rest offset per
 training run are fitted by Adam, from ``calibration.num_restarts`` starts, all in one program.
 With ``calibration.leave_one_run_out`` every run is also held out once and its open-loop error is
 scored at ``dataset.model_hz``, in fit_model's table format, next to the hand-set simulator and
@@ -28,16 +30,15 @@ import json
 import logging
 from typing import Any
 
-import jax
-
 from pipeline import keys
 from pipeline.arm import calibration as calib
-from pipeline.arm import sim_arm
 from pipeline.data.alignment import runs_at_model_rate
-from pipeline.data.schemas import ALIGNED, read_table, write_table
+from pipeline.data.runs import Run
+from pipeline.data.schemas import ALIGNED, DataError, read_table, write_table
 from pipeline.dynamics import calibration_report as report
 from pipeline.infra.artifacts import Artifact, ArtifactStore, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
+from pipeline.schemas import ConfigError
 
 log = logging.getLogger(__name__)
 STAGE = "calibrate"
@@ -55,41 +56,44 @@ def calibrate(cfg: Any) -> Artifact:
         raise ValueError(f"calibration.rate_hz={rate_hz} must be a whole multiple of "
                          f"dataset.model_hz={model_hz} (errors are scored at model_hz)")
 
+    start_s = float(settings.start_s)
+    if not start_s >= 0.0:
+        raise ConfigError(f"calibration.start_s={settings.start_s} must be 0 or more (s into "
+                          "each run)")
+
     def build(writer):
         aligned, _ = read_table(aligned_artifact.file("aligned.parquet"), ALIGNED)
-        runs = runs_at_model_rate(aligned, rate_hz, "clock")
-        model_runs = runs_at_model_rate(aligned, model_hz, "clock")
-        batch = calib.RunBatch.from_runs(runs)
-        init = calib.sim_physics_values(settings.init)
-        init.pop("substeps", None)
-        init.pop("session_std", None)  # one physics for every run: the spread is not fitted
-        template = sim_arm.SimParams.noise_free(init, rate_hz, substeps)
-        param = calib.Parameterization.create(list(settings.fitted), init)
-        folds, weights = report.fold_weights(len(runs), bool(settings.leave_one_run_out))
-        log.info("calibrate: %d runs at %.3g Hz (%d frames max), %d parameters, %d fits x %d "
-                 "restarts x %d steps", len(runs), rate_hz, batch.commands.shape[1], param.size,
-                 len(folds), int(settings.num_restarts), int(settings.num_steps))
-        result = calib.calibrate(
-            template, param, init, batch, weights, num_steps=int(settings.num_steps),
-            learning_rate=float(settings.learning_rate),
-            num_restarts=int(settings.num_restarts), restart_std=float(settings.restart_std),
-            key=jax.random.key(int(settings.seed)))
-        predicted = report.predictions(template, param, result, batch, weights, substeps,
-                                       rate_hz)
-        metrics = report.evaluation_table(folds, runs, model_runs, predicted, stride)
-        fitted_substeps = int(calib.sim_physics_values(settings.init)["substeps"])
+        runs, model_runs = (_from_start(runs_at_model_rate(aligned, hz, "clock"), start_s,
+                                        aligned_artifact.file("aligned.parquet"))
+                            for hz in (rate_hz, model_hz))
+        log.info("calibrate: %d runs at %.3g Hz from %g s on (%d frames max), %d parameters, "
+                 "%s x %d restarts x %d steps", len(runs), rate_hz, start_s,
+                 max(len(r) for r in runs), len(list(settings.fitted)),
+                 f"{len(runs) + 1} fits" if settings.leave_one_run_out else "1 fit",
+                 int(settings.num_restarts), int(settings.num_steps))
+        fit = report.fit_runs(runs, settings)
+        predicted, metrics = report.scored(fit, runs, model_runs, substeps, rate_hz, stride)
         config = {"calibration": spec["calibration"], "robot": cfg.robot.name}
-        write_outputs(writer, config, {"stage": STAGE, "inputs": inputs}, folds, runs, param,
-                      init, result, metrics, predicted, fitted_substeps)
+        write_outputs(writer, config, {"stage": STAGE, "inputs": inputs}, fit, runs, metrics,
+                      predicted)
 
     return produce(store, STAGE, spec, inputs, build, force=cfg.force)
 
 
-def write_outputs(writer, config, provenance, folds, runs, param, init, result, metrics,
-                  predicted, substeps) -> None:
+def _from_start(runs: list[Run], start_s: float, source: Any) -> list[Run]:
+    """Each run from ``start_s`` s on; a :class:`DataError` naming the run that ends before."""
+    try:
+        return [run.after(start_s) for run in runs]
+    except ValueError as err:
+        raise DataError(source, f"calibration.start_s={start_s:g}: {err}") from err
+
+
+def write_outputs(writer, config, provenance, fit: report.Fit, runs, metrics, predicted
+                  ) -> None:
+    folds, param, init, result = fit.folds, fit.param, fit.init, fit.result
     run_ids = [r.run_id for r in runs]
     fold_names = [f if f == report.ALL_RUNS else runs[f].run_id for f in folds]
-    fitted = report.fitted_physics(init, result, substeps)
+    fitted = fit.physics()
     writer.file("physics.json").write_text(json.dumps(
         {"physics": fitted, "units": {k: calib.UNITS.get(k, "") for k in fitted},
          "runs": run_ids}, indent=2))

@@ -165,7 +165,8 @@ def test_run_after_keeps_the_steps_from_a_time_into_the_run():
     np.testing.assert_array_equal(later.times_s, [11.0, 11.5])
     np.testing.assert_array_equal(later.pressures_kpa[0], [6.0, 7.0, 8.0])
     assert later.run_id == "r" and len(run_.after(0.0)) == 4
-    with pytest.raises(ValueError, match=r"run 'r' lasts 1.5 s: nothing of it is left from 1.5 s"):
+    with pytest.raises(ValueError, match=r"run 'r' lasts 1.5 s: less than two steps of it are "
+                                         r"left from 1.5 s on"):
         run_.after(1.5)
 
 
@@ -186,7 +187,8 @@ def test_calibrate_stage_refuses_a_start_outside_the_runs(make_cfg):
         run(make_cfg(*TINY, "calibration.start_s=-1"))
     cfg = make_cfg(*TINY, "calibration.start_s=1000")
     with pytest.raises(DataError, match=r"aligned.parquet: calibration.start_s=1000: run 'sim-000' "
-                                        r"lasts .* s: nothing of it is left from 1000 s on"):
+                                        r"lasts .* s: less than two steps of it are left from "
+                                        r"1000 s on"):
         run(cfg)
     written = Path(cfg.paths.artifact_dir) / "calibrate"  # nothing but a lock file
     assert not [p for p in written.glob("*") if not p.name.startswith(".")]

@@ -53,11 +53,11 @@ class Run:
 
     def after(self, start_s: float) -> Run:
         """This run from ``start_s`` s after its first step on (the same id); a ValueError naming
-        the run and its duration when nothing would be left."""
+        the run and its duration when less than two steps would be left."""
         keep = self.times_s - self.times_s[0] >= start_s - 1e-9
         if keep.sum() < 2:
             raise ValueError(f"run {self.run_id!r} lasts {self.times_s[-1] - self.times_s[0]:.3g} "
-                             f"s: nothing of it is left from {start_s:g} s on")
+                             f"s: less than two steps of it are left from {start_s:g} s on")
         return Run(self.run_id, self.times_s[keep], self.pressures_kpa[keep],
                    self.positions_m[keep])
 

@@ -9,12 +9,14 @@ each run, from ``--score-from`` s on (started settled there: during the hold the
 change, so a simulator started at the first frame is settled there too). Prints per held-out run
 the open-loop error of each fit, their means, and where the fit on all runs rests against where
 the recordings are at ``--score-from``; writes each fit's ``conf/robot`` file (the stage's
-``robot_sim.yaml``) and the table to ``--out``.
+``robot_sim.yaml``) and the table to ``--out``; with ``--fold-twins`` also each leave-one-run-out
+fit as a twin (``<out>/twin_start_<s>_without_<run>/physics.json``, resting where its training
+runs rest), for ``evaluation.twins``: how far the twin is known from the runs.
 
 Usage (the runs through ``stage=align`` with the same overrides, reused when there)::
 
     python -m experiments.calibration_start [--starts 0 16.5] [--score-from 16.5] \\
-        [--out outputs/calibration_start] [-- override ...]
+        [--out outputs/calibration_start] [--fold-twins] [-- override ...]
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ def main() -> None:
     parser.add_argument("--starts", type=float, nargs="+", default=[0.0, 16.5])
     parser.add_argument("--score-from", type=float, default=16.5)
     parser.add_argument("--out", default="outputs/calibration_start")
+    parser.add_argument("--fold-twins", action="store_true",
+                        help="also write each leave-one-run-out fit's physics as a twin folder")
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -62,6 +66,13 @@ def main() -> None:
         rows.append(metrics)
         (out / f"robot_sim_start_{start:g}.yaml").write_text(
             report.robot_yaml(fit.physics(), [r.run_id for r in fine]))
+        if args.fold_twins:
+            for fold in fit.folds[:-1]:  # each leave-one-run-out fit, a twin for evaluation.twins
+                twin = out / f"twin_start_{start:g}_without_{fine[fold].run_id[-5:]}"
+                twin.mkdir(exist_ok=True)
+                (twin / "physics.json").write_text(json.dumps(
+                    {"physics": fit.physics(fold),
+                     "runs": [r.run_id for i, r in enumerate(fine) if i != fold]}, indent=1))
         last = fit.result.z[-1:]
         rest = calib.rest_poses(fit.template, fit.param, last, score_runs[0].pressures_kpa[:1])
         rests[start] = 1e3 * (rest[0, 0] + fit.result.offsets[-1].mean(0))

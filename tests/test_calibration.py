@@ -20,7 +20,7 @@ from pipeline.arm.twins import load_physics
 from pipeline.chain import stages_to_run
 from pipeline.data.runs import Run
 from pipeline.data.schemas import DataError, read_table
-from pipeline.dynamics.calibration_report import PARAMETERS, fold_weights
+from pipeline.dynamics.calibration_report import PARAMETERS, fitted_physics, fold_weights
 from pipeline.schemas import ConfigError, SimPhysics, Stage
 
 INIT = calib.sim_physics_values(SimPhysics())
@@ -107,6 +107,25 @@ def test_fold_weights_hold_each_run_out_once_then_use_all():
     assert folds == [0, 1, 2, "all"]
     np.testing.assert_array_equal(weights, [[0, 1, 1], [1, 0, 1], [1, 1, 0], [1, 1, 1]])
     assert fold_weights(3, False)[0] == ["all"]
+
+
+def test_a_folds_physics_rest_where_its_training_runs_rest():
+    # 2 runs: fold 0 holds out run 0, fold 1 run 1, the last fold trains on both
+    weights = np.array([[0, 1], [1, 0], [1, 1]], np.float32)
+    offsets = np.array([[[9.0, 9.0, 9.0], [0.001, 0.002, 0.0]],
+                        [[0.003, 0.0, 0.0], [9.0, 9.0, 9.0]],
+                        [[0.001, 0.0, 0.0], [0.003, 0.002, 0.0]]])
+    result = calib.FitResult(np.zeros((3, 1)), offsets, np.zeros(3, int), np.zeros((1, 3, 1)),
+                             [{"bend_gain": np.float64(0.1 * (f + 1))} for f in range(3)])
+    init = {"bend_gain": 0.5, "base_position_m": [0.03, 0.47, 0.2]}
+    held_out_0 = fitted_physics(init, result, 10, fold=0, weights=weights)
+    assert held_out_0["bend_gain"] == pytest.approx(0.1)
+    assert held_out_0["base_position_m"] == pytest.approx([0.031, 0.472, 0.2])  # run 1 alone
+    assert held_out_0["rest_pose_std_m"] == pytest.approx([0.0, 0.0, 0.0])
+    every = fitted_physics(init, result, 10, weights=weights)  # the fit on all runs
+    assert every["base_position_m"] == pytest.approx([0.032, 0.471, 0.2])
+    assert every["rest_pose_std_m"] == pytest.approx([0.001, 0.001, 0.0])
+    assert every == fitted_physics(init, result, 10) and every["substeps"] == 10
 
 
 TINY = ("experiment=quick", "robot.num_runs=2", "exploration.num_steps=24",

@@ -69,9 +69,10 @@ class Fit:
     weights: np.ndarray  # [folds, R]
     substeps: int  # the integrator steps the fitted physics name (``init``'s, not the fit's)
 
-    def physics(self) -> dict[str, Any]:
-        """SimPhysics values of the fit on all runs (:func:`fitted_physics`)."""
-        return fitted_physics(self.init, self.result, self.substeps)
+    def physics(self, fold: int = -1) -> dict[str, Any]:
+        """SimPhysics values of one fold's fit (:func:`fitted_physics`; by default the fit on
+        all runs): a twin of the arm as the runs that fold was trained on show it."""
+        return fitted_physics(self.init, self.result, self.substeps, fold, self.weights)
 
 
 def fit_runs(runs: list[Run], settings: CalibrationConfig) -> Fit:
@@ -174,12 +175,16 @@ def parameter_rows(fold: str, param: calib.Parameterization, physics: dict, init
     return rows
 
 
-def fitted_physics(init: dict[str, Any], result: calib.FitResult, substeps: int
-                   ) -> dict[str, Any]:
-    """SimPhysics values of the fit on all runs (the last fold), with the base position and
-    rest-pose spread of its per-run offsets: what ``robot.physics_from`` reads."""
-    fitted = calib.physics_dict(init, result.physics[-1])
-    fitted.update(calib.session_offsets_to_physics(init["base_position_m"], result.offsets[-1]))
+def fitted_physics(init: dict[str, Any], result: calib.FitResult, substeps: int,
+                   fold: int = -1, weights: np.ndarray | None = None) -> dict[str, Any]:
+    """SimPhysics values of one fold's fit (by default the fit on all runs, the last), with the
+    base position and rest-pose spread of the offsets of the runs it was trained on (``weights
+    [folds, R]``, 0: held out; None: every run): what ``robot.physics_from`` reads."""
+    offsets = result.offsets[fold]
+    if weights is not None:
+        offsets = offsets[np.asarray(weights)[fold] > 0]
+    fitted = calib.physics_dict(init, result.physics[fold])
+    fitted.update(calib.session_offsets_to_physics(init["base_position_m"], offsets))
     fitted["substeps"] = int(substeps)
     return fitted
 

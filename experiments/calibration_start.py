@@ -60,8 +60,7 @@ def main() -> None:
     rows, rests = [], {}
     for start in args.starts:
         fit = report.fit_runs([r.after(start) for r in fine], cfg.calibration)
-        _, metrics = report.scored(fit, score_runs, score_model_runs,
-                                   int(cfg.calibration.substeps), rate_hz, stride)
+        _, metrics = report.scored(fit, score_runs, score_model_runs, stride)
         metrics["start_s"] = start
         rows.append(metrics)
         (out / f"robot_sim_start_{start:g}.yaml").write_text(

@@ -67,12 +67,13 @@ class Fit:
     result: calib.FitResult
     folds: list[str | int]
     weights: np.ndarray  # [folds, R]
-    substeps: int  # the integrator steps the fitted physics name (``init``'s, not the fit's)
+    physics_substeps: int  # the integrator steps the fitted physics name (``init``'s, not the
+    # fit's, which are ``template.substeps``)
 
     def physics(self, fold: int = -1) -> dict[str, Any]:
         """SimPhysics values of one fold's fit (:func:`fitted_physics`; by default the fit on
         all runs): a twin of the arm as the runs that fold was trained on show it."""
-        return fitted_physics(self.init, self.result, self.substeps, fold, self.weights)
+        return fitted_physics(self.init, self.result, self.physics_substeps, fold, self.weights)
 
 
 def fit_runs(runs: list[Run], settings: CalibrationConfig) -> Fit:
@@ -94,14 +95,15 @@ def fit_runs(runs: list[Run], settings: CalibrationConfig) -> Fit:
     return Fit(template, param, init, result, folds, weights, substeps)
 
 
-def scored(fit: Fit, runs: list[Run], model_runs: list[Run], substeps: int, rate_hz: float,
-           stride: int) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
+def scored(fit: Fit, runs: list[Run], model_runs: list[Run], stride: int
+           ) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
     """Every fold of ``fit`` driven open loop through ``runs`` (the fitted runs, or others of
-    the same ids, e.g. a later stretch of each, started settled at its first command):
-    :func:`predictions` and their :func:`evaluation_table` on ``model_runs``."""
+    the same ids, e.g. a later stretch of each, started settled at its first command; at the
+    fit's rate): :func:`predictions` and their :func:`evaluation_table` on ``model_runs`` (every
+    ``stride``-th frame)."""
     batch = calib.RunBatch.from_runs(runs)
-    predicted = predictions(fit.template, fit.param, fit.result, batch, fit.weights, substeps,
-                            rate_hz)
+    predicted = predictions(fit.template, fit.param, fit.result, batch, fit.weights,
+                            fit.template.substeps, fit.template.mocap_hz)
     return predicted, evaluation_table(fit.folds, runs, model_runs, predicted, stride)
 
 

@@ -50,7 +50,6 @@ def calibrate(cfg: Any) -> Artifact:
     aligned_artifact = store.require("align", inputs["align"])
     settings = cfg.calibration
     rate_hz, model_hz = float(settings.rate_hz), float(cfg.dataset.model_hz)
-    substeps = int(settings.substeps)
     stride = round(rate_hz / model_hz)
     if stride < 1 or abs(stride * model_hz - rate_hz) > 1e-6:
         raise ValueError(f"calibration.rate_hz={rate_hz} must be a whole multiple of "
@@ -72,7 +71,7 @@ def calibrate(cfg: Any) -> Artifact:
                  f"{len(runs) + 1} fits" if settings.leave_one_run_out else "1 fit",
                  int(settings.num_restarts), int(settings.num_steps))
         fit = report.fit_runs(runs, settings)
-        predicted, metrics = report.scored(fit, runs, model_runs, substeps, rate_hz, stride)
+        predicted, metrics = report.scored(fit, runs, model_runs, stride)
         config = {"calibration": spec["calibration"], "robot": cfg.robot.name}
         write_outputs(writer, config, {"stage": STAGE, "inputs": inputs}, fit, runs, metrics,
                       predicted)

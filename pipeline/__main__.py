@@ -17,12 +17,10 @@ the traceback instead.
 
 from __future__ import annotations
 
-import importlib
 import logging
 import os
 import sys
 import time
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -38,7 +36,7 @@ from omegaconf import DictConfig
 
 from pipeline import cli, keys
 from pipeline.arm.limits import UnsafeCommandError
-from pipeline.chain import STAGES, Job, plan
+from pipeline.chain import STAGES, Job, plan, stage_function
 from pipeline.config import register_configs
 from pipeline.data.importers import RecordingNotFoundError
 from pipeline.data.raw import CollectionInterrupted
@@ -56,12 +54,6 @@ log = logging.getLogger("pipeline")
 KNOWN_ERRORS: tuple[type[BaseException], ...] = (
     ConfigError, DataError, RecordingNotFoundError, UnsafeCommandError, MissingArtifactError,
     CollectionInterrupted, RosUnavailableError, ArmRefused)
-
-
-def stage_function(stage: Stage) -> Callable[[Any], Any]:
-    """The function that runs ``stage``."""
-    module_name, function_name = STAGES[stage].runs.split(":")
-    return getattr(importlib.import_module(module_name), function_name)
 
 
 def robot_choice() -> tuple[str | None, list]:
@@ -110,6 +102,8 @@ def run(cfg: Any) -> dict[str, Any]:
     jobs = plan(cfg, lambda variant: keys.key("train_ppo", variant))
     if cfg.get("dry_run"):
         log.info("dry run: %d jobs, nothing runs\n%s", len(jobs), plan_table(jobs))
+        if STAGES[stage].plans_itself:  # its own plan: the jobs it will compose
+            stage_function(stage)(cfg)
         return {}
     results: dict[str, Any] = {}
     position = 0

@@ -12,6 +12,7 @@ what evaluate looks up cannot drift apart.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,6 +40,7 @@ class StageSpec:
     consumes: tuple[Stage, ...] = ()
     produces: str = ""
     drives_arm: bool = False
+    plans_itself: bool = False  # runs other stages' jobs itself: prints its own plan (dry_run)
 
 
 STAGES: dict[Stage, StageSpec] = {
@@ -62,6 +64,10 @@ STAGES: dict[Stage, StageSpec] = {
     Stage.adapt: StageSpec("pipeline.stages.adapt:adapt", (Stage.train_ppo,),
                            "a calibration walk, the calibrated model and the fine-tuned policy",
                            drives_arm=True),
+    Stage.improve: StageSpec("pipeline.stages.improve:improve", (Stage.train_ppo,),
+                             "rounds of sessions on the arm, refitted models, retrained "
+                             "policies and the rounds' table", drives_arm=True,
+                             plans_itself=True),
 }
 # what `stage=all` runs, in order (the digital twin and the guard are servers, started on their own)
 CHAIN = (Stage.collect, Stage.align, Stage.fit_model, Stage.train_ppo, Stage.evaluate)
@@ -72,6 +78,13 @@ DRIVES_ARM = frozenset(stage for stage, spec in STAGES.items() if spec.drives_ar
 CROSS_MODEL_DIRECTIONS = ("A->B", "B->A")
 # robots whose data is imported from recordings, not collected
 IMPORT_KINDS = (RobotKind.sorolex_csv, RobotKind.plotjuggler_csv, RobotKind.rosbag)
+
+
+def stage_function(stage: Stage) -> Any:
+    """The function that runs ``stage`` (imported when asked for: a stage that composes others'
+    jobs, as ``improve`` does, runs them through this, never importing them)."""
+    module_name, function_name = STAGES[stage].runs.split(":")
+    return getattr(importlib.import_module(module_name), function_name)
 
 
 def stages_to_run(cfg: Any) -> list[Stage]:
@@ -111,6 +124,7 @@ def ensemble_configs(cfg: Any) -> list[Any]:
     """The configs of the ensemble's further fit_model artifacts (``env.ensemble_seeds``): ``cfg``
     with ``model.seed + 1``, ..., ``model.seed + ensemble_seeds - 1``.
 
+    With ``model.init_from`` (a warm start) member ``i`` starts from its entry ``i``.
     A further member is only trained in, never scored on its own: where ``cfg``'s model is
     scored leave-one-run-out (``cv``), the member trains its model on all the runs alone
     (``split`` with every run for training), since the folds score the recipe once, in ``cfg``'s
@@ -121,8 +135,14 @@ def ensemble_configs(cfg: Any) -> list[Any]:
     member: dict[str, Any] = {}
     if model_protocol(cfg) is ModelProtocol.cv:
         member["dataset"] = {"protocol": ModelProtocol.split.value, "train_fraction": 1.0}
-    return [OmegaConf.merge(cfg, {**member, "model": {"seed": seed + offset}})
-            for offset in range(1, int(cfg.env.get("ensemble_seeds", 1)))]
+    starts = list(cfg.model.get("init_from") or [])
+    members = []
+    for offset in range(1, int(cfg.env.get("ensemble_seeds", 1))):
+        model: dict[str, Any] = {"seed": seed + offset}
+        if starts:  # each member starts from its own entry
+            model["init_from"] = [starts[offset]] if offset < len(starts) else []
+        members.append(OmegaConf.merge(cfg, {**member, "model": model}))
+    return members
 
 
 def _agent_file(name: str) -> Any:

@@ -29,6 +29,7 @@ from pipeline.schemas import (
     EvaluationConfig,
     ExplorationConfig,
     ImportRobotConfig,
+    ImproveConfig,
     LoggerConfig,
     ModelConfig,
     PathsConfig,
@@ -74,6 +75,7 @@ def register_configs() -> None:
     cs.store(group="evaluation", name="base_evaluation", node=EvaluationConfig)
     cs.store(group="control", name="base_control", node=ControlConfig)
     cs.store(group="adapt", name="base_adapt", node=AdaptConfig)
+    cs.store(group="improve", name="base_improve", node=ImproveConfig)
     cs.store(group="logger", name="base_logger", node=LoggerConfig)
     cs.store(group="paths", name="base_paths", node=PathsConfig)
     adopt_launcher_schemas()

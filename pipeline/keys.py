@@ -68,7 +68,7 @@ _AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt
 # stage, and through their input keys every artifact downstream, is then made anew, once. Every
 # setting of the composed config is in its stage's spec with its value, defaults included.
 SPEC_VERSIONS = {"collect": 2, "align": 2, "calibrate": 2, "fit_model": 3, "train_ppo": 3,
-                 "evaluate": 6, "control": 3, "adapt": 1}
+                 "evaluate": 6, "control": 4, "adapt": 1, "explore": 1, "improve": 1}
 
 
 def _container(node: Any) -> Any:
@@ -101,9 +101,22 @@ def collect_spec(cfg: Any) -> Spec:
     return _versioned("collect", {"robot": robot, "exploration": _container(cfg.exploration)}), {}
 
 
+def session_inputs(cfg: Any) -> dict[str, str]:
+    """The session artifacts of ``dataset.sessions`` (keys or folders) by input name,
+    ``session/<key>``: their keys (a folder's name), whatever the order they are named in."""
+    entries = [str(entry) for entry in cfg.dataset.get("sessions") or []]
+    names = [Path(entry).name for entry in entries]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ConfigError(f"dataset.sessions: {repeated} named more than once")
+    return {f"session/{name}": name for name in names}
+
+
 def align_spec(cfg: Any) -> Spec:
+    """The alignment settings; the collected data and the sessions that join it
+    (``dataset.sessions``) are the inputs."""
     return (_versioned("align", {"align": _container(cfg.dataset.align)}),
-            {"collect": artifact_key(*collect_spec(cfg))})
+            {"collect": artifact_key(*collect_spec(cfg)), **session_inputs(cfg)})
 
 
 def calibrate_spec(cfg: Any) -> Spec:
@@ -121,10 +134,16 @@ def fit_model_spec(cfg: Any) -> Spec:
     model = _container(cfg.model)
     if not model.get("pressure_transients"):  # off: the keys of the models made before it
         model.pop("pressure_transients", None)
+    starts = model.pop("init_from", None) or []  # a warm start: the starting model's key decides
+    chosen_dataset = {k: dataset[k] for k in chosen}
+    if dataset.get("sessions") and float(dataset.get("session_weight", 1.0)) != 1.0:
+        chosen_dataset["session_weight"] = float(dataset["session_weight"])
     spec = _versioned("fit_model", {
-        "model": model,
-        "dataset": {**{k: dataset[k] for k in chosen}, "protocol": protocol.value}})
-    return spec, {"align": artifact_key(*align_spec(cfg))}
+        "model": model, "dataset": {**chosen_dataset, "protocol": protocol.value}})
+    inputs = {"align": artifact_key(*align_spec(cfg))}
+    if starts:
+        inputs["init_from"] = Path(str(starts[0])).name
+    return spec, inputs
 
 
 def env_spec(cfg: Any) -> dict[str, Any]:
@@ -381,6 +400,29 @@ def adapt_spec(cfg: Any) -> Spec:
     if RobotKind(cfg.robot.kind) is not RobotKind.ros2:
         spec["arm_seed"] = int(cfg.control.arm_seed)
     return _versioned("adapt", spec), {"train_ppo": policy_key}
+
+
+def explore_spec(drive: Any, candidates: Any, walk: int) -> dict[str, Any]:
+    """An exploration walk of ``stage=improve`` (its inputs: the models whose disagreement
+    chose it): the arm it is driven on (``drive``: the round's control config), its session
+    and the candidate walks' content."""
+    import hashlib
+
+    import numpy as np
+
+    digest = hashlib.sha256(np.ascontiguousarray(candidates, np.float64).tobytes()).hexdigest()
+    return _versioned("explore", {"robot": _session_robot(drive),
+                                  "arm_seed": int(drive.control.arm_seed), "walk": int(walk),
+                                  "candidates_sha256": digest,
+                                  "candidates_shape": list(np.shape(candidates))})
+
+
+def improve_round_spec(settings: Any, index: int) -> dict[str, Any]:
+    """A round of ``stage=improve``: its settings (but the number of rounds, so that more
+    rounds extend a run) and its index; the steps' artifacts are its inputs."""
+    values = dataclasses.asdict(settings)
+    values.pop("rounds", None)
+    return _versioned("improve", {"improve": values, "round": int(index)})
 
 
 SPECS = {"collect": collect_spec, "align": align_spec, "fit_model": fit_model_spec,

@@ -268,7 +268,7 @@ def test_faults_stop_at_the_preload(policies, deployment, tmp_path, kind, reason
     assert 2 <= len(commands) <= 4  # stopped at the period after the fault (1.2 s)
     np.testing.assert_array_equal(commands[-1], [2.0, 2.0, 2.0])
     assert_within_limits(commands)
-    chunks = pd.concat(pd.read_parquet(p) for p in sorted((tmp_path / "chunks").glob("*")))
+    chunks = pd.concat(pd.read_parquet(p) for p in sorted((tmp_path / "chunks").glob("periods-*")))
     assert len(chunks) == len(commands) - 1  # every command but the preload is recorded
 
 
@@ -329,7 +329,7 @@ def test_live_goals_take_effect_at_the_next_period_and_bad_ones_are_refused(poli
 
     outcome, arm = _loop(cfg, deployment, Live, tmp_path)
     assert outcome.reason is None and outcome.periods == 6, outcome
-    chunks = pd.concat(pd.read_parquet(p) for p in sorted((tmp_path / "chunks").glob("*")))
+    chunks = pd.concat(pd.read_parquet(p) for p in sorted((tmp_path / "chunks").glob("periods-*")))
     commanded = chunks[chunks["goal_index"] >= 0]
     assert commanded["period"].tolist() == [2, 3, 4, 5]  # periods 0, 1 held the preload
     assert commanded["goal_index"].tolist() == [0, 0, 1, 1]  # the far goal was refused

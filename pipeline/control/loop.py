@@ -148,7 +148,9 @@ class ControlLoop:
 
     # ---- frames --------------------------------------------------------------------------------
     def _take_frames(self) -> None:
-        for frame in self.arm.take_frames():
+        frames = self.arm.take_frames()
+        self.recorder.add_frames(frames)  # every frame, also those the checks below skip
+        for frame in frames:
             position = frame[2]
             if not np.all(np.isfinite(position)):
                 continue  # a lost marker: the watchdog decides when that is too long

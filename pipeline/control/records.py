@@ -19,6 +19,11 @@ loop woke after a stall and held the last command, ``missed_periods`` periods be
 command; ``stale_pose``: held while waiting for a pose stamped after the stall) and
 ``missed_periods``. A held period has no observation or action (NaN) and, before the first goal,
 ``goal_index`` -2.
+
+Every pose frame the loop takes is kept too (:meth:`PeriodRecorder.add_frames`, chunks
+``frames-00000.parquet``, ...; :meth:`PeriodRecorder.read_frames`): ``t`` (the frame's stamp,
+arm s), ``x, y, z`` (m; NaN where the marker was lost) and ``valid``, so that a session is also a
+run at the mocap rate (:mod:`pipeline.control.session_run`).
 """
 
 from __future__ import annotations
@@ -38,6 +43,8 @@ UNITS = {"t": "s", "publish_t": "s", "pose_t": "s", "pose_age_s": "s", "x": "m",
          "z": "m", "goal_x": "m", "goal_y": "m", "goal_z": "m", "ref_x": "m", "ref_y": "m",
          "ref_z": "m", "latency_ms": "ms", "cpu_ms": "ms",
          **{c: "kPa" for c in CMD_COLUMNS}}
+FRAMES_SCHEMA = "control_frames"
+FRAME_UNITS = {"t": "s", "x": "m", "y": "m", "z": "m"}
 GOAL_COLUMNS = [f"goal_{a}" for a in XYZ]
 REFERENCE_COLUMNS = [f"ref_{a}" for a in XYZ]
 
@@ -51,7 +58,9 @@ class PeriodRecorder:
         self._metadata = {"schema": SCHEMA, "units": UNITS, "config": dict(config),
                           "provenance": dict(provenance)}
         self._rows: list[dict[str, Any]] = []
+        self._frames: list[tuple[float, float, float, float]] = []
         self._chunks = 0
+        self._frame_chunks = 0
         self.periods = 0
 
     def add(self, *, period: int, t: float, publish_t: float, pose_t: float, pose_age_s: float,
@@ -75,20 +84,43 @@ class PeriodRecorder:
         if goal_index >= 0:
             self.periods += 1
 
+    def add_frames(self, frames: list[tuple[float, float, np.ndarray]]) -> None:
+        """Keep pose frames ``(stamp, receipt, position [3] m)`` as they were taken (stamps in
+        arm s; a non-finite position is a lost marker, kept as an invalid frame)."""
+        for stamp, _, position in frames:
+            self._frames.append((float(stamp), *map(float, position)))
+
     def flush(self) -> None:
-        """Write the rows added since the last flush as the next chunk (nothing if none)."""
-        if not self._rows:
-            return
-        write_parquet(pd.DataFrame(self._rows),
-                      self.folder / f"periods-{self._chunks:05d}.parquet", self._metadata)
-        self._rows = []  # cleared once on disk: no row is written twice or lost
-        self._chunks += 1
+        """Write the rows and frames added since the last flush as the next chunks (nothing if
+        none)."""
+        if self._rows:
+            write_parquet(pd.DataFrame(self._rows),
+                          self.folder / f"periods-{self._chunks:05d}.parquet", self._metadata)
+            self._rows = []  # cleared once on disk: no row is written twice or lost
+            self._chunks += 1
+        if self._frames:
+            frames = pd.DataFrame(self._frames, columns=["t", *XYZ])
+            frames["valid"] = np.isfinite(frames[XYZ].to_numpy()).all(axis=1)
+            write_parquet(frames, self.folder / f"frames-{self._frame_chunks:05d}.parquet",
+                          {**self._metadata, "schema": FRAMES_SCHEMA, "units": FRAME_UNITS})
+            self._frames = []
+            self._frame_chunks += 1
 
     def read_all(self) -> pd.DataFrame:
         """Flush, then every chunk read back as one table (possibly empty)."""
         self.flush()
-        parts = [pd.read_parquet(p) for p in sorted(self.folder.glob("periods-*.parquet"))]
-        return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+        return _read_chunks(self.folder, "periods")
+
+    def read_frames(self) -> pd.DataFrame:
+        """Flush, then every pose frame taken, in order (columns ``t, x, y, z, valid``)."""
+        self.flush()
+        frames = _read_chunks(self.folder, "frames")
+        return frames if len(frames) else pd.DataFrame(columns=["t", *XYZ, "valid"])
 
     def write(self, path: Path, table: pd.DataFrame) -> Path:
         return write_parquet(table, path, self._metadata)
+
+
+def _read_chunks(folder: Path, name: str) -> pd.DataFrame:
+    parts = [pd.read_parquet(p) for p in sorted(folder.glob(f"{name}-*.parquet"))]
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()

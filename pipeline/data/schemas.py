@@ -9,6 +9,8 @@ Tables (one row per sample, runs stacked, times in seconds on the run's own cloc
                                                                     force; matched marks the row a
                                                                     command was matched to)
 - ``runs``:     run_id, source, complete, n_commands, n_frames    (one row per recorded run)
+- ``targets``:  run_id, t [s], goal_x, goal_y, goal_z [m]         (a control session's goal or
+                                                                    reference point per period)
 
 Every Parquet file carries its schema name, units and the producing config in its metadata.
 Reading validates the columns, types, finiteness, time order and (given limits) the pressures, and
@@ -138,7 +140,12 @@ MODEL_METRICS = TableSchema(
             "run is not below the linear lagged baseline's (a warning)")),
     time_column=None,
 )
-SCHEMAS = {s.name: s for s in (COMMANDS, MOCAP, ALIGNED, RUNS, MODEL_METRICS)}
+TARGETS = TableSchema(
+    "targets",
+    (_RUN, _T, *(Column(f"goal_{c}", "float", "m", f"the goal (or the reference point) in force, "
+                        f"{c}") for c in XYZ)),
+)
+SCHEMAS = {s.name: s for s in (COMMANDS, MOCAP, ALIGNED, RUNS, MODEL_METRICS, TARGETS)}
 
 
 # --------------------------------------------------------------------------------------------

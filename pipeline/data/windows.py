@@ -78,6 +78,25 @@ def make_windows(run_lengths: Sequence[int], length: int, stride: int) -> Window
     )
 
 
+def weighted_starts(windows: Windows, run_weights: Sequence[float]) -> np.ndarray:
+    """The window starts with each run's windows drawn ``run_weights[i]`` times as often: every
+    window of run ``i`` ``floor(w)`` times and, for the fraction ``f = w - floor(w)``, the
+    windows at ``floor(k / f)``, ``k = 0, 1, ...`` of the run once more (evenly spread).
+    A weight of 0 drops the run; weights must be finite and >= 0."""
+    weights = np.asarray(run_weights, np.float64)
+    if not (np.all(np.isfinite(weights)) and np.all(weights >= 0)):
+        raise ValueError(f"run weights must be finite and >= 0, got {weights.tolist()}")
+    starts = []
+    for run, weight in enumerate(weights):
+        own = windows.starts[windows.run_index == run]
+        whole, fraction = divmod(float(weight), 1.0)
+        starts += [own] * int(whole)
+        if fraction > 0 and len(own):
+            picked = np.unique(np.floor(np.arange(0, len(own) * fraction) / fraction))
+            starts.append(own[picked.astype(np.int64)])
+    return np.concatenate(starts) if starts else np.zeros(0, np.int64)
+
+
 def batches_per_epoch(num_windows: int, batch_size: int) -> int:
     """Full batches in one pass over the windows (the last partial batch is dropped)."""
     return max(1, num_windows // batch_size)

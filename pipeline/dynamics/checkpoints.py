@@ -12,6 +12,7 @@ checkpoint folder, and only the newest ``keep`` are kept.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import os
@@ -75,6 +76,13 @@ def model_from_state_dict(state: dict) -> DynamicsParams:
         ),
         config=config,
     )
+
+
+def params_digest(params: DynamicsParams) -> str:
+    """sha256 of the model as :func:`save_dynamics` writes it: what a fit started from it
+    checks its checkpoints against."""
+    payload = serialization.msgpack_serialize({"model": model_state_dict(params)})
+    return hashlib.sha256(payload).hexdigest()
 
 
 def write_atomically(path: Path, payload: bytes) -> None:

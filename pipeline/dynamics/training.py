@@ -33,7 +33,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from pipeline.data.runs import Run
-from pipeline.data.windows import gather_windows, make_windows, sample_batch
+from pipeline.data.windows import gather_windows, make_windows, sample_batch, weighted_starts
 from pipeline.dynamics import checkpoints
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.checkpoints import TrainState
@@ -358,6 +358,8 @@ def fit(
     progress: bool = True,
     stop_after_steps: int | None = None,
     time_budget_s: float | None = None,
+    run_weights: Sequence[float] | None = None,
+    init: DynamicsParams | None = None,
 ) -> tuple[DynamicsParams, Normalizer, pd.DataFrame]:
     """Trains the dynamics on ``train_runs``; returns (params, normalizer, loss_table).
 
@@ -374,6 +376,10 @@ def fit(
             interrupted; for time-sliced jobs and the resume test.
         time_budget_s: also stop after the chunk during which this many seconds (compilation
             included) have passed since the call; for equal wall-clock budgets (bench).
+        run_weights: per training run, how often its windows are drawn relative to a run of
+            weight 1 (``pipeline.data.windows.weighted_starts``); None: all alike.
+        init: a fitted model to start from (its network and its normalization, kept: a warm
+            start); its architecture must be this config's. None: a fresh network.
 
     Returns:
         params: the trained model (``params.normalizer`` is the returned normalizer).
@@ -383,18 +389,33 @@ def fit(
     """
     started = time.perf_counter()
     config = ModelTrainConfig.from_any(model_cfg)
+    # where a warm start comes from is the caller's: the program and the checkpoints see the
+    # starting network itself
+    config = dataclasses.replace(config, init_from=())
     windows = make_windows([len(run) for run in train_runs], window, stride)
-    if len(windows.starts) == 0:
+    starts = (windows.starts if run_weights is None
+              else weighted_starts(windows, run_weights))
+    if len(starts) == 0:
         raise ValueError(f"no training window of length {window} fits in any training run")
     spec = _fit_spec(config, window, stride, order, train_runs)
+    if run_weights is not None:
+        spec["run_weights"] = [float(w) for w in run_weights]
 
-    normalizer = dynamics.fit_normalizer(train_runs, config.predict_displacement)
     init_key, sample_key = jax.random.split(jax.random.PRNGKey(config.seed))
-    template = DynamicsParams(
-        network=dynamics.init_network(init_key, config.architecture()),
-        normalizer=normalizer,
-        config=config.architecture(),
-    )
+    if init is None:
+        normalizer = dynamics.fit_normalizer(train_runs, config.predict_displacement)
+        network = dynamics.init_network(init_key, config.architecture())
+    else:
+        if isinstance(init.network, dict) and dynamics.SESSION in init.network:
+            raise ValueError("a model with session latents cannot be started from: its latents "
+                             "belong to the runs it was fitted on")
+        if init.config != config.architecture():
+            raise ValueError(f"the model to start from has another architecture ({init.config}) "
+                             f"than model ({config.architecture()})")
+        normalizer, network = init.normalizer, init.network
+        spec["init_sha256"] = checkpoints.params_digest(init)
+    template = DynamicsParams(network=network, normalizer=normalizer,
+                              config=config.architecture())
     state = TrainState(
         network=template.network,
         opt_state=make_optimizer(config).init(template.network),
@@ -407,7 +428,7 @@ def fit(
         if resume:
             state, history = checkpoints.resume(checkpoint_dir, state, history, spec)
 
-    data = train_data(template, train_runs, windows.starts, config.reference_pose)
+    data = train_data(template, train_runs, starts, config.reference_pose)
     last_step = config.num_steps
     if stop_after_steps is not None:
         last_step = min(last_step, stop_after_steps)

@@ -47,6 +47,7 @@ from pipeline.schemas.env import (
     incremental_actions,
     no_randomization_overrides,
 )
+from pipeline.schemas.improve import ImproveConfig
 from pipeline.schemas.model import (
     ModelArchitecture,
     ModelConfig,
@@ -113,6 +114,7 @@ __all__ = [
     "GuardConfig",
     "HoldTune",
     "ImportRobotConfig",
+    "ImproveConfig",
     "LoggerConfig",
     "LrSchedule",
     "MocapConfig",

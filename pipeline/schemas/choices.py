@@ -28,6 +28,7 @@ class Stage(Choice):
     control = "control"  # a trained policy drives the arm (not part of `all`)
     calibrate = "calibrate"  # fit the simulated arm to recorded runs (not part of `all`)
     adapt = "adapt"  # calibrate model and policy to the session of the day (not part of `all`)
+    improve = "improve"  # rounds of drive, record, refit, retrain on the arm (not part of `all`)
     all = "all"
 
 

@@ -44,6 +44,12 @@ class DatasetConfig:
     protocol: ModelProtocol = ModelProtocol.auto
     train_fraction: float = 0.75  # protocol split only
     split_seed: int = 0  # protocol split only
+    # session artifacts (stage=control sessions, stage=improve walks: keys or folders) whose runs
+    # join the collected ones in align (pipeline/data/sessions.py), each with its provenance
+    sessions: list[str] = field(default_factory=list)
+    # fit_model draws a session run's windows this many times as often as a collected run's
+    # (protocol split; 1: every window alike)
+    session_weight: float = 1.0
 
 
 @dataclass

@@ -66,3 +66,7 @@ class ModelConfig(ModelArchitecture):
     # p95) against 3.09 / 7.40 without, better on every fold (docs/results/MODEL_RESULTS.md)
     recurrent_dropout: float = 0.3
     weight_decay: float = 0.0  # AdamW, decoupled
+    # fit_model artifacts (keys or folders) the fit starts from, their network and normalization
+    # (protocol split): entry i for the model of seed model.seed + i (the ensemble's members);
+    # empty: a fresh network
+    init_from: list[str] = field(default_factory=list)

@@ -40,6 +40,9 @@ class PressureRating:
     sum_max: float = 13.0  # the paper's P_max: highest summed pressure of all valves [kPa]
     preload: float = 2.0  # pressure of every valve at rest, where a deadman returns it [kPa]
     n_valves: int = 3  # valves of the arm: a real arm's robot.n_valves must equal it
+    # the longest the arm may be driven without a rest [arm s]: a budget of stage=improve's
+    # (one round's arm time) must lie within it
+    max_session_s: float = 600.0
 
 
 @dataclass

@@ -12,6 +12,7 @@ from pipeline.schemas.agent import AgentConfig
 from pipeline.schemas.choices import Stage
 from pipeline.schemas.data import CalibrationConfig, DatasetConfig, ExplorationConfig
 from pipeline.schemas.env import EnvConfig
+from pipeline.schemas.improve import ImproveConfig
 from pipeline.schemas.model import ModelConfig
 from pipeline.schemas.values import MISSING
 
@@ -189,5 +190,6 @@ class Config:
     evaluation: EvaluationConfig = MISSING
     control: ControlConfig = MISSING
     adapt: AdaptConfig = MISSING
+    improve: ImproveConfig = MISSING
     logger: LoggerConfig = MISSING
     paths: PathsConfig = MISSING

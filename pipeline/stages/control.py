@@ -46,6 +46,7 @@ from pipeline.control.trajectory import (
     trajectory_of,
     trajectory_schedule,
 )
+from pipeline.data.sessions import arm_identity, session_run_id, session_tables, write_session
 from pipeline.infra.artifacts import Artifact, ArtifactStore, ArtifactWriter, artifact_key, produce
 from pipeline.rl.policy_io import best_seed, load_policy
 from pipeline.schemas import ControlConfig, RobotKind
@@ -95,6 +96,7 @@ def control(cfg: Any) -> Artifact:
             metrics = goal_metrics(record.periods, 1.0 / deployment.control_hz)
             metrics.to_parquet(writer.file("goals.parquet"), index=False)
         writer.summary = report_session(writer.path, record, metrics, deployment, schedule, robot)
+        keep_session_run(writer, record, deployment, robot, schedule)
         shutil.rmtree(record.recovery)  # the artifact's temporary folder now holds every row
         outcomes.append(record.outcome)
 
@@ -110,6 +112,28 @@ def control(cfg: Any) -> Artifact:
                 f"{'' if outcome.preload_acknowledged is not False else ' (not acknowledged)'}. "
                 f"The periods recorded so far are in {artifact.path}") from outcome.error
     return artifact
+
+
+def keep_session_run(writer: ArtifactWriter, record: Any, deployment: Deployment, robot: Any,
+                     schedule: GoalSchedule) -> None:
+    """The session as a run in collect's format (``run/``, :mod:`pipeline.data.sessions`): every
+    command and pose frame, the goal or reference in force and, in the tables' metadata, the
+    controller, the arm and the rates, so that ``dataset.sessions`` can join it to a model's
+    data."""
+    task = "track" if isinstance(schedule, ReferenceSchedule) else "reach"
+    controller = {"policy": str(deployment.artifact.path), "stage": deployment.artifact.stage,
+                  "seed": int(deployment.seed), "task": task, "goals": schedule.source}
+    run = session_tables(record.periods, record.recorder.read_frames(),
+                         session_run_id(STAGE, writer.key),
+                         f"{STAGE}:{deployment.artifact.stage}/{deployment.artifact.key}"
+                         f"#seed={deployment.seed}",
+                         record.outcome.reason is None, int(robot.n_valves))
+    provenance = {"stage": STAGE, "artifact": writer.key, "robot": robot.name,
+                  "arm": arm_identity(robot.rating), "control_hz": float(robot.control_hz),
+                  "controller": controller}
+    write_session(writer.path, run, writer.spec, provenance)
+    writer.summary["session_run"] = {"run_id": run.run_id, "commands": len(run.commands),
+                                     "frames": len(run.mocap)}
 
 
 def session_schedule(cfg: Any, settings: ControlConfig, deployment: Deployment

@@ -18,6 +18,10 @@ resumes where it stopped when run again with the same config. Whenever the model
 the linear lagged-pressure baseline on a held-out run, a warning is logged and recorded
 (``loses_to_linear`` in the metrics, ``warnings`` in the manifest summary).
 
+Runs joined from control sessions (``dataset.sessions``, :mod:`pipeline.data.sessions`) are
+drawn ``dataset.session_weight`` times as often as collected ones, and ``model.init_from`` starts
+the fit from a fitted model (a warm start); both with the ``split`` protocol.
+
 Artifact: ``model.msgpack`` (weights, normalization and architecture), ``split.json`` (the runs
 the model trained on, the held-out runs or, for cv, the folds), ``losses.parquet`` (per step of
 the model later stages use), ``metrics.parquet`` (schema ``model_metrics``: per run, fold and
@@ -42,16 +46,18 @@ from pipeline import keys
 from pipeline.data.alignment import load_runs
 from pipeline.data.runs import Run
 from pipeline.data.schemas import MODEL_METRICS, write_table
+from pipeline.data.sessions import SESSION_PREFIX
 from pipeline.data.windows import split_runs
 from pipeline.dynamics import adaptation
 from pipeline.dynamics import cv as model_cv
-from pipeline.dynamics.checkpoints import save_dynamics
+from pipeline.dynamics.checkpoints import load_dynamics, save_dynamics
 from pipeline.dynamics.figures import plot_losses, plot_reconstruction
 from pipeline.dynamics.scoring import LEARNED, MODELS, evaluation_table
 from pipeline.dynamics.training import fit
 from pipeline.infra.artifacts import Artifact, ArtifactStore, artifact_key, produce
 from pipeline.infra.parquet import table_metadata, write_parquet
 from pipeline.infra.tracking import tracking
+from pipeline.schemas import ConfigError
 
 log = logging.getLogger(__name__)
 STAGE = "fit_model"
@@ -64,6 +70,11 @@ def fit_model(cfg: Any) -> Artifact:
     data = cfg.dataset
     key = artifact_key(spec, inputs)
     work_dir = store.root / STAGE / f".work-{key}"  # checkpoints survive an interrupted run
+    start = store.resolve(STAGE, str(cfg.model.init_from[0])) if cfg.model.init_from else None
+    if spec["dataset"]["protocol"] == "cv" and (start is not None
+                                                or "session_weight" in spec["dataset"]):
+        raise ConfigError("model.init_from and dataset.session_weight need dataset.protocol="
+                          "split (the cv protocol fits every fold afresh, all runs alike)")
 
     def build(writer):
         if cfg.force and work_dir.exists():
@@ -75,8 +86,11 @@ def fit_model(cfg: Any) -> Artifact:
         if spec["dataset"]["protocol"] == "cv":
             return build_cv(cfg, writer, runs, work_dir, spec, inputs)
         by_id = {run.run_id: run for run in runs}
-        train_ids, test_ids = split_runs(list(by_id), float(data.train_fraction),
-                                         int(data.split_seed))
+        # the split holds out collected runs only: a session's run always trains the model
+        sessions = [i for i in by_id if i.startswith(SESSION_PREFIX)]
+        train_ids, test_ids = split_runs([i for i in by_id if i not in sessions],
+                                         float(data.train_fraction), int(data.split_seed))
+        train_ids = [*train_ids, *sessions]
         if not train_ids:
             raise ValueError(f"no training run: {len(runs)} runs with train_fraction="
                              f"{data.train_fraction}")
@@ -88,10 +102,14 @@ def fit_model(cfg: Any) -> Artifact:
             {"train": train_ids, "test": test_ids, "train_fraction": data.train_fraction,
              "split_seed": data.split_seed, "model_hz": data.model_hz}, indent=2))
 
+        weight = float(data.session_weight)
+        weights = ([weight if run.run_id.startswith(SESSION_PREFIX) else 1.0
+                    for run in train_runs] if weight != 1.0 else None)
+        init = None if start is None else load_dynamics(start.file("model.msgpack"))
         params, _, losses = fit(
             train_runs, cfg.model, window=int(data.window), stride=int(data.stride),
             order=str(data.order), val_runs=test_runs, checkpoint_dir=work_dir,
-            resume=not cfg.force)
+            resume=not cfg.force, run_weights=weights, init=init)
         save_dynamics(writer.file("model.msgpack"), params)
         config, provenance = write_losses(cfg, writer, losses, spec, inputs)
 

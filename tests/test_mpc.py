@@ -10,8 +10,9 @@ import numpy as np
 
 from pipeline.arm.safety import SafeSet
 from pipeline.evaluation import mpc, rollouts
-from pipeline.rl.envs.learned import SoftArmReachEnv, make_env_params
+from pipeline.rl.envs.learned import make_env_params
 from pipeline.rl.envs.plants import default_linear_lag_params, hold, linear_lag_plant
+from pipeline.rl.envs.reach import SoftArmReachEnv
 from pipeline.schemas import EnvConfig, GoalMode
 
 SAFE = SafeSet.from_limits(SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0))

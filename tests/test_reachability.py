@@ -22,8 +22,9 @@ from pipeline.evaluation.reachability import (
     preload_mismatch_mm,
     split_misses,
 )
-from pipeline.rl.envs.learned import SoftArmReachEnv, make_env_params
+from pipeline.rl.envs.learned import make_env_params
 from pipeline.rl.envs.plants import LinearLagParams, default_linear_lag_params, linear_lag_plant
+from pipeline.rl.envs.reach import SoftArmReachEnv
 from pipeline.schemas import EnvConfig, EvaluationConfig
 
 SAFE = SafeSet.from_limits(SimpleNamespace(p_min=0.0, p_max=7.0, sum_max=13.0))

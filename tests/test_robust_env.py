@@ -491,7 +491,7 @@ def test_action_for_inverts_the_command(incremental):
 
 def test_incremental_actions_are_part_of_the_keys_and_reach_the_environment(make_cfg):
     from pipeline.rl.envs.factory import observation_options
-    from pipeline.rl.envs.learned import setting_values
+    from pipeline.rl.envs.params import setting_values
     from pipeline.stages._environment import env_settings
 
     base = make_cfg("experiment=quick")
@@ -540,7 +540,7 @@ def test_unusable_hold_settings_are_refused(make_cfg, overrides, message):
 
 
 def test_hold_settings_reach_the_env_and_the_key_only_where_set(make_cfg):
-    from pipeline.rl.envs.learned import setting_values
+    from pipeline.rl.envs.params import setting_values
     from pipeline.stages._environment import env_settings
 
     base = make_cfg()

@@ -10,13 +10,12 @@ from pipeline.rl.envs.factory import (
     sim_rest_pose,
     split_goals,
 )
-from pipeline.rl.envs.learned import (
+from pipeline.rl.envs.learned import make_env_params
+from pipeline.rl.envs.params import (
     EnvParams,
     EnvState,
     Perturbation,
     Randomization,
-    SoftArmReachEnv,
-    make_env_params,
     randomization,
 )
 from pipeline.rl.envs.plants import (
@@ -33,6 +32,7 @@ from pipeline.rl.envs.plants import (
     sim_plant,
     stack_members,
 )
+from pipeline.rl.envs.reach import SoftArmReachEnv
 
 __all__ = [
     "EnsembleCarry",

@@ -43,13 +43,8 @@ from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, read_table
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.dynamics.scoring import predict_run
-from pipeline.rl.envs.learned import (
-    EnvParams,
-    Randomization,
-    SoftArmReachEnv,
-    make_env_params,
-    randomization,
-)
+from pipeline.rl.envs.learned import make_env_params
+from pipeline.rl.envs.params import EnvParams, Randomization, randomization
 from pipeline.rl.envs.plants import (
     NUM_VALVES,
     SimPlantParams,
@@ -59,6 +54,7 @@ from pipeline.rl.envs.plants import (
     sim_plant,
     stack_members,
 )
+from pipeline.rl.envs.reach import SoftArmReachEnv
 from pipeline.schemas import (
     ConfigError,
     EnvConfig,

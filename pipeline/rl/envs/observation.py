@@ -1,6 +1,6 @@
 """The reaching task's observation, one function for training and for the arm.
 
-:class:`pipeline.rl.envs.learned.SoftArmReachEnv` builds its observations with :func:`observe`, and
+:class:`pipeline.rl.envs.reach.SoftArmReachEnv` builds its observations with :func:`observe`, and
 so does the control loop on the arm (:mod:`pipeline.control.loop`), from the measured pose: a
 policy sees on the arm exactly the inputs it was trained on (same standardization, error scaling
 and last action).

@@ -12,15 +12,15 @@ from pipeline.infra.artifacts import artifact_key
 from pipeline.rl.apg import differentiable_env, make_train_program, rollout_window
 from pipeline.rl.envs import SoftArmReachEnv
 from pipeline.rl.networks import initial_hidden, make_network
-from pipeline.rl.ppo import (
+from pipeline.rl.ppo import make_train_program as make_ppo_program
+from pipeline.rl.training import (
+    Build,
     RunnerState,
-    _Build,
-    _has_distance,
     check_same_variables,
+    has_distance,
     held_out_figures,
     train_seeds,
 )
-from pipeline.rl.ppo import make_train_program as make_ppo_program
 from pipeline.schemas import AgentConfig, ConfigError, StopAt, Trainer
 from pipeline.validation import validate_config
 from tests.test_ppo import toy_reaching
@@ -35,9 +35,9 @@ def window_loss(env, params_env, agent, key):
                              jnp.zeros((1, agent.num_envs), bool))
 
     def loss(variables, env_for_steps):
-        build = _Build(agent, env_for_steps, network, np.full(3, -1.0, np.float32),
-                       np.ones(3, np.float32), (obs.shape[-1],),
-                       _has_distance(env, params_env))
+        build = Build(agent, env_for_steps, network, np.full(3, -1.0, np.float32),
+                      np.ones(3, np.float32), (obs.shape[-1],),
+                      has_distance(env, params_env))
         runner = RunnerState(None, state, obs, jnp.ones(agent.num_envs, bool),
                              initial_hidden(network, agent.num_envs),
                              jnp.zeros(agent.num_envs), jnp.zeros(agent.num_envs, jnp.int32),

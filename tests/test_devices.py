@@ -60,9 +60,10 @@ def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
         import json
         import jax, jax.numpy as jnp, numpy as np
         import pipeline.evaluation.closed_loop as closed_loop
-        import pipeline.rl.ppo as ppo
+        import pipeline.rl.training as training
         from pipeline.schemas import AgentConfig
         from pipeline.evaluation import rollouts
+        from pipeline.rl.networks import make_network
         from pipeline.infra.devices import batch_split
         from test_ppo import toy_reaching
 
@@ -70,20 +71,20 @@ def test_seeds_and_episodes_split_over_two_devices_give_the_same_results():
         agent = AgentConfig(num_seeds=4, num_envs=8, num_steps=5, total_timesteps=8 * 5 * 4,
                             num_evals=2, eval_envs=0, hidden=8, lr=1e-3, progress=False)
         timings = {}
-        split = ppo.train_seeds(agent, env, params, timings=timings)
+        split = training.train_seeds(agent, env, params, timings=timings)
         devices = {len(leaf.sharding.device_set) for leaf in jax.tree.leaves(split.params)}
 
         starts = closed_loop._starts(params, 6)
         goals = jnp.broadcast_to(params.goal_set[:6, None], (6, 10, 3))
         keys = jax.random.split(jax.random.key(0), 6)
-        network = ppo.make_network(agent, 3)
+        network = make_network(agent, 3)
         controllers = closed_loop.Controllers(
             lambda p, env_params: rollouts.policy_controller(network, p), split.params,
             (jnp.zeros((4, 6, 1, 1)), jnp.ones((4, 6), bool)))
         runs = [closed_loop._Programs().run(env, params, {"ppo_ff": controllers}, keys, starts,
                                             goals)["ppo_ff"]]
-        ppo.batch_split = closed_loop.batch_split = lambda size: None  # one device
-        whole = ppo.train_seeds(agent, env, params)
+        training.batch_split = closed_loop.batch_split = lambda size: None  # one device
+        whole = training.train_seeds(agent, env, params)
         runs.append(closed_loop._Programs().run(env, params, {"ppo_ff": controllers}, keys,
                                                 starts, goals)["ppo_ff"])
         print(json.dumps({

@@ -147,7 +147,7 @@ def test_the_hold_tune_fine_tunes_the_trained_policies_on_episodes_that_never_en
     step size, window and keys, in the training parameters with hold_periods = the horizon (no
     end at the goal); its evaluations and timesteps follow the trainer's in the tables, marked
     by phase, and its window distance falls."""
-    from pipeline.rl.ppo import seed_keys
+    from pipeline.rl.training import seed_keys
     from pipeline.schemas import AgentConfig, HoldTune, Trainer
     from pipeline.stages import _policies
     from tests.test_ppo import toy_reaching

@@ -19,13 +19,8 @@ from pipeline.rl.envs import (
 )
 from pipeline.rl.networks import initial_hidden, make_network
 from pipeline.rl.policy_io import deterministic_action, load_policy, save_policy, warm_start_params
-from pipeline.rl.ppo import (
-    compute_gae,
-    make_train,
-    make_train_program,
-    seed_keys,
-    train_seeds,
-)
+from pipeline.rl.ppo import compute_gae, make_train, make_train_program
+from pipeline.rl.training import seed_keys, train_seeds
 from pipeline.schemas import AgentConfig, EnvConfig
 from pipeline.stages._environment import env_settings
 from tests.conftest import compose_config

@@ -25,8 +25,8 @@ The policy is PPO's actor-critic (:func:`pipeline.rl.networks.make_network`, the
 the critic untouched), acting with its mean: checkpoints go to ``evaluate`` and ``control``
 unchanged. Feed-forward and recurrent policies share the code (the GRU's hidden state is carried
 along the window and detached between windows like the environment's). The parts are
-:class:`pipeline.rl.ppo.TrainProgram`'s, so :func:`pipeline.rl.ppo.train_seeds` runs them: seeds
-vmapped, one compiled chunk, the same evaluations and ``agent.stop_at``.
+:class:`pipeline.rl.training.TrainProgram`'s, so :func:`pipeline.rl.training.train_seeds` runs
+them: seeds vmapped, one compiled chunk, the same evaluations and ``agent.stop_at``.
 
 An environment whose step is not differentiable (gymnax's ``supports_transition_gradients``
 false) is refused with a :class:`~pipeline.schemas.ConfigError`.
@@ -44,15 +44,15 @@ import optax
 
 from pipeline.rl.evaluation import evaluate_policy
 from pipeline.rl.networks import make_network
-from pipeline.rl.ppo import (
+from pipeline.rl.spaces import action_bounds, to_env_action
+from pipeline.rl.training import (
+    Build,
     RunnerState,
     TrainProgram,
-    _Build,
-    _has_distance,
-    _init,
-    _masked_mean,
+    has_distance,
+    init_runner,
+    masked_mean,
 )
-from pipeline.rl.spaces import action_bounds, to_env_action
 from pipeline.schemas import AgentConfig, ConfigError
 
 # weight of the pull of mean actions beyond [-1, 1] back into it, per (action unit)^2 and in
@@ -84,8 +84,9 @@ def differentiable_env(env: Any) -> Any:
 
 def make_train_program(agent: Any, env: Any, env_params: Any, eval_env_params: Any = None,
                        eval_steps: int | None = None) -> TrainProgram:
-    """Build APG's parts of a training run (:class:`pipeline.rl.ppo.TrainProgram`: ``init``,
-    ``chunk``, ``num_chunks``); the arguments are :func:`pipeline.rl.ppo.make_train_program`'s.
+    """Build APG's parts of a training run (:class:`pipeline.rl.training.TrainProgram`:
+    ``init``, ``chunk``, ``num_chunks``); the arguments are
+    :func:`pipeline.rl.ppo.make_train_program`'s.
 
     ``init`` is PPO's (network, optimizer, ``agent.num_envs`` environments reset) with one
     optimizer step per update, so ``agent.anneal_lr`` anneals over ``agent.num_updates``.
@@ -99,12 +100,12 @@ def make_train_program(agent: Any, env: Any, env_params: Any, eval_env_params: A
     eval_bounds = action_bounds(env, eval_env_params)
     # one optimizer step per update: PPO's schedule counts update_epochs x num_minibatches
     one_step = dataclasses.replace(config, update_epochs=1, num_minibatches=1)
-    build = _Build(one_step, differentiable_env(env), make_network(config, int(np.prod(low.shape))),
-                   low, high, tuple(env.observation_space(env_params).shape),
-                   _has_distance(env, env_params))
+    build = Build(one_step, differentiable_env(env), make_network(config, int(np.prod(low.shape))),
+                  low, high, tuple(env.observation_space(env_params).shape),
+                  has_distance(env, env_params))
 
     def init(rng: jax.Array, env_params=env_params, init_params=None) -> RunnerState:
-        return _init(build, rng, env_params, init_params)
+        return init_runner(build, rng, env_params, init_params)
 
     def chunk(runner: RunnerState, chunk_index, env_params=env_params,
               eval_env_params=eval_env_params):
@@ -131,7 +132,7 @@ def whole_episodes(env_params: Any) -> Any:
     return env_params.replace(goal_tolerance_m=jnp.full_like(tolerance, -jnp.inf))
 
 
-def rollout_window(build: _Build, params: Any, runner: RunnerState, key: jax.Array,
+def rollout_window(build: Build, params: Any, runner: RunnerState, key: jax.Array,
                    env_params: Any) -> tuple[RunnerState, Window]:
     """``agent.num_steps`` steps of the mean action from ``runner``'s state (taken as it is:
     the caller detaches it), differentiable in ``params``; returns the runner at the window's
@@ -162,7 +163,7 @@ def rollout_window(build: _Build, params: Any, runner: RunnerState, key: jax.Arr
     return jax.lax.scan(step, runner, jax.random.split(key, build.config.num_steps))
 
 
-def _update_step(build: _Build, runner: RunnerState, update_index: jax.Array, env_params: Any
+def _update_step(build: Build, runner: RunnerState, update_index: jax.Array, env_params: Any
                  ) -> tuple[RunnerState, dict[str, jax.Array]]:
     """One APG update: a window from the detached running state, the gradient of its loss,
     one optimizer step; ``-> (runner, metrics)`` (scalars)."""
@@ -183,7 +184,7 @@ def _update_step(build: _Build, runner: RunnerState, update_index: jax.Array, en
                                    env_params)
 
 
-def _update_metrics(build: _Build, loss: jax.Array, grad_norm: jax.Array, window: Window,
+def _update_metrics(build: Build, loss: jax.Array, grad_norm: jax.Array, window: Window,
                     update_index: jax.Array, env_params: Any) -> dict[str, jax.Array]:
     """The update's loss, gradient norm, mean distance along the window and the episodes that
     ended in it (their return, length, final distance, and success: ending within the env's
@@ -198,9 +199,9 @@ def _update_metrics(build: _Build, loss: jax.Array, grad_norm: jax.Array, window
         "window_distance_m": (window.distance.mean() if build.has_distance else jnp.nan),
         "timesteps": (update_index + 1) * config.num_steps * config.num_envs,
         "episodes": done.sum(),
-        "mean_return": _masked_mean(window.episode_return, done),
-        "mean_length": _masked_mean(window.episode_length.astype(jnp.float32), done),
-        "success_rate": _masked_mean(success.astype(jnp.float32), done),
-        "final_distance_m": (_masked_mean(window.distance, done) if build.has_distance
+        "mean_return": masked_mean(window.episode_return, done),
+        "mean_length": masked_mean(window.episode_length.astype(jnp.float32), done),
+        "success_rate": masked_mean(success.astype(jnp.float32), done),
+        "final_distance_m": (masked_mean(window.distance, done) if build.has_distance
                              else jnp.nan),
     }

@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.rl.envs.factory import BoundsScaledObservation
 from pipeline.rl.networks import initial_hidden
 from pipeline.rl.policy_io import deterministic_action, load_policy
-from pipeline.rl.ppo import to_env_action
+from pipeline.rl.spaces import to_env_action
 
 
 class Optimum(NamedTuple):

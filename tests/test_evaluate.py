@@ -130,7 +130,7 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
     # the report opens with the table the run printed at its end: one row per controller and
     # plant, the apg row with its one seed's 4 episodes
     first = markdown.split("\n## ")[1]
-    assert first.startswith("Summary\n")
+    assert first.startswith("Summary\n") and markdown.count("## Summary") == 1
     assert "| controller | plant | median_final_mm | within_1mm_% | seeds | episodes |" in first
     assert first.count("| apg |") == 2 and "| 1 | 4 |" in first
     # every artifact of the chain says how long it took to build; the policies split theirs

@@ -106,6 +106,49 @@ def test_consecutive_goals_table_has_one_labelled_column_per_goal(tmp_path):
     assert all(h.strip() for h in headers) and len(headers) == 6
 
 
+def test_the_evaluation_report_has_one_summary_and_opens_with_it(tmp_path):
+    """The table the run printed at its end, the model's accuracy, what the plants are and each
+    controller's median per plant: all under one "Summary" heading, the report's first."""
+    from pipeline.evaluation.sections import ReportFacts, report_sections
+    from pipeline.infra.records import ArtifactRecord
+
+    controllers, plants = ["ppo_ff", "preload"] * 2, ["learned"] * 2 + ["plant"] * 2
+    summary = pd.DataFrame({"controller": controllers, "plant": plants, "episodes": 4,
+                            "median_final_mm": [0.6, 9.3, 0.8, 9.1],
+                            "success_1mm": [0.75, 0.0, 0.5, 0.0],
+                            "smoothness_kpa": [0.1, 0.0, 0.1, 0.0]})
+    episodes = pd.DataFrame({"controller": np.repeat(controllers, 2),
+                             "plant": np.repeat(plants, 2), "seed": [0, 1] * 4,
+                             "final_distance_mm": [0.5, 0.7, 9.3, 9.3, 0.7, 0.9, 9.1, 9.1]})
+    metrics = pd.DataFrame([{"split": split, "run_id": run, "model": name, "mean_mm": 1.0,
+                             "p95_mm": 2.0}
+                            for split, run in (("train", "r1"), ("test", "r2"))
+                            for name in ("learned", "linear_lagged", "mean_position")])
+    model = ArtifactRecord("fit_model", "m", tmp_path / "model", tables={"metrics": metrics},
+                           summary={"learned_mean_mm": 1.0, "learned_p95_mm": 2.0,
+                                    "mean_position_mean_mm": 9.0, "linear_lagged_mean_mm": 4.0,
+                                    "train_runs": ["r1"], "test_runs": ["r2"]})
+    image = tmp_path / "artifacts" / "key" / "figures" / "fig.png"
+    image.parent.mkdir(parents=True)
+    image.write_bytes(PNG)
+    figures = {name: Figure(image, name) for name in ("returns", "distance", "trajectories")}
+    facts = ReportFacts("sim", 0.5, 0.5, 30.0, 32, 10.0, ("ppo_ff",), ("preload",), 20, 3,
+                        "a: 1\n")
+    results = {"tables": {"summary": summary, "episodes": episodes,
+                          "plant_gap": pd.DataFrame(), "consecutive": pd.DataFrame()}}
+    sections = report_sections(facts, {"ppo_ff": ArtifactRecord("train_ppo", "p", tmp_path)},
+                               results, figures, model=model)
+    titles = [section.title for section in sections]
+    assert titles[0] == "Summary" and titles.count("Summary") == 1, titles
+    markdown, page = write_report(tmp_path / "report", "Run", sections)
+    text = markdown.read_text()
+    assert text.count("## Summary") == 1 and page.read_text().count(">Summary</h2>") == 1
+    first = text.split("\n## ")[1]  # the summary, in the order it is read
+    printed = first.index("| controller | plant | median_final_mm | within_1mm_% |")
+    assert printed < first.index("Dynamics model: **1.00 mm**") < first.index(
+        "**simulated arm**") < first.index("| controller | on the learned model [mm] |")
+
+
 def test_tail_episodes_are_the_arrivals_that_ended_furthest_away():
     distance = np.array([[3.0, 0.9, 2.0],  # arrived, ends at 2.0
                          [3.0, 2.5, 2.8],  # never arrived: left out however far it ends

@@ -114,10 +114,13 @@ def _model_sentence(model: ArtifactRecord) -> str:
             f"lagged-pressure baseline {format_number(held['linear_lagged_mean_mm'])} mm).")
 
 
-def _summary_section(facts: ReportFacts, model: ArtifactRecord | None, summary: pd.DataFrame,
-                     order: list[str]) -> Section:
-    """The headline: model accuracy, and each controller's median final distance."""
-    section = Section("Summary")
+def _summary_section(facts: ReportFacts, model: ArtifactRecord | None,
+                     tables: Mapping[str, pd.DataFrame], order: list[str]) -> Section:
+    """The report's one summary, its first section: the table the run printed at its end
+    (:func:`headline_section`), then the model's accuracy, what the plants are, and each
+    controller's median final distance on each plant."""
+    summary = tables["summary"]
+    section = headline_section(tables)
     if model is not None:
         section.add(_model_sentence(model))
         for warning in model.summary.get("warnings", []):
@@ -267,8 +270,7 @@ def report_sections(facts: ReportFacts, policies: Mapping[str, ArtifactRecord], 
     summary = tables["summary"]
     names = list(policies)
     order = names + list(facts.baselines)
-    sections = [headline_section(tables), _summary_section(facts, model, summary, order),
-                _configuration_section(facts),
+    sections = [_summary_section(facts, model, tables, order), _configuration_section(facts),
                 _data_section(collect, aligned), _model_section(model),
                 _policy_section(facts, tables, figures, names, order),
                 _baselines_section(summary, names, order),
@@ -300,7 +302,8 @@ def report_sections(facts: ReportFacts, policies: Mapping[str, ArtifactRecord], 
 def headline_section(tables: Mapping[str, pd.DataFrame]) -> Section:
     """The table the run printed at its end (:func:`~pipeline.evaluation.summary.
     evaluation_table` of the evaluation's ``summary``, ``episodes`` and, where it ran,
-    ``cross_model`` tables), the report's first section."""
+    ``cross_model`` tables), as the "Summary" section that opens the report (the report goes on
+    in it with the model and the plants)."""
     table = evaluation_table(tables["summary"], tables["episodes"], tables.get("cross_model"))
     return Section("Summary").add(Table(table, (
         "Closed loop on held-out goals, per controller and plant: the median final distance "

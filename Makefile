@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 EXTRAS ?= dev,ros,docs
 
 .DEFAULT_GOAL := help
-.PHONY: help setup setup-ros run quick test test-all lint bench figures docs clean
+.PHONY: help setup setup-ros setup-cuda run quick test test-all lint bench figures docs clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-10s %s\n", $$1, $$2}'
@@ -18,6 +18,9 @@ setup: ## create the virtual environment and install the project (editable), tes
 
 setup-ros: ## the same as setup (kept for old instructions)
 	$(MAKE) setup EXTRAS=dev,ros
+
+setup-cuda: ## setup with JAX's CUDA 12 wheels: on a machine with an NVIDIA GPU (docs/gpu.md)
+	$(MAKE) setup EXTRAS=dev,ros,docs,cuda
 
 run: ## run the whole pipeline on the simulated arm (the embedded default)
 	$(BIN)/python -m pipeline

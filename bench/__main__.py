@@ -16,8 +16,11 @@ BENCHMARKS = {
     "ensemble_selection": "bench.ensemble_selection",
     "gru_kernel": "bench.gru_kernel",
     "time_to_controller": "bench.time_to_controller",
+    "gpu": "bench.gpu",
 }
-OPTIONAL = {"peers"}  # needs the "peers" extra (torch, stable-baselines3): run only when named
+# run only when named: peers needs the "peers" extra (torch, stable-baselines3); gpu compares a
+# GPU with the CPU for minutes (where there is no GPU it says so and runs nothing)
+OPTIONAL = {"peers", "gpu"}
 
 
 def main(argv: list[str]) -> None:

@@ -30,15 +30,23 @@ TRAIN_LINE = re.compile(r"train_ppo: (\{.*\})")
 HEADLINE_LINE = re.compile(r"evaluate: (\{.*\})")
 
 
-def run_chain(root: Path, output: Path, cache: Path | None, overrides: list[str]) -> dict:
-    """Run the chain from checkout ``root``; return wall time, stage times and train timings."""
-    env = {**os.environ, "PYTHONPATH": str(root), "JAX_PLATFORMS": "cpu"}
+def run_chain(root: Path, output: Path, cache: Path | None, overrides: list[str],
+              platforms: str = "cpu", timeout: float | None = None) -> dict:
+    """Run the chain from checkout ``root`` with ``JAX_PLATFORMS=platforms`` (at most
+    ``timeout`` seconds); return wall time, stage times and train timings (``train_summaries``:
+    each training's whole summary line)."""
+    env = {**os.environ, "PYTHONPATH": str(root), "JAX_PLATFORMS": platforms}
     env.pop("SOROLEARN_COMPILE_CACHE", None)
     args = [sys.executable, "-m", "pipeline", f"paths.output_dir={output}", *overrides]
     if cache is not None:
         args.append(f"paths.compile_cache_dir={cache}")
     started = time.perf_counter()
-    result = subprocess.run(args, cwd=root, env=env, capture_output=True, text=True)
+    try:
+        result = subprocess.run(args, cwd=root, env=env, capture_output=True, text=True,
+                                timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"wall_s": time.perf_counter() - started,
+                "error": f"stopped after {timeout:.0f} s (the time left to it)"}
     wall = time.perf_counter() - started
     log = result.stdout + result.stderr
     if result.returncode != 0:
@@ -48,6 +56,7 @@ def run_chain(root: Path, output: Path, cache: Path | None, overrides: list[str]
     headlines = [json.loads(m) for m in HEADLINE_LINE.findall(log)]
     return {"wall_s": wall, "stages": stages,
             "train": {t["agent"]: (t["compile_seconds"], t["train_seconds"]) for t in trainings},
+            "train_summaries": {t["agent"]: t for t in trainings},
             "results": headlines[-1] if headlines else {}}
 
 

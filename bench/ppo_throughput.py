@@ -1,6 +1,6 @@
 """PPO training throughput in the learned environment: our default next to the paper's setting.
 
-    python bench/ppo_throughput.py [--updates 20] [--seeds 1]
+    python -m bench ppo_throughput [--updates 20] [--seeds 1] [--trainer ppo|apg]
 
 - ``default``: this project's defaults — the default model architecture (``model.cell``, a GRU,
   of ``model.hidden`` units with the default input features) at ``dataset.model_hz``, stepped
@@ -10,25 +10,28 @@
   stepped once per action, 32 environments.
 
 Same PPO (feed-forward unless named, ``agent.num_steps`` = 32, 4 epochs x 4 minibatches), same run, random
-model weights (throughput does not depend on them). Compilation is timed apart; throughput is
-environment steps per second of the compiled training program (all seeds together), and the
-table gives the ratio of each row to the paper's.
+model weights (throughput does not depend on them). ``--trainer apg``: analytic policy gradients
+instead, with ``conf/agent/apg.yaml``'s window and step (``apg_rnn``'s for the GRU policy). Each
+training is :func:`pipeline.rl.ppo.train_seeds`'s, as the pipeline runs it (the seeds split over
+the devices where there are several), without evaluations. Compilation is timed apart;
+throughput is environment steps per second of the compiled training program (all seeds
+together), and the table gives the ratio of each row to the paper's.
 """
 
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 import jax.numpy as jnp
 from omegaconf import OmegaConf
 
 from pipeline.arm.safety import SafeSet
+from pipeline.chain import agent_option
 from pipeline.dynamics import model as dynamics
 from pipeline.dynamics.training import ModelTrainConfig
 from pipeline.rl.envs import SoftArmReachEnv, learned_plant, make_env_params
-from pipeline.rl.ppo import make_train, seed_keys
+from pipeline.rl.ppo import train_seeds
 from pipeline.schemas import AgentConfig, DatasetConfig, EnvConfig, GoalMode, ModelConfig
 
 LIMITS = OmegaConf.create({"p_min": 0.0, "p_max": 7.0, "sum_max": 13.0, "preload": 2.0})
@@ -53,7 +56,24 @@ def random_model(config: dynamics.DynamicsConfig) -> dynamics.DynamicsParams:
                                    normalizer, config)
 
 
-def measure(name: str, updates: int, seeds: int) -> dict:
+def throughput_agent(trainer: str, recurrent: bool, num_envs: int, updates: int,
+                     seeds: int) -> AgentConfig:
+    """The agent of one measurement: ``updates`` updates of ``num_envs`` environments, one
+    chunk, no evaluation. PPO: 32 steps per update; APG: its option's window and step."""
+    if trainer == "ppo":
+        base = AgentConfig(num_steps=32, recurrent=recurrent, rnn_skip=recurrent)
+    else:
+        option = agent_option("apg_rnn" if recurrent else "apg", OmegaConf.structured(AgentConfig))
+        base = AgentConfig.from_any(option)
+    return AgentConfig.from_any(base, num_seeds=seeds, num_envs=num_envs,
+                                total_timesteps=updates * num_envs * base.num_steps,
+                                recurrent_total_timesteps=None, num_evals=1, eval_envs=0,
+                                progress=False)
+
+
+def measure(name: str, updates: int, seeds: int, trainer: str = "ppo") -> dict:
+    """Train ``seeds`` seeds of ``trainer`` in setting ``name`` for ``updates`` updates; the
+    compile and run seconds and the throughput."""
     architecture, model_hz, num_envs, recurrent = SETTINGS[name]
     env = SoftArmReachEnv(learned_plant(model_hz), CONTROL_HZ, settle_seconds=5.0,
                           include_last_action=True)
@@ -61,35 +81,28 @@ def measure(name: str, updates: int, seeds: int) -> dict:
                              EnvConfig(goal_mode=GoalMode.perturb, reset_bank_size=16),
                              key=jax.random.PRNGKey(0), safe_set=SafeSet.from_limits(LIMITS),
                              preload=2.0, rest_pose=REST_POSE)
-    agent = AgentConfig(num_seeds=seeds, num_envs=num_envs, num_steps=32, recurrent=recurrent,
-                        rnn_skip=recurrent,
-                        total_timesteps=updates * num_envs * 32, num_evals=1, eval_envs=8,
-                        progress=False)
-    train = jax.jit(jax.vmap(make_train(agent, env, params, eval_steps=1),
-                             in_axes=(0, None, None)))
-    keys = seed_keys(0, seeds)
-    started = time.perf_counter()
-    compiled = train.lower(keys, params, params).compile()
-    compile_s = time.perf_counter() - started
-    started = time.perf_counter()
-    jax.block_until_ready(compiled(keys, params, params))
-    run_s = time.perf_counter() - started
+    agent = throughput_agent(trainer, recurrent, num_envs, updates, seeds)
+    timings: dict = {}
+    train_seeds(agent, env, params, timings=timings)
+    compile_s, run_s = timings["compile_s"], timings["run_s"]
     steps = seeds * agent.num_updates * agent.steps_per_update
-    return {"name": name, "cell": architecture.cell, "units": architecture.hidden,
-            "model_steps_per_action": env.steps_per_action,
-            "envs": num_envs, "compile_s": compile_s, "run_s": run_s,
-            "steps_per_s": steps / run_s, "model_steps_per_s": steps * env.steps_per_action / run_s}
+    return {"name": name, "trainer": trainer, "cell": architecture.cell,
+            "units": architecture.hidden, "model_steps_per_action": env.steps_per_action,
+            "envs": num_envs, "seeds": seeds, "devices": timings["devices"],
+            "compile_s": compile_s, "run_s": run_s, "steps_per_s": steps / run_s,
+            "model_steps_per_s": steps * env.steps_per_action / run_s}
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--updates", type=int, default=20, help="PPO updates per setting")
     parser.add_argument("--seeds", type=int, default=1, help="seeds trained at once (vmap)")
+    parser.add_argument("--trainer", choices=["ppo", "apg"], default="ppo")
     args = parser.parse_args(argv)
-    rows = [measure(name, args.updates, args.seeds) for name in SETTINGS]
+    rows = [measure(name, args.updates, args.seeds, args.trainer) for name in SETTINGS]
     paper = next(r for r in rows if r["name"] == "paper")
-    print(f"PPO training throughput, {args.updates} updates x 32 steps, {args.seeds} seed(s), "
-          f"{jax.devices()[0].platform}")
+    print(f"{args.trainer.upper()} training throughput, {args.updates} updates, {args.seeds} "
+          f"seed(s), {jax.devices()[0].platform}")
     header = (f"{'setting':<21}{'model':>11}{'steps/act':>10}{'envs':>6}{'compile s':>11}"
               f"{'run s':>8}{'env steps/s':>13}{'x paper':>9}{'model steps/s':>15}")
     print(header)

@@ -1,6 +1,8 @@
-"""The CPU's cores as JAX devices: PPO's seeds and the evaluation's episodes split over them.
+"""The CPU's cores (or the GPUs) as JAX devices: PPO's seeds and the evaluation's episodes split
+over them.
 
-JAX fixes its CPU device count when it starts, so each check runs in a process of its own.
+JAX fixes its CPU device count when it starts, so each check with several CPU devices runs in a
+process of its own.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ import textwrap
 import pytest
 
 from pipeline.config import PROJECT_ROOT
-from pipeline.infra.devices import configure_cpu_devices, usable_cores
+from pipeline.infra import devices
+from pipeline.infra.devices import configure_cpu_devices, split_count, usable_cores
 from pipeline.schemas import ConfigError
 
 
@@ -47,6 +50,48 @@ def test_one_cpu_device_per_core_unless_told_otherwise():
         import jax
         print(json.dumps({"devices": jax.local_device_count()}))
     """, JAX_NUM_CPU_DEVICES="3") == {"devices": 3}  # the caller's setting is kept
+
+
+def test_a_batch_is_split_over_the_most_devices_that_divide_it():
+    # 20 seeds (experiment=real_arm): 2 on each of 10 of 16 CPU devices, 4 on each of 5 of 8
+    # GPUs, 5 on each of 4 GPUs; 4 seeds (the default) on 3 GPUs: 2 on each of 2; 3 on 2: none
+    assert [split_count(20, n) for n in (1, 2, 3, 4, 8, 16)] == [1, 2, 2, 4, 5, 10]
+    assert [split_count(4, n) for n in (1, 2, 3, 4, 8)] == [1, 2, 2, 4, 4]
+    assert split_count(3, 2) == 1
+    assert split_count(7, 8) == 7 and split_count(1, 8) == 1
+
+
+class FakeGpu:
+    """What a Mesh needs of a device to be built: a stand-in for a CUDA device."""
+
+    platform = "gpu"
+
+    def __init__(self, index: int):
+        self.id = index
+
+    def __repr__(self) -> str:
+        return f"cuda:{self.id}"
+
+
+def test_the_split_is_over_the_default_backends_devices_so_over_several_gpus(monkeypatch):
+    import jax
+
+    gpus = [FakeGpu(i) for i in range(8)]
+    monkeypatch.setattr(jax, "local_devices", lambda *args, **kwargs: gpus)
+    split = devices.batch_split(20)
+    assert list(split.mesh.devices) == gpus[:5]  # 4 seeds on each of the first 5 GPUs
+    assert split.mesh.axis_names == (devices.AXIS,)
+    assert devices.batch_split(3).mesh.size == 3
+    monkeypatch.setattr(jax, "local_devices", lambda *args, **kwargs: gpus[:1])
+    assert devices.batch_split(20) is None  # one GPU: nothing to split
+
+
+def test_eight_cpu_devices_split_as_computed_by_hand():
+    assert run_python("""
+        import json
+        from pipeline.infra.devices import batch_split
+        print(json.dumps([batch_split(n) and batch_split(n).mesh.size for n in (20, 12, 9, 1)]))
+    """, JAX_NUM_CPU_DEVICES="8") == [5, 6, 3, None]
 
 
 def test_a_device_count_below_one_is_refused_naming_the_key():

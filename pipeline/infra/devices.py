@@ -1,4 +1,4 @@
-"""The CPU's cores as JAX devices, and batches split over them.
+"""The CPU's cores (or a machine's GPUs) as JAX devices, and batches split over them.
 
 XLA runs a program on one CPU device in one thread for the small operations this project is
 made of (PPO's networks, the learned model): a 2-core machine trained at the speed of one core.
@@ -8,8 +8,14 @@ PPO seeds (``pipeline.rl.ppo.train_seeds``) and the evaluation's episodes
 (``pipeline.evaluation.closed_loop``). Each part computes what it computed in the whole batch,
 to float rounding: XLA may order a sum differently for a smaller batch, and over a long PPO
 training such last-bit differences grow into a different draw of the same seeds' noise
-(``tests/test_devices.py``; ``docs/results/PPO_RESULTS.md``). On a GPU machine the devices are the
-GPUs, and a batch is split over several only where there are several.
+(``tests/test_devices.py``; ``docs/results/PPO_RESULTS.md``).
+
+The split (:func:`batch_split`) is over ``jax.local_devices()``, the devices of JAX's default
+backend: one CPU device per core on a CPU-only machine, the GPUs on a machine with JAX's CUDA
+wheels (``pip install -e ".[cuda]"``), where the CPU device count no longer matters for these
+programs. A batch is split over the most devices that divide it evenly (:func:`split_count`):
+20 seeds over 10 of 16 CPU devices (2 seeds each), over 5 of 8 GPUs (4 each), over all 4 of 4
+GPUs (5 each); on one GPU, as on one CPU device, it is not split.
 
 JAX is not imported at module import: the entry point sets the device count before JAX starts.
 """
@@ -53,8 +59,11 @@ def configure_cpu_devices(count: int | None) -> int:
     try:
         jax.config.update("jax_num_cpu_devices", count)
     except RuntimeError:
-        log.debug("JAX's backends are running: the CPU device count stays %d",
-                  jax.local_device_count("cpu"))
+        try:
+            running = str(jax.local_device_count("cpu"))
+        except RuntimeError:  # no CPU backend (JAX_PLATFORMS=cuda)
+            running = "none"
+        log.debug("JAX's backends are running: the CPU device count stays %s", running)
     return count
 
 
@@ -82,15 +91,22 @@ class BatchSplit(NamedTuple):
         return jax.device_put(tree, self.replicated() if axis is None else self.sharding(axis))
 
 
+def split_count(size: int, devices: int) -> int:
+    """Over how many of ``devices`` devices a batch of ``size`` is split: the most that divide
+    it evenly (1: not split). 20 seeds: 10 of 16 devices, 5 of 8, 4 of 4, 1 of 3."""
+    return max(n for n in range(1, devices + 1) if size % n == 0)
+
+
 def batch_split(size: int) -> BatchSplit | None:
-    """The split of a batch of ``size`` over the most local devices that divide it evenly;
-    None where that is one device (nothing to split)."""
+    """The split of a batch of ``size`` over the most local devices of JAX's default backend
+    (the CPU devices, or the GPUs) that divide it evenly (:func:`split_count`); None where that
+    is one device (nothing to split)."""
     import jax
     import numpy as np
     from jax.sharding import Mesh
 
-    devices = jax.local_devices()
-    count = max(n for n in range(1, len(devices) + 1) if size % n == 0)
+    devices = jax.local_devices()  # the default backend's: CPU devices or GPUs
+    count = split_count(size, len(devices))
     if count == 1:
         return None
     return BatchSplit(Mesh(np.asarray(devices[:count]), (AXIS,)))

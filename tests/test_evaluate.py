@@ -127,12 +127,14 @@ def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, mo
                     "Baselines",
                     "Plant gap", "Time to a controller", "Consecutive goals"):
         assert f"## {section}" in markdown, section
-    # the report opens with the table the run printed at its end: one row per controller and
-    # plant, the apg row with its one seed's 4 episodes
+    # the report opens with its one summary, and that with the table the run printed at its end:
+    # one row per controller and plant, the apg row with its one seed's 4 episodes
     first = markdown.split("\n## ")[1]
     assert first.startswith("Summary\n") and markdown.count("## Summary") == 1
-    assert "| controller | plant | median_final_mm | within_1mm_% | seeds | episodes |" in first
-    assert first.count("| apg |") == 2 and "| 1 | 4 |" in first
+    printed = first.split("\n\n")[2]  # after the heading and the table's caption
+    assert printed.startswith(
+        "| controller | plant | median_final_mm | within_1mm_% | seeds | episodes |")
+    assert printed.count("| apg |") == 2 and "| 1 | 4 |" in printed
     # every artifact of the chain says how long it took to build; the policies split theirs
     for stage in ("collect", "align", "fit_model", "train_ppo"):
         built = results[stage].manifest["build_seconds"]

@@ -44,14 +44,20 @@ def stage_lines(stages: Mapping[Any, str]) -> str:
 
 
 def group_lines(conf_dir: Path = CONF_DIR) -> str:
-    """``group: option, option`` for every config group in ``conf_dir`` (and the launchers)."""
-    rows = []
+    """``group: option, option`` for every config group in ``conf_dir`` (and the launchers);
+    the groups whose one option is ``default`` on one line of their own (their settings are
+    set key by key)."""
+    rows, defaults = [], []
     groups = sorted(p for p in conf_dir.iterdir() if p.is_dir() and p.name != "hydra")
     for folder in [*groups, conf_dir / "hydra" / "launcher"]:
         options = sorted(p.stem for p in folder.glob("*.yaml") if not p.stem.startswith("base_"))
-        if options:
-            name = folder.relative_to(conf_dir).as_posix()
+        name = folder.relative_to(conf_dir).as_posix()
+        if options == ["default"]:
+            defaults.append(name)
+        elif options:
             rows.append(f"  {name + ':':<15} {', '.join(options)}")
+    if defaults:
+        rows.insert(0, f"  {'default only:':<15} {', '.join(defaults)}")
     return "\n".join(rows)
 
 

@@ -68,7 +68,7 @@ _AGENT_KEYS_UNLESS_SET = {"trainer": "ppo", "stop_at": dataclasses.asdict(StopAt
 # stage, and through their input keys every artifact downstream, is then made anew, once. Every
 # setting of the composed config is in its stage's spec with its value, defaults included.
 SPEC_VERSIONS = {"collect": 2, "align": 2, "calibrate": 2, "fit_model": 3, "train_ppo": 3,
-                 "evaluate": 6, "control": 4, "adapt": 1, "explore": 1, "improve": 1}
+                 "evaluate": 7, "control": 4, "adapt": 1, "explore": 1, "improve": 1}
 
 
 def _container(node: Any) -> Any:

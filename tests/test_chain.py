@@ -78,7 +78,8 @@ def test_the_recorded_data_plan_fans_out_to_the_ensemble_and_both_groups(make_cf
 
 
 def test_a_real_arm_is_driven_only_by_the_stage_named(make_cfg):
-    assert DRIVES_ARM == {Stage.collect, Stage.guard, Stage.control, Stage.adapt}
+    assert DRIVES_ARM == {Stage.collect, Stage.guard, Stage.control, Stage.adapt,
+                          Stage.improve}
     assert all(STAGES[stage].drives_arm for stage in DRIVES_ARM)
     jobs = plan(make_cfg("stage=evaluate", "robot=ros2"), train_key)
     assert not [job for job in jobs if job.stage in DRIVES_ARM]

@@ -189,4 +189,4 @@ def test_a_lab_arm_config_extending_ros2_inherits_its_rating(tmp_path):
                                      "rating:\n  p_max: 6.0\n  sum_max: 12.0\n")
     (robot / "lab_arm.yaml").write_text("defaults:\n  - ros2\n  - _self_\nrating:\n  p_max: 5.0\n")
     assert rating_from_file(robot / "lab_arm.yaml", [tmp_path]) == {
-        "p_min": 0.0, "p_max": 5.0, "sum_max": 12.0, "preload": 2.0}
+        "p_min": 0.0, "p_max": 5.0, "sum_max": 12.0, "preload": 2.0, "max_session_s": 600.0}

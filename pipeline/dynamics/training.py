@@ -65,6 +65,7 @@ class ModelTrainConfig(frozen_twin(ModelConfig, "ModelSettings")):
 
     def __post_init__(self):
         dynamics.freeze_lists(self)
+        object.__setattr__(self, "init_from", tuple(str(entry) for entry in self.init_from))
         if not 0.0 <= self.recurrent_dropout < 1.0:
             raise ValueError(f"recurrent_dropout must lie in [0, 1), got {self.recurrent_dropout}")
         if self.input_noise_std < 0 or self.weight_decay < 0:

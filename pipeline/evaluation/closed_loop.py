@@ -329,7 +329,8 @@ def run_evaluation(settings: ClosedLoopSettings, policies: Mapping[str, Policy],
         for row in summary.itertuples()}
     return {"tables": {"episodes": episodes_table, "summary": summary, "plant_gap": gaps,
                        "consecutive": consecutive},
-            "paths": paths, "commands": sent, "goals": np.asarray(goals), "headline": headline}
+            "paths": paths, "commands": sent, "goals": np.asarray(goals), "headline": headline,
+            "plants": plants}
 
 
 def _episodes(settings: ClosedLoopSettings, plants, loaded, eval_params: EnvParams,

@@ -336,6 +336,31 @@ def split_misses(episodes: pd.DataFrame, reach: pd.DataFrame, miss_mm: float = 1
     return pd.DataFrame(rows)
 
 
+REACH_COLUMNS = ("reachable_goals", "success_reachable", "median_final_reachable_mm")
+
+
+def with_reach(results: dict[str, Any], settings: ReachSettings = ReachSettings()
+               ) -> dict[str, Any]:
+    """``results`` of :func:`pipeline.evaluation.closed_loop.run_evaluation` with the reach of
+    every plant's episodes: the table ``reach`` (:func:`evaluation_reach`) and, in ``summary``
+    and the headline, per plant and controller the share of the goals the plant can hold at
+    all (``reachable_goals``) and the controller's success and median on those
+    (``success_reachable``, ``median_final_reachable_mm``; :func:`split_misses`), so that a
+    goal no constant admissible command holds the plant at is not counted as the
+    controller's miss."""
+    tables = results["tables"]
+    reach = evaluation_reach(results["plants"], results["goals"], settings)
+    split = split_misses(tables["episodes"], reach, float(settings.tolerance_mm))
+    tables["reach"] = reach
+    tables["summary"] = tables["summary"].merge(
+        split[["plant", "controller", *REACH_COLUMNS]], on=["plant", "controller"], how="left")
+    for row in tables["summary"].itertuples():
+        entry = results["headline"].get(f"{row.plant}/{row.controller}")
+        if entry is not None:
+            entry.update({name: float(getattr(row, name)) for name in REACH_COLUMNS[:2]})
+    return results
+
+
 def preload_mismatch_mm(reach: pd.DataFrame, episodes: pd.DataFrame) -> float:
     """The largest difference (mm) between :func:`evaluation_reach`'s ``preload_mm`` and the
     final distance of the evaluation's ``preload`` baseline (``episodes``, every plant of

@@ -27,8 +27,11 @@ class ImproveConfig:
 
     rounds: int = 3
     arm_s: float = 300.0  # arm seconds each round drives the arm (within robot.rating.max_session_s)
-    explore_share: float = 0.0  # of arm_s: walks where the ensemble disagrees most, not goals
-    explore_candidates: int = 32  # walks scored by the ensemble's disagreement for each one driven
+    explore_share: float = 0.0  # of arm_s: exploration walks instead of goals (1: walks only)
+    # how each walk is chosen: disagreement (of explore_candidates exploration walks, the one the
+    # ensemble's models disagree on most) or walk (the exploration walk as collect draws it)
+    explore: str = "disagreement"
+    explore_candidates: int = 32
     explore_walk_s: float = 30.0  # arm seconds of each exploration walk
     goal_s: float | None = None  # arm s each goal is held (null: the env's episode)
     plant: str | None = None

@@ -51,6 +51,7 @@ from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.evaluation.closed_loop import ClosedLoopSettings, Policy, SimArm, run_evaluation
 from pipeline.evaluation.cross_model import CROSS, across_models, cross_model_episodes
 from pipeline.evaluation.figures import FigureSettings, make_figures
+from pipeline.evaluation.reachability import with_reach
 from pipeline.evaluation.report import write_report
 from pipeline.evaluation.sections import (
     COLLECT_FIGURES,
@@ -112,8 +113,8 @@ def evaluate(cfg: Any) -> Artifact:
         twins = {f"twin {name}": physics
                  for name, physics in spec["evaluation"].get("twins", {}).items()}
         loaded = _load_policies(policies)
-        results = run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params, models,
-                                 twins)
+        results = with_reach(run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params,
+                                            models, twins))
         if Task(cfg.env.task) is Task.track:
             tracking = tracking_settings(cfg, recorded_paths(inputs))
             tracked = run_tracking(closed_loop_settings(cfg), tracking, loaded, env, eval_params,

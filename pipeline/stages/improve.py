@@ -59,6 +59,7 @@ log = logging.getLogger(__name__)
 STAGE = "improve"
 EXPLORE = "explore"
 REFITS = ("warm", "scratch")
+EXPLORES = ("disagreement", "walk")
 
 
 @dataclass
@@ -96,7 +97,8 @@ def improve(cfg: Any) -> Artifact | None:
     for index in range(1, settings.rounds + 1):
         last = rounds[-1]
         current = next_round(cfg, settings, store, last, sessions, pool, index)
-        drives = [chain.stage_function(Stage.control)(current.drive)]
+        drives = ([chain.stage_function(Stage.control)(current.drive)] if current.goals_mm
+                  else [])
         drives += drive_walks(current, last, store, settings, model_steps_per_command,
                               start_pose)
         sessions = [*sessions, *(artifact.key for artifact in drives)]
@@ -119,8 +121,13 @@ def improve_settings(cfg: Any) -> ImproveConfig:
                           f"(0, {rating_s:g}] s, the arm's rating (robot.rating.max_session_s)")
     if settings.rounds < 1:
         raise ConfigError(f"improve.rounds={settings.rounds} must be at least 1")
-    if not 0 <= settings.explore_share < 1:
-        raise ConfigError(f"improve.explore_share={settings.explore_share} must lie in [0, 1)")
+    if not 0 <= settings.explore_share <= 1:
+        raise ConfigError(f"improve.explore_share={settings.explore_share} must lie in [0, 1]")
+    if settings.explore not in EXPLORES:
+        raise ConfigError(f"improve.explore={settings.explore!r} must be one of {list(EXPLORES)}")
+    if settings.explore_candidates < 1 or not settings.explore_walk_s > 0:
+        raise ConfigError(f"improve.explore_candidates={settings.explore_candidates} and "
+                          f"improve.explore_walk_s={settings.explore_walk_s} must be positive")
     if settings.refit not in REFITS:
         raise ConfigError(f"improve.refit={settings.refit!r} must be one of {list(REFITS)}")
     if EnvName(cfg.env.name) is not EnvName.learned:
@@ -138,12 +145,13 @@ def improve_settings(cfg: Any) -> ImproveConfig:
         if settings.plant is None and kind is RobotKind.ros2:
             raise ConfigError("improve.explore_share > 0 drives its walks on in-process arms "
                               "only; on robot=ros2 set improve.explore_share=0")
-        if int(cfg.env.ensemble_seeds) < 2 and not cfg.env.models:
+        if (settings.explore == "disagreement" and int(cfg.env.ensemble_seeds) < 2
+                and not cfg.env.models):
             raise ConfigError("improve.explore_share > 0 chooses walks where the ensemble's "
                               "models disagree: set env.ensemble_seeds to 2 or more")
     goal_s = goal_seconds(cfg, settings)
     goals = goal_count(settings, goal_s)
-    if goals < 1:
+    if goals < 1 and settings.explore_share < 1:
         raise ConfigError(f"improve.arm_s={settings.arm_s} with explore_share="
                           f"{settings.explore_share} leaves no time for one goal of "
                           f"{goal_s:g} s (improve.goal_s)")
@@ -165,6 +173,11 @@ def walk_count(settings: ImproveConfig) -> int:
     if settings.explore_share == 0:
         return 0
     return max(1, round(settings.explore_share * settings.arm_s / settings.explore_walk_s))
+
+
+def candidate_count(settings: ImproveConfig) -> int:
+    """Walks drawn for each one driven: the disagreement's candidates, or the walk itself."""
+    return int(settings.explore_candidates) if settings.explore == "disagreement" else 1
 
 
 # ---------------------------------------------------------------------------------------------
@@ -248,7 +261,7 @@ def next_round(cfg: Any, settings: ImproveConfig, store: ArtifactStore, last: Ro
             + 104729 * int(settings.seed)})
         walks = list(exploration_plan(OmegaConf.to_object(exploration), cfg.robot.limits,
                                       int(cfg.robot.n_valves),
-                                      count * int(settings.explore_candidates)).commands)
+                                      count * candidate_count(settings)).commands)
     return Round(index, current, evaluation_config(current, settings),
                  drive_config(cfg, settings, store, last, goals_mm, index), goals_mm, walks)
 
@@ -287,22 +300,27 @@ def drive_walks(current: Round, last: Round, store: ArtifactStore, settings: Imp
         for i, member in enumerate(chain.ensemble_configs(last.cfg), start=1)}}
     candidates = np.stack(current.walks)  # [count * candidates, N, valves]
     robot = OmegaConf.to_object(current.drive.robot)
+    per_walk = candidate_count(settings)
     artifacts = []
     for walk in range(count):
-        chosen = slice(walk * settings.explore_candidates, (walk + 1) * settings.explore_candidates)
-        spec = keys.explore_spec(current.drive, candidates[chosen], walk)
+        group = candidates[walk * per_walk:(walk + 1) * per_walk]
+        spec = keys.explore_spec(current.drive, group, walk)
+        arm_seed = int(current.drive.control.arm_seed) + 100 * (walk + 1)
 
-        def build(writer: ArtifactWriter, group=candidates[chosen]) -> None:
-            members = [load_dynamics(store.require("fit_model", key).file("model.msgpack"))
-                       for key in member_keys.values()]
-            scores = disagreement_m2(members, held_at_model_rate(group, steps_per_command),
-                                     start_pose)
+        def build(writer: ArtifactWriter, group=group, arm_seed=arm_seed) -> None:
+            scores = np.zeros(1)
+            if settings.explore == "disagreement":
+                members = [load_dynamics(store.require("fit_model", key).file("model.msgpack"))
+                           for key in member_keys.values()]
+                scores = disagreement_m2(members, held_at_model_rate(group, steps_per_command),
+                                         start_pose)
             best = int(most_disputed(scores, 1)[0])
-            drive_walk_session(writer, robot, group[best], int(current.drive.control.arm_seed))
+            drive_walk_session(writer, robot, group[best], arm_seed)
             writer.summary.update({"disagreement_mm2": float(scores[best] * 1e6),
                                    "median_candidate_mm2": float(np.median(scores) * 1e6)})
 
-        artifacts.append(produce(store, EXPLORE, spec, member_keys, build))
+        inputs = member_keys if settings.explore == "disagreement" else {}
+        artifacts.append(produce(store, EXPLORE, spec, inputs, build))
     return artifacts
 
 

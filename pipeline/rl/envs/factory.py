@@ -41,6 +41,7 @@ from pipeline.arm.limits import validate_limits
 from pipeline.arm.safety import SafeSet, project
 from pipeline.data.alignment import runs_at_model_rate
 from pipeline.data.schemas import ALIGNED, read_table
+from pipeline.data.sessions import SESSION_PREFIX
 from pipeline.dynamics.checkpoints import load_dynamics
 from pipeline.dynamics.scoring import predict_run
 from pipeline.rl.envs.learned import make_env_params
@@ -418,10 +419,11 @@ def _positions(run_id: str, pos: np.ndarray) -> pd.DataFrame:
 def evaluation_run_ids(split: dict[str, Any]) -> list[str]:
     """The runs whose positions are ``env=learned``'s evaluation goals, by the model's ``split``:
     each run its fold held out (``cv`` protocol), else the test runs (one run only, none held
-    out: the training runs)."""
+    out: the training runs); never a run joined from a session."""
     if split.get("protocol") == "cv":
         return [fold["held_out"] for fold in split["folds"]]
-    return list(split["test"]) or list(split["train"])
+    ids = list(split["test"]) or list(split["train"])
+    return [run_id for run_id in ids if not run_id.startswith(SESSION_PREFIX)]
 
 
 def measured_paths(inputs: LearnedInputs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -437,8 +439,11 @@ def learned_goals(settings: EnvConfig, inputs: LearnedInputs) -> dict[str, np.nd
     """The goal sets and rest pose of ``env=learned`` (:func:`data_goals_and_rest_pose`): goals
     along the runs (``env.goal_source``: the model's open-loop predictions or the measured
     positions; with an ensemble and ``env.goal_agreement_mm`` only where the members agree),
-    held out as the model's split held its runs out; the rest pose from the runs' first poses."""
-    runs, split, dynamics = inputs.runs, inputs.split, inputs.dynamics
+    held out as the model's split held its runs out; the rest pose from the runs' first poses.
+    Runs joined from control sessions (:mod:`pipeline.data.sessions`) are the model's data, not
+    the workspace: neither goals nor rest pose come from them."""
+    split, dynamics = inputs.split, inputs.dynamics
+    runs = [run for run in inputs.runs if not run.run_id.startswith(SESSION_PREFIX)]
     if GoalSource(settings.goal_source) is GoalSource.predicted:
         # the model's open-loop predictions along the recorded commands: reachable in its world
         goal_paths = {run.run_id: predict_run(dynamics, run) for run in runs}

@@ -250,3 +250,40 @@ def test_a_session_of_another_arm_joins_no_data(trained, tmp_path):
         chain.stage_function(Stage.align)(joined)
     assert store.find("align", keys.key("align", joined)) is None
     jax.clear_caches()
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+def test_a_round_over_ros2_on_the_twin(tmp_path, ros_domain):
+    """The whole path on the arm's side: runs collected over ROS 2 from the twin, the policy
+    trained on them, then a round of stage=improve whose drive goes through the gate to the twin
+    and ends at the preload, its session joining the refitted model's data."""
+    pytest.importorskip("rclpy")
+    from pipeline.data.schemas import CMD_COLUMNS
+    from tests.test_ros2_link import Pipeline, received, stop
+
+    pipe = Pipeline(tmp_path, ros_domain)
+    pipe.overrides = [*SMALL, "robot=ros2", "robot.rehearsal=true", "robot.time_scale=4.0",
+                      "robot.num_runs=2", "exploration.num_steps=60", "robot.watchdog_s=1.0",
+                      "robot.stop_timeout_s=2.0", "robot.startup_timeout_s=60",
+                      "robot.twin.seed=5", "robot.twin.physics.chamber_gains=[0.85,1.15,1.0]"]
+    record = tmp_path / "twin_received.jsonl"
+    twin = pipe.start("twin", f"robot.twin.record_path={record}", "robot.twin.max_duration_s=900")
+    try:
+        assert pipe.start("collect").wait(timeout=300) == 0, pipe.log("collect")
+        assert pipe.start("train_ppo").wait(timeout=400) == 0, pipe.log("train_ppo")
+        collected = len(received(record))
+        assert pipe.start("improve").wait(timeout=600) == 0, pipe.log("improve")
+    finally:
+        assert stop(twin) == 0, pipe.log("twin")
+    sent = received(record)[CMD_COLUMNS].to_numpy()[collected:]
+    assert len(sent) >= 20  # 2 goals of 5 s at 2 Hz, then the preload
+    np.testing.assert_allclose(sent[-1], [2.0, 2.0, 2.0])
+    assert np.isfinite(sent).all() and sent.max() <= 7.0 and sent.sum(axis=1).max() <= 13.0
+    store = ArtifactStore(pipe.out / "artifacts")
+    (last,) = [p for p in (store.root / "improve").iterdir()
+               if (p / "rounds.parquet").is_file() and json.loads(
+                   (p / "artifact.json").read_text())["spec"]["round"] == 1]
+    table = pd.read_parquet(last / "rounds.parquet")
+    assert table["round"].tolist() == [0, 1] and table["drive_goals"].iloc[1] == 2
+    assert np.isfinite(table["model_after_mean_mm"].iloc[1])

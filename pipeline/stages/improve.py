@@ -92,6 +92,7 @@ def improve(cfg: Any) -> Artifact | None:
     if cfg.get("dry_run"):
         log.info("improve: dry run, nothing runs\n%s", plan_table(cfg, settings, store, pool))
         return None
+    chain.stage_function(Stage.evaluate)(rounds[0].evaluation)  # the deployed policy
     artifact = finish_round(store, settings, rounds[0], None, [])
     sessions: list[str] = []
     for index in range(1, settings.rounds + 1):
@@ -365,8 +366,6 @@ def finish_round(store: ArtifactStore, settings: ImproveConfig, current: Round,
     """The round's artifact: its row appended to ``previous``'s table (the first round's
     evaluation when ``previous`` is None)."""
     spec, inputs = round_spec(settings, current, previous, drives)
-    if current.index == 0:  # the deployed policy is evaluated first
-        chain.stage_function(Stage.evaluate)(current.evaluation)
 
     def build(writer: ArtifactWriter) -> None:
         evaluation = store.require("evaluate", inputs["evaluate"])

@@ -230,6 +230,18 @@ def closing_summary(stage: str, results: dict[str, Any], run: RunFacts,
                   *text_table(tracking[[c for c in ("rmse_mm", "p95_mm", "max_mm", "lag_s",
                                                     "within_1mm", "offset_mm", "at_limits")
                                         if c in tracking]])]
+    rounds = results.get("improve")
+    if rounds is not None and hasattr(rounds, "path") and (rounds.path /
+                                                           "rounds.parquet").is_file():
+        table = pd.read_parquet(rounds.path / "rounds.parquet")
+        shown = {"round": "round", "arm_s": "arm_s", "wall_compute_s": "compute_s",
+                 "model_before_mean_mm": "model_before_mm", "model_after_mean_mm":
+                 "model_after_mm", "plant_median_mm": "median_mm", "plant_within_1mm":
+                 "within_1mm", "plant_p90_mm": "p90_mm", "plant_held_arrivals": "held"}
+        lines += ["", f"Rounds on {table['plant'].iloc[0]} (round 0: the deployed policy; the "
+                  "model's error on the round's sessions before and after its refit [mm]; the "
+                  "policy on the plant [mm, shares]):",
+                  *text_table(table[list(shown)].rename(columns=shown).round(3))]
     last = next((results[s] for s in reversed(list(results)) if hasattr(results[s], "path")),
                 None)
     if last is not None:

@@ -215,8 +215,11 @@ def test_a_failing_stop_still_flushes_the_records(tmp_path):
                        SETTINGS)
     with pytest.raises(RuntimeError, match="the middleware is gone"):
         loop.run()
-    assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["periods-00000.parquet"]
+    # the periods and every pose frame taken, each in its first chunk
+    assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["frames-00000.parquet",
+                                                                     "periods-00000.parquet"]
     assert len(recorder.read_all()) == 5  # 4 periods and the final pose
+    assert len(recorder.read_frames()) >= 5
 
 
 def test_the_float64_check_refuses_inside_the_publish_path(tmp_path, monkeypatch):

@@ -32,7 +32,7 @@ class ImproveConfig:
     # ensemble's models disagree on most) or walk (the exploration walk as collect draws it)
     explore: str = "disagreement"
     explore_candidates: int = 32
-    explore_walk_s: float = 30.0  # arm seconds of each exploration walk
+    explore_walk_s: float = 30.0  # arm seconds of each exploration walk (its preload padding in)
     goal_s: float | None = None  # arm s each goal is held (null: the env's episode)
     plant: str | None = None
     refit: str = "warm"  # warm: each model starts from the last round's; scratch: a fresh one

@@ -256,7 +256,9 @@ def next_round(cfg: Any, settings: ImproveConfig, store: ArtifactStore, last: Ro
     walks = []
     count = walk_count(settings)
     if count:
-        steps = max(1, round(settings.explore_walk_s * float(cfg.robot.control_hz)))
+        # a walk's commands, its preload padding before and after included, fill walk_s
+        steps = max(1, round(settings.explore_walk_s * float(cfg.robot.control_hz))
+                    - 2 * int(cfg.exploration.pad_steps))
         exploration = OmegaConf.merge(cfg.exploration, {
             "num_steps": steps, "seed": int(cfg.exploration.seed) + 7919 * index
             + 104729 * int(settings.seed)})

@@ -287,3 +287,26 @@ def test_a_round_over_ros2_on_the_twin(tmp_path, ros_domain):
     table = pd.read_parquet(last / "rounds.parquet")
     assert table["round"].tolist() == [0, 1] and table["drive_goals"].iloc[1] == 2
     assert np.isfinite(table["model_after_mean_mm"].iloc[1])
+
+
+@pytest.mark.slow
+def test_a_round_explores_where_the_ensemble_disagrees(tmp_path):
+    """Half the round's arm time on the walk its two models disagree on most: an explore
+    artifact of the chosen walk, joined to the refit's data beside the goals' session."""
+    overrides = [*SMALL, "env.ensemble_seeds=2", "improve.arm_s=20",
+                 "improve.explore_share=0.5", "improve.explore_walk_s=10",
+                 "improve.explore_candidates=4"]
+    for job in chain.plan(compose_config(tmp_path, *overrides, "stage=train_ppo"),
+                          lambda variant: keys.key("train_ppo", variant)):
+        chain.stage_function(job.stage)(job.cfg)
+    artifact = improve(compose_config(tmp_path, *overrides, "stage=improve"))
+    store = ArtifactStore(tmp_path / "artifacts")
+    (walk,) = [p for p in (store.root / "explore").iterdir() if (p / "artifact.json").is_file()]
+    summary = json.loads((walk / "artifact.json").read_text())["summary"]
+    # the chosen walk is the most disputed of the candidates
+    assert summary["disagreement_mm2"] >= summary["median_candidate_mm2"] > 0
+    session = read_session(walk)
+    assert session.provenance["stage"] == "explore" and len(session.targets) == 0
+    assert 9.0 <= float(session.mocap["t"].iloc[-1] - session.mocap["t"].iloc[0]) <= 10.5
+    row = pd.read_parquet(artifact.file("rounds.parquet")).iloc[-1]
+    assert row["sessions"] == 2 and row["drive_goals"] == 2 and 19.0 <= row["arm_s"] <= 21.0

@@ -8,11 +8,13 @@ importing the stage that made them, and sweeps share upstream artifacts.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from pipeline.arm.twins import twin_physics
@@ -406,10 +408,6 @@ def explore_spec(drive: Any, candidates: Any, walk: int) -> dict[str, Any]:
     """An exploration walk of ``stage=improve`` (its inputs: the models whose disagreement
     chose it): the arm it is driven on (``drive``: the round's control config), its session
     and the candidate walks' content."""
-    import hashlib
-
-    import numpy as np
-
     digest = hashlib.sha256(np.ascontiguousarray(candidates, np.float64).tobytes()).hexdigest()
     return _versioned("explore", {"robot": _session_robot(drive),
                                   "arm_seed": int(drive.control.arm_seed), "walk": int(walk),

@@ -102,7 +102,7 @@ def improve(cfg: Any) -> Artifact | None:
                   else [])
         drives += drive_walks(current, last, store, settings, model_steps_per_command,
                               start_pose)
-        sessions = [*sessions, *(artifact.key for artifact in drives)]
+        sessions = [*sessions, *(drive.key for drive in drives)]
         current = next_round(cfg, settings, store, last, sessions, pool, index)
         for job in round_jobs(current):
             chain.stage_function(job.stage)(job.cfg)

@@ -219,6 +219,10 @@ def test_evaluate_runs_the_cross_model_protocol_on_recorded_runs(make_cfg, sorol
     assert set(on_twin["controller"]) == {"ppo_ff", "preload"}
     assert np.isfinite(on_twin["median_final_mm"]).all()
     assert (on_twin["time_above_limits"] == 0).all()
+    # the goals the twin can hold, and each controller's success on those (evaluation.reach:
+    # the twins by default, not the learned model)
+    assert ((on_twin["reachable_goals"] >= 0) & (on_twin["reachable_goals"] <= 1)).all()
+    assert summary.loc[summary["plant"] == "learned", "reachable_goals"].isna().all()
     table = pd.read_parquet(evaluated.file("cross_model.parquet"))
     assert set(table["direction"]) == {"A->B", "B->A"}
     assert set(zip(table["plant"], table["controller"])) == {

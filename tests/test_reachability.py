@@ -132,3 +132,12 @@ def test_the_reach_runs_on_the_evaluations_own_plants_goals_and_starts():
     assert preload_mismatch_mm(reach, episodes) < 1e-3
     # the nearest hold is never further than holding the preload, which is admissible
     assert (reach["reach_mm"] <= reach["preload_mm"] + 1e-6).all()
+
+
+def test_the_reach_is_found_on_the_twins_unless_asked_for_everywhere():
+    from pipeline.evaluation.reachability import reach_plants
+
+    names = ["learned", "plant", "twin sim_sorolex", "model abc"]
+    assert reach_plants(names, None) == ["twin sim_sorolex"]
+    assert reach_plants(names, True) == names
+    assert reach_plants(names, False) == []

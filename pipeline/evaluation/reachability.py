@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import functools
 import itertools
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -339,24 +339,39 @@ def split_misses(episodes: pd.DataFrame, reach: pd.DataFrame, miss_mm: float = 1
 REACH_COLUMNS = ("reachable_goals", "success_reachable", "median_final_reachable_mm")
 
 
-def with_reach(results: dict[str, Any], settings: ReachSettings = ReachSettings()
-               ) -> dict[str, Any]:
+def reach_plants(names: Collection[str], which: bool | None) -> list[str]:
+    """The plants whose reach an evaluation finds (``evaluation.reach``): every one for true,
+    none for false, the calibrated twins (``twin <name>``) for None."""
+    if which is None:
+        return [name for name in names if str(name).startswith("twin ")]
+    return list(names) if which else []
+
+
+def with_reach(results: dict[str, Any], which: bool | None = None,
+               settings: ReachSettings = ReachSettings()) -> dict[str, Any]:
     """``results`` of :func:`pipeline.evaluation.closed_loop.run_evaluation` with the reach of
-    every plant's episodes: the table ``reach`` (:func:`evaluation_reach`) and, in ``summary``
+    the episodes of the plants :func:`reach_plants` picks (``which``: ``evaluation.reach``):
+    the table ``reach`` (:func:`evaluation_reach`) and, in ``summary``
     and the headline, per plant and controller the share of the goals the plant can hold at
     all (``reachable_goals``) and the controller's success and median on those
     (``success_reachable``, ``median_final_reachable_mm``; :func:`split_misses`), so that a
     goal no constant admissible command holds the plant at is not counted as the
     controller's miss."""
     tables = results["tables"]
-    reach = evaluation_reach(results["plants"], results["goals"], settings)
-    split = split_misses(tables["episodes"], reach, float(settings.tolerance_mm))
+    chosen = reach_plants(results["plants"], which)
+    if not chosen:
+        return results
+    reach = evaluation_reach({name: results["plants"][name] for name in chosen},
+                             results["goals"], settings)
+    episodes = tables["episodes"]
+    split = split_misses(episodes[episodes["plant"].isin(chosen)], reach,
+                         float(settings.tolerance_mm))
     tables["reach"] = reach
     tables["summary"] = tables["summary"].merge(
         split[["plant", "controller", *REACH_COLUMNS]], on=["plant", "controller"], how="left")
     for row in tables["summary"].itertuples():
         entry = results["headline"].get(f"{row.plant}/{row.controller}")
-        if entry is not None:
+        if entry is not None and row.plant in chosen:
             entry.update({name: float(getattr(row, name)) for name in REACH_COLUMNS[:2]})
     return results
 

@@ -70,6 +70,10 @@ class EvaluationConfig:
     # calibrate artifact (key or folder); observed like the training env, same goals, started
     # where its physics rest it at the preload (one arm, one rest pose)
     twins: list[str] = field(default_factory=list)
+    # the goals each plant can hold at all (pipeline/evaluation/reachability.py), and each
+    # controller's success on those: null on the twins only (where the physics differ from the
+    # model's), true on every plant, false on none (the search takes minutes per plant on CPU)
+    reach: bool | None = None
     # The cross-model protocol, for recorded data: the recordings split into two disjoint groups
     # (A: cross_model_group_a, by name; empty: every other of the sorted names; B: the rest),
     # each with its own fit_model; every policy type trained in each group's model (this

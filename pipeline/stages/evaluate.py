@@ -114,7 +114,7 @@ def evaluate(cfg: Any) -> Artifact:
                  for name, physics in spec["evaluation"].get("twins", {}).items()}
         loaded = _load_policies(policies)
         results = with_reach(run_evaluation(closed_loop_settings(cfg), loaded, env, eval_params,
-                                            models, twins))
+                                            models, twins), cfg.evaluation.reach)
         if Task(cfg.env.task) is Task.track:
             tracking = tracking_settings(cfg, recorded_paths(inputs))
             tracked = run_tracking(closed_loop_settings(cfg), tracking, loaded, env, eval_params,

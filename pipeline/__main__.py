@@ -101,9 +101,10 @@ def run(cfg: Any) -> dict[str, Any]:
         keys.evaluation_twins(cfg)  # an unknown twin fails now, not after the training
     jobs = plan(cfg, lambda variant: keys.key("train_ppo", variant))
     if cfg.get("dry_run"):
-        log.info("dry run: %d jobs, nothing runs\n%s", len(jobs), plan_table(jobs))
         if STAGES[stage].plans_itself:  # its own plan: the jobs it will compose
             stage_function(stage)(cfg)
+        else:
+            log.info("dry run: %d jobs, nothing runs\n%s", len(jobs), plan_table(jobs))
         return {}
     results: dict[str, Any] = {}
     position = 0

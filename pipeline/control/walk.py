@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.data.schemas import CMD_COLUMNS, XYZ
+from pipeline.data.sessions import increasing
 from pipeline.ros2.gate import CommandGate
 
 
@@ -40,7 +41,7 @@ def drive_walk(arm, gate: CommandGate, commands: np.ndarray, control_hz: float, 
     positions = np.array([frame[2] for frame in frames], np.float64).reshape(-1, len(XYZ))
     # the mocap table's times increase: a frame whose jittered stamp is not after every earlier
     # one is dropped (as a dropped frame)
-    later = stamps > np.maximum.accumulate(np.concatenate([[-np.inf], stamps[:-1]]))
+    later = increasing(stamps)
     stamps, positions = stamps[later], positions[later]
     mocap_rows = pd.DataFrame({"run_id": run_id, "t": stamps,
                                **{axis: positions[:, k] for k, axis in enumerate(XYZ)},

@@ -75,11 +75,11 @@ def session_tables(periods: pd.DataFrame, frames: pd.DataFrame, run_id: str, sou
     """
     sent = periods[np.isfinite(periods["publish_t"].to_numpy(np.float64))
                    & (periods["goal_index"].to_numpy() != -1)]
-    sent = sent.loc[_increasing(sent["publish_t"].to_numpy(np.float64))]
+    sent = sent.loc[increasing(sent["publish_t"].to_numpy(np.float64))]
     commands = pd.DataFrame({"run_id": run_id, "t": sent["publish_t"].to_numpy(np.float64),
                              **{c: sent[c].to_numpy(np.float64) for c in CMD_COLUMNS[:n_valves]}})
     stamps = frames["t"].to_numpy(np.float64)
-    kept = frames.loc[_increasing(stamps)]
+    kept = frames.loc[increasing(stamps)]
     valid = kept["valid"].to_numpy(bool)
     mocap = pd.DataFrame({"run_id": run_id, "t": kept["t"].to_numpy(np.float64),
                           **{a: np.where(valid, kept[a].to_numpy(np.float64), np.nan)
@@ -108,7 +108,7 @@ def walk_tables(commands: pd.DataFrame, mocap: pd.DataFrame, run_id: str, source
     return SessionRun(commands, mocap, runs, empty, {})
 
 
-def _increasing(values: np.ndarray) -> np.ndarray:
+def increasing(values: np.ndarray) -> np.ndarray:
     """Mask of the entries greater than every earlier one."""
     previous = np.maximum.accumulate(np.concatenate([[-np.inf], values[:-1]]))
     return values > previous

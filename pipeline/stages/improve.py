@@ -205,7 +205,7 @@ def round_config(cfg: Any, settings: ImproveConfig, store: ArtifactStore, last: 
     the policy warm started from ``last``'s."""
     members = [keys.key("fit_model", last.cfg),
                *(keys.key("fit_model", member) for member in chain.ensemble_configs(last.cfg))]
-    policy = store.path("train_ppo", keys.key("train_ppo", chain.control_policy_config(last.cfg)))
+    policy = policy_folder(store, last.cfg)
     dataset: dict[str, Any] = {"sessions": list(sessions)}
     if chain.model_protocol(cfg).value == "cv":  # every run trains, as the cv's final model
         dataset.update({"protocol": "split", "train_fraction": 1.0})
@@ -218,6 +218,11 @@ def round_config(cfg: Any, settings: ImproveConfig, store: ArtifactStore, last: 
                       "recurrent_total_timesteps": int(settings.policy_timesteps)})
     return OmegaConf.merge(cfg, {"dataset": dataset, "model": model, "agent": agent,
                                  "force": False})
+
+
+def policy_folder(store: ArtifactStore, cfg: Any) -> Path:
+    """Where the train_ppo artifact of ``cfg``'s deployed policy (``control.policy``) lies."""
+    return store.path("train_ppo", keys.key("train_ppo", chain.control_policy_config(cfg)))
 
 
 def plant_robot(cfg: Any, settings: ImproveConfig) -> Any:
@@ -236,7 +241,7 @@ def plant_robot(cfg: Any, settings: ImproveConfig) -> Any:
 def drive_config(cfg: Any, settings: ImproveConfig, store: ArtifactStore, last: Round,
                  goals_mm: list[list[float]], index: int) -> Any:
     """``stage=control`` with ``last``'s policy on the plant toward ``goals_mm``."""
-    policy = store.path("train_ppo", keys.key("train_ppo", chain.control_policy_config(last.cfg)))
+    policy = policy_folder(store, last.cfg)
     drive = OmegaConf.merge(cfg, {"stage": "control", "force": False, "control": {
         "policy_file": str(policy / "policy.msgpack"), "goals": goals_mm, "goals_csv": None,
         "trajectory": None, "hold_s": goal_seconds(cfg, settings),

@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 EXTRAS ?= dev,ros,docs
 
 .DEFAULT_GOAL := help
-.PHONY: help setup setup-ros setup-cuda run quick test test-all lint bench figures docs clean
+.PHONY: help setup setup-ros setup-cuda run quick test test-slow test-all lint bench figures docs clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-10s %s\n", $$1, $$2}'
@@ -28,8 +28,11 @@ run: ## run the whole pipeline on the simulated arm (the embedded default)
 quick: ## the whole pipeline shrunk to CI size
 	$(BIN)/python -m pipeline experiment=quick
 
-test: ## the fast test suite (what CI runs)
+test: ## the fast test suite (CI runs it, then test-slow)
 	$(BIN)/python -m pytest -m "not slow" -n 2
+
+test-slow: ## the slow tests alone: the ROS 2 fault injection, integration runs, whole figures
+	$(BIN)/python -m pytest -m slow -n 2
 
 test-all: ## every test, slow ones included
 	$(BIN)/python -m pytest -n 2

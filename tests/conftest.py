@@ -2,16 +2,23 @@
 
 from __future__ import annotations
 
+import copy
+import fcntl
+import functools
 import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 # Before JAX starts, for this process and every pipeline process a test starts:
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # as the entry point (pipeline/__main__.py)
-# XLA's lowest backend optimization. The suite's programs run a few steps on tiny inputs, so
-# compiling them is most of its time, and at this level it takes about half as long (the same
-# programs and results to float rounding; the pipeline itself compiles at XLA's default). A
-# caller's own XLA_FLAGS are kept as they are.
-os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
+# XLA's lowest backend optimization, and its CPU backend's older emitters instead of the fusion
+# emitters. The suite's programs run a few steps on tiny inputs, so compiling them is most of its
+# time: the level halves it, and the older emitters compile the same programs (a PPO training's
+# 35) in about a third of the time again (the same results to float rounding; the pipeline itself
+# compiles at XLA's defaults). A caller's own XLA_FLAGS are kept as they are.
+os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0 "
+                                   "--xla_cpu_use_fusion_emitters=false")
 # One CPU device per test worker and pipeline process (the workers already use every core); the
 # split over several devices has its own tests (test_devices.py), in processes of their own.
 os.environ.setdefault("JAX_NUM_CPU_DEVICES", "1")
@@ -33,9 +40,44 @@ use_compilation_cache(os.environ["SOROLEARN_COMPILE_CACHE"])
 
 
 def compose_config(output_dir: Path | str, *overrides: str) -> DictConfig:
-    """The pipeline's composed config, writing under ``output_dir``."""
+    """The pipeline's composed config, writing under ``output_dir``.
+
+    Composing takes a quarter of a second and the suite composes the same overrides hundreds of
+    times, so each worker composes them once and hands out copies (``paths.output_dir`` set on
+    the copy: everything under it is an interpolation, resolved when read)."""
+    if any(o.lstrip("+~").startswith("paths.output_dir=") for o in overrides):
+        return _compose((f"paths.output_dir={output_dir}", *overrides))
+    cfg = copy.deepcopy(_composed(tuple(overrides)))
+    cfg.paths.output_dir = str(output_dir)
+    return cfg
+
+
+def _compose(overrides: tuple[str, ...]) -> DictConfig:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=[f"paths.output_dir={output_dir}", *overrides])
+        return compose("config", overrides=list(overrides))
+
+
+@functools.cache
+def _composed(overrides: tuple[str, ...]) -> DictConfig:
+    return _compose(("paths.output_dir=unset", *overrides))
+
+
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Path:
+    """A folder ``build`` fills once for the whole test session, whichever worker asks first:
+    the others wait for it and share it (a module fixture would build it once per worker, and
+    again whenever a worker comes back to the module)."""
+    root = tmp_path_factory.getbasetemp()
+    if "PYTEST_XDIST_WORKER" in os.environ:
+        root = root.parent  # the workers' common folder
+    folder = root / f"built-{name}"
+    with open(root / f"built-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not (folder / ".done").is_file():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            (folder / ".done").touch()
+    return folder
 
 
 @pytest.fixture

@@ -123,6 +123,7 @@ def test_a_walk_outside_the_limits_stops_at_the_preload(make_cfg):
 
 @pytest.mark.parametrize("override, message", [
     ("adapt.walk_s=0", "adapt.walk_s=0.0 must be finite and > 0"),
+    ("adapt.max_fold_error_mm=-1", "adapt.max_fold_error_mm=-1.0 must be finite and > 0"),
     ("adapt.mechanism=magic", "adapt.mechanism='magic' must be one of"),
     ("adapt.output=skew", "adapt.output='skew' must be one of"),
     ("adapt.steps=-1", "adapt: adaptation steps must be an integer >= 0"),
@@ -165,6 +166,7 @@ def test_adapt_runs_alone_and_only_when_named(make_cfg):
                 if job.stage is Stage.adapt]
 
 
+@pytest.mark.slow  # a pipeline process
 def test_the_entry_point_refuses_a_bad_walk_in_one_line(tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     result = subprocess.run(

@@ -6,6 +6,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from pipeline.chain import STAGES
 from pipeline.cli import unknown_key_message
 from pipeline.config import PROJECT_ROOT
@@ -67,6 +69,7 @@ def test_the_entry_point_and_the_guard_start_without_jax():
     assert done.stdout.strip() == "[]"
 
 
+@pytest.mark.slow  # two pipeline processes
 def test_stages_that_reuse_the_simulated_arms_collection_start_without_jax(tmp_path):
     """Only simulating the arm needs JAX: align, on a collection already recorded, runs without."""
     script = ("import sys\n"

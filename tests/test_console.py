@@ -134,6 +134,28 @@ def test_closing_summary_of_the_chain(tmp_path, make_cfg, monkeypatch):
     assert len(lines) < 25  # read in ten seconds
 
 
+@pytest.mark.parametrize("rate, shown", [(0.75, "75"), (None, "–")])
+def test_closing_summary_of_a_training_with_or_without_goals(tmp_path, make_cfg, rate, shown):
+    """train_ppo alone: its own final evaluation, the share within 1 mm only where the env has
+    goals (a gymnax env has none: its summary holds None)."""
+    import json
+    from types import SimpleNamespace
+
+    from pipeline.__main__ import run_facts
+    from pipeline.evaluation.summary import closing_summary
+
+    train = tmp_path / "artifacts" / "train_ppo" / "abc"
+    train.mkdir(parents=True)
+    (train / "artifact.json").write_text(json.dumps({"summary": {
+        "agent": "ppo_ff", "env": "Pendulum-v1", "num_seeds": 2, "timesteps_per_seed": 64,
+        "final_eval_median_distance_mm": None, "final_eval_success_rate": rate}}))
+    lines = closing_summary("train_ppo", {"train_ppo": SimpleNamespace(path=train)},
+                            run_facts(make_cfg()), [])
+    row = next(line for line in lines if line.startswith("ppo_ff"))
+    assert row.split()[:5] == ["ppo_ff", "Pendulum-v1", "2", "64", "–"]
+    assert row.split()[-1] == shown
+
+
 def test_the_report_opens_with_the_summary_table(tmp_path):
     import pandas as pd
 

@@ -80,22 +80,29 @@ def test_controllers_rolled_out_together_match_each_rolled_out_alone(make_cfg):
     assert [run[0].shape for run in together] == [(2, episodes, 7, 3), (1, episodes, 7, 3),
                                                   (1, episodes, 7, 3)]
 
-    def alone(controller, deadband, episode):
-        return jax.jit(lambda p: rollouts.rollout(
-            env, p, controller, jnp.zeros((), jnp.int32), keys[episode],
-            jax.tree.map(lambda x: x[episode], starts[0]), starts[1][episode], goals[episode],
-            deadband=deadband))(params)
+    def one(controller, deadband):  # one program per kind, every seed and episode its input
+        return jax.jit(lambda p, gains, key, carry, start, goal: rollouts.rollout(
+            env, p, controller(gains), jnp.zeros((), jnp.int32), key, carry, start, goal,
+            deadband=deadband))
+
+    programs = (one(lambda gains: gain(gains, params), True),
+                one(lambda _: rollouts.random_controller(), False),
+                one(lambda _: rollouts.preload_controller(env, params), False))
+
+    def alone(number, gains, episode):
+        return programs[number](params, gains, keys[episode],
+                                jax.tree.map(lambda x: x[episode], starts[0]),
+                                starts[1][episode], goals[episode])
 
     held = 0
     for episode in range(episodes):
         for seed in range(2):
-            positions, commands = alone(gain(seeds[seed], params), True, episode)
+            positions, commands = alone(0, seeds[seed], episode)
             np.testing.assert_allclose(together[0][0][seed, episode], positions, atol=1e-6)
             np.testing.assert_allclose(together[0][1][seed, episode], commands, atol=1e-5)
             held += int((np.abs(np.diff(np.asarray(commands), axis=0)).max(-1) < 1e-6).sum())
-        for number, controller in ((1, rollouts.random_controller()),
-                                   (2, rollouts.preload_controller(env, params))):
-            positions, commands = alone(controller, False, episode)
+        for number in (1, 2):
+            positions, commands = alone(number, seeds[0], episode)
             np.testing.assert_allclose(together[number][0][0, episode], positions, atol=1e-6)
             np.testing.assert_allclose(together[number][1][0, episode], commands, atol=1e-5)
     assert held > 0  # the deadband kept some command
@@ -111,6 +118,7 @@ TINY = ["experiment=quick", "robot.num_runs=2", "exploration.num_steps=40",
         "model.checkpoint_every=10", "dataset.window=32", "dataset.train_fraction=0.5"]
 
 
+@pytest.mark.slow  # every stage for real, about 85 s cold; each stage has fast tests of its own
 def test_the_whole_chain_runs_through_the_real_stages_into_a_report(make_cfg, monkeypatch):
     cfg = make_cfg(*TINY)
     results = run(cfg)  # collect -> align -> fit_model -> train_ppo (both types) -> evaluate

@@ -32,7 +32,7 @@ from pipeline.dynamics.model import predict_sequence
 from pipeline.infra.artifacts import ArtifactStore
 from pipeline.schemas import ConfigError, PressureRating, Stage
 from pipeline.stages.improve import goal_pool, improve
-from tests.conftest import compose_config
+from tests.conftest import built_once, compose_config
 from tests.test_adapt_stage import small_model
 
 # the quick chain shrunk further: one seed of the gradient trainer, a small model
@@ -121,17 +121,23 @@ def test_a_session_of_another_arm_or_rate_is_refused_naming_it(tmp_path):
 # ------------------------------------------------------------------------------------------------
 # the stage, end to end on the simulated arm
 # ------------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    """The shrunk quick chain's policy (``control.policy=apg``) under a module's outputs."""
-    output = tmp_path_factory.mktemp("improve") / "outputs"
+def _train(folder):
+    output = folder / "outputs"
     cfg = compose_config(output, *SMALL)
     policy = chain.control_policy_config(cfg)
     for job in chain.plan(compose_config(output, *SMALL, "stage=train_ppo", "agent=apg"),
                           lambda variant: keys.key("train_ppo", variant)):
         chain.stage_function(job.stage)(job.cfg)
     assert ArtifactStore(cfg.paths.artifact_dir).find("train_ppo", keys.key("train_ppo", policy))
-    return output
+
+
+@pytest.fixture
+def trained(tmp_path_factory, tmp_path):
+    """The shrunk quick chain's policy (``control.policy=apg``): trained once for the session,
+    each test writing into its own copy of the outputs."""
+    built = built_once(tmp_path_factory, "improve", _train)
+    shutil.copytree(built / "outputs", tmp_path / "outputs")
+    return tmp_path / "outputs"
 
 
 def test_rounds_run_end_to_end_and_resume_after_an_interruption(trained, monkeypatch):
@@ -213,6 +219,7 @@ def test_bad_settings_are_refused_naming_them(trained, override, message):
         improve(cfg)
 
 
+@pytest.mark.slow  # a pipeline process; fast: the same refusal in process (above)
 def test_the_entry_point_refuses_a_budget_beyond_the_rating_in_one_line(tmp_path):
     env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
     result = subprocess.run(

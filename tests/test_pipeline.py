@@ -29,6 +29,8 @@ def pipeline_cmd(output_dir, *overrides):
         cwd=PROJECT_ROOT, env=env, capture_output=True, text=True, timeout=300)
 
 
+# three pipeline processes; fast: the same stages in process (test_align.py, below)
+@pytest.mark.slow
 def test_quick_collect_then_align_on_the_simulated_arm(tmp_path):
     out = tmp_path / "outputs"
     first = pipeline_cmd(out, "experiment=quick", "stage=collect")
@@ -132,6 +134,7 @@ def test_align_refuses_interrupted_runs_unless_told(make_cfg):
     assert run(cfg)["align"].manifest["summary"]["runs"] == 2
 
 
+@pytest.mark.slow  # a multirun of two processes; fast: the launchers compose (test_sweeps.py)
 def test_multirun_sweeps_exploration_and_shares_nothing_it_should_not(tmp_path):
     out = tmp_path / "outputs"
     result = pipeline_cmd(out, "-m", "stage=collect", "experiment=quick", "robot.num_runs=1",

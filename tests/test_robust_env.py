@@ -3,7 +3,7 @@ incremental actions.
 
 Known answers on the linear-lag toy (``position = offset + G @ lagged``, ``lagged`` a first-order
 lag of the received pressure with factor 1/2 per plant step, five plant steps per period), the
-defaults unchanged bit for bit, the config and keys, and a shrunk train_ppo in an ensemble.
+defaults unchanged to float rounding, the config and keys, and a shrunk train_ppo in an ensemble.
 """
 
 from __future__ import annotations
@@ -108,24 +108,29 @@ def random_lstm(seed=0, hidden=8):
 
 
 @pytest.mark.parametrize("kind", ["linear_lag", "lstm"])
-def test_default_env_is_bit_for_bit_the_nominal_plant(kind):
+def test_default_env_is_the_nominal_plant_to_float_rounding(kind):
     plant, plant_params = None, None
     if kind == "lstm":
         plant, plant_params = learned_plant(10.0), random_lstm()
     env, params = toy(plant, plant_params, rest_pose_std=0.001, obs_noise_std_m=1e-4,
                       action_noise_std_kpa=0.3, reset_bank_size=8)
     reset, step = jax.jit(env.reset_env), jax.jit(env.step_env)
-    # the reference compiled too (XLA's fusions may differ from op-by-op rounding by an ulp)
+    # the reference compiled too (XLA's fusions may differ from op-by-op rounding by an ulp; the
+    # suite's older CPU emitters, conftest.py, fuse the two programs apart by a few): any draw
+    # of the randomization would move them by orders of magnitude more
     reference_reset = jax.jit(functools.partial(nominal_reset, env))
     reference_step = jax.jit(functools.partial(nominal_step, env))
     reference_obs = jax.jit(nominal_obs)
+    def same(actual, expected):
+        np.testing.assert_allclose(actual, expected, rtol=1e-6, atol=1e-6)
+
     for episode in range(3):
         key = jax.random.PRNGKey(episode)
         obs, state = reset(key, params)
         carry, position, goal, obs_key = reference_reset(key, params)
-        np.testing.assert_array_equal(obs, reference_obs(obs_key, position, goal, PRELOAD,
+        same(obs, reference_obs(obs_key, position, goal, PRELOAD,
                                                          params))
-        np.testing.assert_array_equal(state.position, position)
+        same(state.position, position)
         last = PRELOAD
         for t in range(6):
             step_key = jax.random.PRNGKey(100 * episode + t)
@@ -133,13 +138,13 @@ def test_default_env_is_bit_for_bit_the_nominal_plant(kind):
             obs, state, reward, _, info = step(step_key, state, action, params)
             carry, position, last, obs_key = reference_step(step_key, carry, position, goal,
                                                             last, action, params)
-            np.testing.assert_array_equal(state.position, position)
-            np.testing.assert_array_equal(info["pressure"], last)
-            np.testing.assert_array_equal(reward, -1000.0 * jnp.linalg.norm(goal - position))
-            np.testing.assert_array_equal(obs, reference_obs(obs_key, position, goal, last,
+            same(state.position, position)
+            same(info["pressure"], last)
+            same(reward, -1000.0 * jnp.linalg.norm(goal - position))
+            same(obs, reference_obs(obs_key, position, goal, last,
                                                              params))
             for a, b in zip(jax.tree.leaves(state.plant_carry), jax.tree.leaves(carry)):
-                np.testing.assert_array_equal(a, b)
+                same(a, b)
 
 
 def test_default_randomization_draws_the_nominal_plant():
@@ -245,7 +250,7 @@ def test_saturating_chambers_get_the_command_pulled_toward_the_preload():
     np.testing.assert_allclose(after.position, state.position + gain_matrix @ (received - 2.0),
                                atol=1e-6)
     np.testing.assert_allclose(after.last_pressure, command, atol=1e-6)  # what the policy sent
-    # none (0): the command as sent (bit for bit: test_default_env_is_bit_for_bit_...)
+    # none (0): the command as sent (test_default_env_is_the_nominal_plant_to_float_rounding)
     nominal = hold_command(env, params, state, command, periods=1)
     np.testing.assert_allclose(nominal.perturbation.received, command, atol=1e-6)
 

@@ -173,6 +173,44 @@ def test_collect_stalled_beyond_max_missed_periods_stops_then_commands_the_prelo
     assert len(link.wire) == 5
 
 
+def test_a_stop_signal_mid_collect_ends_at_the_preload_and_keeps_the_records(tmp_path):
+    # Ctrl-C (or SIGTERM) as collect's StopSignals record it, after the third command went out
+    clock = Clock()
+    link = FakeLink(clock)
+    run = session(tmp_path, link, clock)
+    publish = link.publish
+
+    def publish_then_signal(pressures):
+        stamp = publish(pressures)
+        if len(link.wire) == 3:
+            run.signals.received = "SIGINT"
+        return stamp
+
+    link.publish = publish_then_signal
+    stopped = run.play([("r0", walk())])
+    assert stopped.reason == "SIGINT received"
+    run.stop_safely()
+    assert [p for _, p in link.wire] == [[2.5, 2.0, 2.0], [3.0, 2.0, 2.0], [3.5, 2.0, 2.0],
+                                         PRELOAD]
+    commands, _ = run.recorder.read_all()
+    assert len(commands) == 3  # every command that went out, and only those
+
+
+def test_stop_signals_become_a_flag_the_loop_polls_and_the_handlers_come_back():
+    import os
+    import signal
+
+    from pipeline.ros2.node import StopSignals
+
+    before = {sig: signal.getsignal(sig) for sig in StopSignals.SIGNALS}
+    with StopSignals() as signals:
+        os.kill(os.getpid(), signal.SIGTERM)  # delivered before kill returns (own thread)
+        assert signals.received == "SIGTERM"
+        os.kill(os.getpid(), signal.SIGINT)  # a second signal cannot cut the safe stop short
+        assert signals.received == "SIGTERM"
+    assert {sig: signal.getsignal(sig) for sig in StopSignals.SIGNALS} == before
+
+
 def test_the_float64_check_refuses_inside_collects_publish_path(tmp_path, monkeypatch):
     # a projection that lets an unsafe command through (a bug upstream): 2.5 + 4.5 kPa on valve 0
     # is 7.0 kPa, at the rating, and goes out; 3 + 4.5 = 7.5 kPa is refused

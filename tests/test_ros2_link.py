@@ -112,6 +112,8 @@ def assert_within_limits(pressures: np.ndarray) -> None:
     assert pressures.sum(axis=1).max() <= LIMITS["sum_max"]
 
 
+# two processes over ROS 2; fast: collect's loop on a fake link (test_ros2_faults.py)
+@pytest.mark.slow
 def test_twin_collect_align_end_to_end(tmp_path, ros_domain):
     pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=8")
     record = tmp_path / "twin_received.jsonl"
@@ -189,6 +191,7 @@ def _partial_artifact(pipe: Pipeline):
     return artifact, commands
 
 
+@pytest.mark.slow  # two processes; fast: collect on a stop signal and a stall (test_ros2_faults.py)
 def test_sigint_and_watchdog_stop_collect_safely_and_keep_the_data(tmp_path, ros_domain):
     """One twin, two interrupted collects with the same config: Ctrl-C, then the twin dies."""
     pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=40")

@@ -24,6 +24,7 @@ SLACK_S = 1.0  # wall: scheduling on a busy machine (2 cores, the suite running 
 PRELOAD = [2.0, 2.0, 2.0]  # the rating's
 
 
+@pytest.mark.slow  # two processes; fast: the twin's deadman by hand (test_ros2_faults.py)
 def test_twin_returns_to_the_preload_when_collect_is_killed(tmp_path, ros_domain):
     pipe = Pipeline(tmp_path, ros_domain, "exploration.num_steps=40")
     record = tmp_path / "twin_received.jsonl"

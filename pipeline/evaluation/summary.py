@@ -210,8 +210,8 @@ def closing_summary(stage: str, results: dict[str, Any], run: RunFacts,
                "env": summary.get("env", ""), "seeds": summary.get("num_seeds"),
                "steps_per_seed": summary.get("timesteps_per_seed"),
                "median_final_mm": summary.get("final_eval_median_distance_mm"),
-               "reached_1mm_%": (round(100.0 * float(summary["final_eval_success_rate"]))
-                        if "final_eval_success_rate" in summary else None)}
+               "reached_1mm_%": (None if summary.get("final_eval_success_rate") is None
+                                 else round(100.0 * float(summary["final_eval_success_rate"])))}
         lines += ["", "Training's own final evaluation (held-out goals, in its environment):",
                   *text_table(pd.DataFrame([row]))]
     evaluation = results.get("evaluate")
